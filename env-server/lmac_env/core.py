@@ -1,0 +1,108 @@
+"""The Python half of the shm-schema contract: schema loading, the batch a step writes into,
+and the interface every vectorized environment implements.
+
+The schema files are the same TOML files the Rust crates read (``shm-schema``); this module
+only reads the fields the environments need. Validation with precise errors lives in Rust
+(``lmac envs --check``) and runs before any server starts.
+"""
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import tomllib
+
+import numpy as np
+
+SCHEMA_DIR = pathlib.Path(__file__).resolve().parent.parent / "schemas"
+
+
+@dataclasses.dataclass(frozen=True)
+class Schema:
+    name: str
+    n_agents: int
+    obs_dim: int
+    state_dim: int
+    n_actions: int
+    episode_limit: int
+    message_columns: int
+    alpha: float
+    path: pathlib.Path
+    raw: dict
+
+    @staticmethod
+    def load(path: str | pathlib.Path) -> "Schema":
+        path = pathlib.Path(path)
+        with open(path, "rb") as f:
+            raw = tomllib.load(f)
+        try:
+            return Schema(
+                name=raw["name"], n_agents=int(raw["n_agents"]), obs_dim=int(raw["obs_dim"]),
+                state_dim=int(raw["state_dim"]), n_actions=int(raw["n_actions"]),
+                episode_limit=int(raw["episode_limit"]),
+                message_columns=int(raw.get("message_columns", 0)), alpha=float(raw["alpha"]),
+                path=path, raw=raw)
+        except KeyError as e:
+            raise ValueError(f"{path}: missing field {e.args[0]!r}") from None
+
+
+def schema_path(env_name: str) -> pathlib.Path:
+    """`lbf:8x8-2p-2f-s1-coop` -> env-server/schemas/lbf/8x8-2p-2f-s1-coop.toml"""
+    family, sep, variant = env_name.partition(":")
+    if not sep or not family or not variant:
+        raise ValueError(f"environment name {env_name!r} must look like FAMILY:VARIANT")
+    return SCHEMA_DIR / family / f"{variant}.toml"
+
+
+@dataclasses.dataclass
+class Batch:
+    """Where one batched step is written. In the pipeline every field is a numpy view of the
+    shared-memory slot (no copy); in the raw benchmark they are ordinary arrays.
+
+    obs        float32 (B, n_agents, obs_dim)   (a strided view: message columns follow each row)
+    state      float32 (B, state_dim)
+    avail      uint8   (B, n_agents, n_actions) 1 = action available
+    reward     float32 (B,)   team reward of the step that led here
+    terminated uint8   (B,)   the environment ended the episode (win, loss, all food eaten)
+    truncated  uint8   (B,)   the episode hit a time limit
+    """
+    obs: np.ndarray
+    state: np.ndarray
+    avail: np.ndarray
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+
+    @staticmethod
+    def allocate(schema: Schema, num_envs: int) -> "Batch":
+        return Batch(
+            obs=np.zeros((num_envs, schema.n_agents, schema.obs_dim), np.float32),
+            state=np.zeros((num_envs, schema.state_dim), np.float32),
+            avail=np.zeros((num_envs, schema.n_agents, schema.n_actions), np.uint8),
+            reward=np.zeros(num_envs, np.float32),
+            terminated=np.zeros(num_envs, np.uint8),
+            truncated=np.zeros(num_envs, np.uint8))
+
+
+class VecEnv:
+    """B environments of one kind, stepped together.
+
+    Contract:
+    - ``reset(env_ids, out)`` starts new episodes in the listed envs and writes their first
+      obs/state/avail into those rows of ``out`` (other rows untouched).
+    - ``step(actions, out)`` applies int actions of shape (B, n_agents) to every env and writes
+      every row of obs/state/avail/reward/terminated; it may set ``truncated`` for an env's own
+      time limit. The server loop (lmac_env.server) counts episode steps, truncates at the
+      schema's episode_limit and calls ``reset`` for finished envs (auto-reset).
+    - Deterministic for a given ``seed`` passed to the constructor.
+    """
+    schema: Schema
+    num_envs: int
+
+    def reset(self, env_ids: np.ndarray, out: Batch) -> None:
+        raise NotImplementedError
+
+    def step(self, actions: np.ndarray, out: Batch) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass

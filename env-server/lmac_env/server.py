@@ -1,0 +1,230 @@
+"""The env server: steps B environments and writes every batched step straight into a slot of
+its shared-memory slab, then hands the slot to the protocol runner. The trainer hands it back
+with the chosen actions. Started by `lmac` (one process per server); also usable by hand:
+
+    python -m lmac_env.server --env lbf:8x8-2p-2f-s1-coop --envs 32 --run myrun --server 0 \
+        --n-servers 1 --slots 4 --msg-dim 29
+
+`python -m lmac_env.server --raw --steps 2000 ...` steps the same environments with random
+available actions and no pipeline (the baseline of `lmac bench pipeline`).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import signal
+import sys
+import time
+
+import numpy as np
+
+from .core import Batch, Schema, VecEnv, schema_path
+from .registry import make
+
+FLAG_FIRST = 1  # shm-schema layout.rs FLAG_FIRST
+
+
+@dataclasses.dataclass
+class Meta:
+    """Per-env bookkeeping written next to each step (views of the slot in the pipeline)."""
+    episode_id: np.ndarray    # uint64 (B,)
+    ep_step: np.ndarray       # uint32 (B,)
+    flags: np.ndarray         # uint32 (B,)
+    last_actions: np.ndarray  # int32 (B, n_agents)
+
+    @staticmethod
+    def allocate(schema: Schema, num_envs: int) -> "Meta":
+        return Meta(np.zeros(num_envs, np.uint64), np.zeros(num_envs, np.uint32),
+                    np.zeros(num_envs, np.uint32), np.zeros((num_envs, schema.n_agents), np.int32))
+
+
+class Driver:
+    """Episode bookkeeping shared by the pipeline and the raw baseline: auto-reset, episode ids,
+    step counters, truncation at the schema's episode limit."""
+
+    def __init__(self, env: VecEnv, server: int):
+        self.env = env
+        b = env.num_envs
+        self.limit = env.schema.episode_limit
+        self.ep_step = np.zeros(b, np.uint32)
+        # Episode ids are unique across servers: server index in the high bits.
+        self.episode_id = (np.uint64(server) << np.uint64(40)) + np.arange(b, dtype=np.uint64)
+        self.next_id = self.episode_id[-1] + np.uint64(1)
+        self.episodes_done = 0
+        self.return_sum = 0.0
+        self._returns = np.zeros(b, np.float64)
+
+    def first(self, out: Batch, meta: Meta) -> None:
+        self.env.reset(np.arange(self.env.num_envs), out)
+        out.reward[:] = 0
+        out.terminated[:] = 0
+        out.truncated[:] = 0
+        meta.episode_id[:] = self.episode_id
+        meta.ep_step[:] = 0
+        meta.flags[:] = FLAG_FIRST
+        meta.last_actions[:] = -1
+
+    def advance(self, actions: np.ndarray, out: Batch, meta: Meta) -> None:
+        self.env.step(actions, out)
+        self.ep_step += 1
+        hit_limit = (self.ep_step >= self.limit) & (out.terminated == 0)
+        out.truncated[hit_limit] = 1
+        done = (out.terminated != 0) | (out.truncated != 0)
+        self._returns += out.reward
+        meta.last_actions[:] = actions
+        meta.flags[:] = 0
+        if done.any():
+            ids = np.nonzero(done)[0]
+            self.episodes_done += len(ids)
+            self.return_sum += float(self._returns[ids].sum())
+            self._returns[ids] = 0.0
+            self.env.reset(ids, out)
+            self.ep_step[ids] = 0
+            self.episode_id[ids] = self.next_id + np.arange(len(ids), dtype=np.uint64)
+            self.next_id += np.uint64(len(ids))
+            meta.flags[ids] = FLAG_FIRST
+            meta.last_actions[ids] = -1
+        meta.episode_id[:] = self.episode_id
+        meta.ep_step[:] = self.ep_step
+
+
+def _views(lease):
+    out = Batch(obs=lease.obs, state=lease.state, avail=lease.avail, reward=lease.reward,
+                terminated=lease.terminated, truncated=lease.truncated)
+    meta = Meta(episode_id=lease.episode_id, ep_step=lease.ep_step, flags=lease.flags,
+                last_actions=lease.last_actions)
+    return out, meta
+
+
+def _write_first(driver: Driver, lease) -> None:
+    out, meta = _views(lease)
+    driver.first(out, meta)
+
+
+def _write_step(driver: Driver, lease) -> None:
+    actions = np.array(lease.actions)  # copy: the step below overwrites this same slot
+    out, meta = _views(lease)
+    driver.advance(actions, out, meta)
+    # The views die with this frame, so the caller may hand the slot over.
+
+
+def serve(args) -> int:
+    import lmac_shm
+
+    stop = {"flag": False}
+
+    def on_signal(signum, frame):
+        stop["flag"] = True
+        lmac_shm.request_stop()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+    who = f"env server {args.server} ({args.env})"
+    spath = schema_path(args.env)
+    env = make(args.env, args.envs, seed=args.seed + 1_000_003 * args.server)
+    driver = Driver(env, args.server)
+    slab = lmac_shm.Slab.create(f"lmac-{args.run}-s{args.server}", str(spath), args.envs,
+                                args.msg_dim, args.slots)
+    port = None
+    try:
+        port = lmac_shm.Port(args.run, "env", args.server, args.n_servers, args.slots,
+                             startup_timeout=args.startup_timeout)
+        port.handshake(args.startup_timeout)
+        seq = 0
+        lease = slab.lease(0, "env")
+        _write_first(driver, lease)
+        lease.seq = seq
+        lease.release()
+        port.send_slot(args.server, 0, seq)
+        t0 = time.perf_counter()
+        while not stop["flag"]:
+            msg = port.recv(0.25)
+            if msg is None:
+                continue
+            kind, server, slot, _ = msg
+            if kind == "bye":
+                break
+            if kind != "slot":
+                continue
+            seq += 1
+            lease = slab.lease(slot, "env")
+            _write_step(driver, lease)
+            lease.seq = seq
+            lease.release()
+            port.send_slot(args.server, slot, seq)
+        dt = time.perf_counter() - t0
+        print(json.dumps({"server": args.server, "batched_steps": seq, "env_steps": seq * args.envs,
+                          "seconds": round(dt, 3), "episodes": driver.episodes_done}),
+              file=sys.stderr, flush=True)
+        return 0
+    except lmac_shm.StoppedError:
+        return 0
+    except lmac_shm.PeerError as e:
+        print(f"lmac: {who}: {e}", file=sys.stderr, flush=True)
+        return 3
+    finally:
+        env.close()
+        del port
+        del slab  # unlinks the shared memory
+
+
+def raw(args) -> int:
+    """No pipeline: step the same environments with random available actions in this process."""
+    env = make(args.env, args.envs, seed=args.seed)
+    schema = env.schema
+    driver = Driver(env, 0)
+    out = Batch.allocate(schema, args.envs)
+    meta = Meta.allocate(schema, args.envs)
+    rng = np.random.default_rng(args.seed)
+    driver.first(out, meta)
+    actions = np.zeros((args.envs, schema.n_agents), np.int32)
+    for _ in range(args.warmup):
+        _random_actions(rng, out.avail, actions)
+        driver.advance(actions, out, meta)
+    t0 = time.perf_counter()
+    for _ in range(args.steps):
+        _random_actions(rng, out.avail, actions)
+        driver.advance(actions, out, meta)
+    dt = time.perf_counter() - t0
+    print(json.dumps({"mode": "raw", "env": args.env, "envs": args.envs, "batched_steps": args.steps,
+                      "env_steps": args.steps * args.envs, "seconds": dt,
+                      "env_steps_per_s": args.steps * args.envs / dt,
+                      "episodes": driver.episodes_done}))
+    return 0
+
+
+def _random_actions(rng, avail: np.ndarray, out: np.ndarray) -> None:
+    """Uniform over available actions, vectorized: argmax of random keys masked by avail."""
+    keys = rng.random(avail.shape, dtype=np.float32) + avail  # available actions score >= 1
+    out[:] = keys.argmax(-1)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m lmac_env.server", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", required=True, help="environment name, e.g. lbf:8x8-2p-2f-s1-coop")
+    p.add_argument("--envs", type=int, default=8, help="environments stepped together (B)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--run", help="run id (names the shared memory and iceoryx2 services)")
+    p.add_argument("--server", type=int, default=0, help="index of this server")
+    p.add_argument("--n-servers", type=int, default=1)
+    p.add_argument("--slots", type=int, default=4, help="slots in the slab")
+    p.add_argument("--msg-dim", type=int, default=0, help="message columns reserved per row")
+    p.add_argument("--startup-timeout", type=float, default=60.0)
+    p.add_argument("--raw", action="store_true", help="baseline: no pipeline, random actions")
+    p.add_argument("--steps", type=int, default=1000, help="--raw: batched steps to time")
+    p.add_argument("--warmup", type=int, default=20, help="--raw: batched steps before timing")
+    args = p.parse_args(argv)
+    if args.envs < 1:
+        p.error("--envs must be at least 1")
+    if args.raw:
+        return raw(args)
+    if not args.run:
+        p.error("--run is required (or use --raw)")
+    return serve(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

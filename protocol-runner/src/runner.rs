@@ -1,0 +1,93 @@
+//! The runner process: receives each slot from the env servers, applies the message plan to its
+//! observation rows in place (no copy of the batch), and hands the slot to the trainer.
+
+use crate::plan::{MessagePlan, StepView};
+use lmac_shm_schema::ring::{Port, RingError, RingSpec, KIND_BYE, KIND_SLOT};
+use lmac_shm_schema::{EnvSchema, Slab, Stage};
+use std::time::{Duration, Instant};
+
+pub struct RunnerArgs {
+    pub run: String,
+    pub schema: EnvSchema,
+    pub n_servers: usize,
+    pub n_slots: usize,
+    pub startup_timeout: Duration,
+}
+
+#[derive(Debug, Default, Clone)]
+pub struct RunnerStats {
+    pub slots: u64,
+    pub busy: Duration,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RunnerError {
+    #[error("protocol runner: {0}")]
+    Ring(#[from] RingError),
+    #[error("protocol runner: {0}")]
+    Slab(#[from] lmac_shm_schema::SlabError),
+    #[error("protocol runner: plan {plan} writes {need} message columns but the slab reserves {have}")]
+    Width { plan: String, need: usize, have: usize },
+}
+
+/// Name of env server `s`'s slab in run `run` (the env server creates it).
+pub fn slab_name(run: &str, server: usize) -> String {
+    format!("lmac-{run}-s{server}")
+}
+
+/// Apply `plan` to one slot this process owns.
+pub fn apply_to_slot(plan: &mut dyn MessagePlan, slab: &Slab, slot: usize) -> Result<(), RunnerError> {
+    let mut s = slab.slot(slot, Stage::Runner)?;
+    let l = s.layout().clone();
+    let (rows, first, last_actions) = s.runner_parts();
+    let mut view = StepView {
+        num_envs: l.num_envs,
+        n_agents: l.n_agents,
+        obs_dim: l.obs_dim,
+        msg_dim: l.msg_dim,
+        rows,
+        first: &first,
+        last_actions,
+    };
+    plan.apply(&mut view);
+    Ok(())
+}
+
+/// Run until every env server has said goodbye (or a peer dies / a stop is requested).
+pub fn run(args: &RunnerArgs, plan: &mut dyn MessagePlan) -> Result<RunnerStats, RunnerError> {
+    let mut slabs = Vec::new();
+    for s in 0..args.n_servers {
+        let slab = Slab::open(&slab_name(&args.run, s), &args.schema, args.startup_timeout)?;
+        if plan.msg_dim() > slab.layout().msg_dim {
+            return Err(RunnerError::Width { plan: plan.name(), need: plan.msg_dim(), have: slab.layout().msg_dim });
+        }
+        slabs.push(slab);
+    }
+    let mut port = Port::new(RingSpec {
+        run: args.run.clone(),
+        n_servers: args.n_servers,
+        n_slots: args.n_slots,
+        role: Stage::Runner,
+        server: 0,
+    })?;
+    port.set_startup_timeout(args.startup_timeout);
+    let mut stats = RunnerStats::default();
+    let mut byes = 0;
+    while byes < args.n_servers {
+        let Some(m) = port.recv(Duration::from_millis(500))? else { continue };
+        match m.kind {
+            KIND_SLOT => {
+                let t0 = Instant::now();
+                let (server, slot) = (m.server as usize, m.slot as usize);
+                apply_to_slot(plan, &slabs[server], slot)?;
+                slabs[server].set_stage(slot, Stage::Trainer);
+                port.send_slot(server, slot, m.seq)?;
+                stats.slots += 1;
+                stats.busy += t0.elapsed();
+            }
+            KIND_BYE => byes += 1,
+            _ => {}
+        }
+    }
+    Ok(stats)
+}

@@ -1,0 +1,14 @@
+//! lmac's one contract between env servers, protocol runner and trainer:
+//! - [`schema`]: environment schema files (dims, meanings, episode limit, alpha) and validation;
+//! - [`layout`]: the byte layout of one batched step (a slot) computed from a schema;
+//! - [`slab`]: K slots in POSIX shared memory, mapped read-write by every process;
+//! - [`ring`]: the iceoryx2 control plane passing slot ownership around the ring.
+pub mod layout;
+pub mod ring;
+pub mod schema;
+pub mod slab;
+
+pub use layout::{LayoutParams, SlotLayout, FLAG_FIRST};
+pub use ring::{Port, RingError, RingSpec, SlotMsg};
+pub use schema::EnvSchema;
+pub use slab::{Slab, SlabError, Slot, Stage};

@@ -1,0 +1,286 @@
+//! Environment schema files: parsing, validation with errors that name the file, the field and
+//! the problem, and the natural-language meaning of every dimension (read by the LLM prompts).
+//! The format is documented in `shm-schema/SCHEMA.md`.
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// A group of consecutive dimensions that share one description template.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DimGroup {
+    pub count: usize,
+    /// Optional multi-index shape (product must equal `count`): placeholders {i0}, {i1}, ...
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shape: Option<Vec<usize>>,
+    /// Template with placeholders {k}, {i0}.., {label}.
+    pub meaning: String,
+    /// Optional per-dimension labels (length `count`): placeholder {label}.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub labels: Option<Vec<String>>,
+}
+
+/// An environment's declaration: the one contract between env servers, runner and trainer.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct EnvSchema {
+    pub name: String,
+    pub task: String,
+    pub n_agents: usize,
+    pub obs_dim: usize,
+    pub state_dim: usize,
+    pub n_actions: usize,
+    pub episode_limit: usize,
+    #[serde(default)]
+    pub message_columns: usize,
+    pub alpha: f64,
+    pub reward: String,
+    pub actions: Vec<String>,
+    pub obs_dims: Vec<DimGroup>,
+    pub state_dims: Vec<DimGroup>,
+}
+
+/// A schema problem: which file, which field, what is wrong.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SchemaError {
+    pub file: PathBuf,
+    pub field: String,
+    pub problem: String,
+}
+
+impl fmt::Display for SchemaError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.field.is_empty() {
+            write!(f, "{}: {}", self.file.display(), self.problem)
+        } else {
+            write!(f, "{}: {}: {}", self.file.display(), self.field, self.problem)
+        }
+    }
+}
+impl std::error::Error for SchemaError {}
+
+/// All problems found in one schema file (validation reports every problem, not just the first).
+#[derive(Debug, Clone)]
+pub struct SchemaErrors(pub Vec<SchemaError>);
+
+impl fmt::Display for SchemaErrors {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, e) in self.0.iter().enumerate() {
+            if i > 0 {
+                writeln!(f)?;
+            }
+            write!(f, "{e}")?;
+        }
+        Ok(())
+    }
+}
+impl std::error::Error for SchemaErrors {}
+
+impl EnvSchema {
+    /// Read and validate a schema file.
+    pub fn load(path: &Path) -> Result<EnvSchema, SchemaErrors> {
+        let err = |field: &str, problem: String| {
+            SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field: field.into(), problem }])
+        };
+        let text = std::fs::read_to_string(path).map_err(|e| err("", format!("cannot read the file: {e}")))?;
+        Self::parse(&text, path)
+    }
+
+    /// Parse and validate schema text; `path` is only used in error messages.
+    pub fn parse(text: &str, path: &Path) -> Result<EnvSchema, SchemaErrors> {
+        let schema: EnvSchema = toml::from_str(text).map_err(|e| {
+            // toml's message names the key ("missing field `n_agents`") and the line.
+            let msg = e.message().to_string();
+            let field = msg
+                .split('`')
+                .nth(1)
+                .filter(|_| msg.contains("field"))
+                .unwrap_or("")
+                .to_string();
+            let at = e
+                .span()
+                .map(|s| format!(" (line {})", text[..s.start.min(text.len())].lines().count().max(1)))
+                .unwrap_or_default();
+            SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field, problem: format!("{msg}{at}") }])
+        })?;
+        schema.validate(path)?;
+        Ok(schema)
+    }
+
+    /// Every semantic check; all problems are reported together.
+    pub fn validate(&self, path: &Path) -> Result<(), SchemaErrors> {
+        let mut errs = Vec::new();
+        let mut bad = |field: &str, problem: String| {
+            errs.push(SchemaError { file: path.to_path_buf(), field: field.into(), problem })
+        };
+        if self.name.split_once(':').map_or(true, |(f, v)| f.is_empty() || v.is_empty()) {
+            bad("name", format!("{:?} must look like FAMILY:VARIANT (e.g. lbf:8x8-2p-2f-s1-coop)", self.name));
+        }
+        if self.task.trim().is_empty() {
+            bad("task", "the task description is empty; the LLM prompt is built from it".into());
+        }
+        for (field, v) in [
+            ("n_agents", self.n_agents),
+            ("obs_dim", self.obs_dim),
+            ("state_dim", self.state_dim),
+            ("n_actions", self.n_actions),
+            ("episode_limit", self.episode_limit),
+        ] {
+            if v == 0 {
+                bad(field, "must be at least 1".into());
+            }
+        }
+        if self.n_agents > 64 {
+            bad("n_agents", format!("{} agents is more than the supported 64", self.n_agents));
+        }
+        if !(self.alpha.is_finite() && self.alpha > 0.0) {
+            bad("alpha", format!("must be a positive number, got {}", self.alpha));
+        }
+        if self.actions.len() != self.n_actions {
+            bad("actions", format!("lists {} action names but n_actions = {}", self.actions.len(), self.n_actions));
+        }
+        for (field, groups, dim) in
+            [("obs_dims", &self.obs_dims, self.obs_dim), ("state_dims", &self.state_dims, self.state_dim)]
+        {
+            let mut total = 0usize;
+            for (i, g) in groups.iter().enumerate() {
+                let at = format!("{field}[{i}]");
+                if g.count == 0 {
+                    bad(&at, "count must be at least 1".into());
+                }
+                if g.meaning.trim().is_empty() {
+                    bad(&at, "meaning is empty: every dimension needs a description".into());
+                }
+                if let Some(shape) = &g.shape {
+                    let prod: usize = shape.iter().product();
+                    if prod != g.count {
+                        bad(&at, format!("shape {shape:?} holds {prod} dimensions but count = {}", g.count));
+                    }
+                }
+                if let Some(labels) = &g.labels {
+                    if labels.len() != g.count {
+                        bad(&at, format!("{} labels for count = {}", labels.len(), g.count));
+                    }
+                } else if g.meaning.contains("{label}") {
+                    bad(&at, "meaning uses {label} but the group has no labels".into());
+                }
+                total += g.count;
+            }
+            let dim_field = if field == "obs_dims" { "obs_dim" } else { "state_dim" };
+            if total != dim {
+                bad(field, format!("the groups describe {total} dimensions but {dim_field} = {dim}"));
+            }
+        }
+        if errs.is_empty() {
+            Ok(())
+        } else {
+            Err(SchemaErrors(errs))
+        }
+    }
+
+    /// The meaning of every observation dimension, in order.
+    pub fn obs_meanings(&self) -> Vec<String> {
+        expand(&self.obs_dims)
+    }
+
+    /// The meaning of every state dimension, in order.
+    pub fn state_meanings(&self) -> Vec<String> {
+        expand(&self.state_dims)
+    }
+
+    /// Message columns the built-in full-communication protocol needs per agent:
+    /// every other agent's observation plus its one-hot id.
+    pub fn fullcomm_columns(&self) -> usize {
+        (self.n_agents - 1) * (self.obs_dim + self.n_agents)
+    }
+}
+
+fn expand(groups: &[DimGroup]) -> Vec<String> {
+    let mut out = Vec::new();
+    for g in groups {
+        for k in 0..g.count {
+            let mut s = g.meaning.replace("{k}", &k.to_string());
+            if let Some(shape) = &g.shape {
+                let mut rem = k;
+                let mut idx = vec![0; shape.len()];
+                for (d, &n) in shape.iter().enumerate().rev() {
+                    idx[d] = rem % n.max(1);
+                    rem /= n.max(1);
+                }
+                for (d, v) in idx.iter().enumerate() {
+                    s = s.replace(&format!("{{i{d}}}"), &v.to_string());
+                }
+            }
+            if let Some(labels) = &g.labels {
+                if let Some(l) = labels.get(k) {
+                    s = s.replace("{label}", l);
+                }
+            }
+            out.push(s);
+        }
+    }
+    out
+}
+
+/// Where the schema files live: `$LMAC_SCHEMA_DIR`, else `env-server/schemas` found by walking
+/// up from the current directory and from the executable's directory.
+pub fn schema_dir() -> Option<PathBuf> {
+    if let Ok(d) = std::env::var("LMAC_SCHEMA_DIR") {
+        return Some(PathBuf::from(d));
+    }
+    let starts = [std::env::current_dir().ok(), std::env::current_exe().ok()];
+    for start in starts.into_iter().flatten() {
+        for dir in start.ancestors() {
+            let cand = dir.join("env-server").join("schemas");
+            if cand.is_dir() {
+                return Some(cand);
+            }
+        }
+    }
+    None
+}
+
+/// `lbf:8x8-2p-2f-s1-coop` -> `<schema_dir>/lbf/8x8-2p-2f-s1-coop.toml`
+pub fn schema_path(env_name: &str) -> Result<PathBuf, String> {
+    let (family, variant) = env_name
+        .split_once(':')
+        .filter(|(f, v)| !f.is_empty() && !v.is_empty() && !v.contains('/') && !f.contains('/'))
+        .ok_or_else(|| format!("environment name {env_name:?} must look like FAMILY:VARIANT"))?;
+    let dir = schema_dir().ok_or("cannot find env-server/schemas (set LMAC_SCHEMA_DIR)")?;
+    let p = dir.join(family).join(format!("{variant}.toml"));
+    if !p.is_file() {
+        return Err(format!("unknown environment {env_name:?}: no schema file {} (see `lmac envs`)", p.display()));
+    }
+    Ok(p)
+}
+
+/// Load an environment's schema by name.
+pub fn load_env(env_name: &str) -> Result<EnvSchema, String> {
+    let p = schema_path(env_name)?;
+    let s = EnvSchema::load(&p).map_err(|e| e.to_string())?;
+    if s.name != env_name {
+        return Err(format!("{}: name: {:?} does not match the file's place ({env_name:?})", p.display(), s.name));
+    }
+    Ok(s)
+}
+
+/// Every schema file under the schema directory, sorted by name; parse failures are returned too.
+pub fn all_envs() -> Result<Vec<(PathBuf, Result<EnvSchema, SchemaErrors>)>, String> {
+    let dir = schema_dir().ok_or("cannot find env-server/schemas (set LMAC_SCHEMA_DIR)")?;
+    let mut files = Vec::new();
+    for fam in std::fs::read_dir(&dir).map_err(|e| format!("{}: {e}", dir.display()))?.flatten() {
+        if fam.path().is_dir() {
+            for f in std::fs::read_dir(fam.path()).into_iter().flatten().flatten() {
+                if f.path().extension().is_some_and(|e| e == "toml") {
+                    files.push(f.path());
+                }
+            }
+        }
+    }
+    files.sort();
+    Ok(files.into_iter().map(|p| {
+        let r = EnvSchema::load(&p);
+        (p, r)
+    }).collect())
+}

@@ -1,0 +1,388 @@
+//! The slab: K slots of one env server in POSIX shared memory, mapped read-write by every
+//! process of a run. Created owner-only (0600) by the env server; peers open it and are refused
+//! unless magic, layout version and schema hash agree. One writer per slot at a time is the only
+//! synchronisation; who that writer is travels with the slot messages of the ring (`ring.rs`)
+//! and is recorded in each slot's `stage` word so a misuse is caught instead of racing.
+
+use crate::layout::{LayoutParams, SlotLayout, LAYOUT_VERSION, SLAB_HEADER_BYTES};
+use crate::schema::EnvSchema;
+use std::ffi::CString;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+
+const MAGIC: u64 = u64::from_le_bytes(*b"LMACSLAB");
+const STATE_READY: u32 = 1;
+
+/// Who may write a slot right now.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u32)]
+pub enum Stage {
+    Env = 0,
+    Runner = 1,
+    Trainer = 2,
+}
+
+impl Stage {
+    pub fn from_u32(v: u32) -> Option<Stage> {
+        match v {
+            0 => Some(Stage::Env),
+            1 => Some(Stage::Runner),
+            2 => Some(Stage::Trainer),
+            _ => None,
+        }
+    }
+    /// The stage a slot goes to after this one.
+    pub fn next(self) -> Stage {
+        match self {
+            Stage::Env => Stage::Runner,
+            Stage::Runner => Stage::Trainer,
+            Stage::Trainer => Stage::Env,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Env => "env server",
+            Stage::Runner => "protocol runner",
+            Stage::Trainer => "trainer",
+        }
+    }
+}
+
+#[repr(C)]
+struct SlabHeader {
+    magic: u64,
+    layout_version: u32,
+    state: AtomicU32,
+    hash: [u8; 32],
+    num_envs: u32,
+    msg_dim: u32,
+    n_slots: u32,
+    owner_pid: u32,
+    env_name: [u8; 128],
+}
+
+/// Per-slot header at the start of every slot.
+#[repr(C)]
+pub struct SlotHeader {
+    /// Sequence number of the batched step written into this slot (per server, from 0).
+    pub seq: u64,
+    /// Server-level step counter.
+    pub step: u64,
+    stage: AtomicU32,
+    pub server: u32,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SlabError {
+    #[error("shared memory {name}: {op} failed: {err}")]
+    Os { name: String, op: &'static str, err: std::io::Error },
+    #[error("shared memory {name} is not an lmac slab (bad magic number)")]
+    BadMagic { name: String },
+    #[error("shared memory {name} has layout version {found}, this build speaks version {ours}; rebuild both sides from the same lmac version")]
+    Version { name: String, found: u32, ours: u32 },
+    #[error("shared memory {name} was created for {theirs_env:?} with schema hash {theirs}, but this process loaded {ours_env:?} with hash {ours}: the peers disagree on the schema (or on num_envs / msg_dim / slots)")]
+    SchemaMismatch { name: String, theirs_env: String, theirs: String, ours_env: String, ours: String },
+    #[error("shared memory {name} is {found} bytes, its layout needs {need}")]
+    Size { name: String, found: usize, need: usize },
+    #[error("shared memory {name} was not initialised by its owner within {0:?}", .waited)]
+    NotReady { name: String, waited: Duration },
+    #[error("slot {slot} of {name} is owned by the {owner}, not by the {me}: ownership protocol violated")]
+    NotOwner { name: String, slot: usize, owner: &'static str, me: &'static str },
+    #[error("invalid shared memory name {0:?}: use letters, digits, '-', '_' and '.' only")]
+    BadName(String),
+}
+
+/// A mapped slab. The creator (`Slab::create`) unlinks the name when dropped.
+pub struct Slab {
+    name: String,
+    base: *mut u8,
+    len: usize,
+    layout: SlotLayout,
+    owner: bool,
+}
+
+// The mapping is plain shared memory; slot ownership is what serialises writers.
+unsafe impl Send for Slab {}
+unsafe impl Sync for Slab {}
+
+fn os_err(name: &str, op: &'static str) -> SlabError {
+    SlabError::Os { name: name.to_string(), op, err: std::io::Error::last_os_error() }
+}
+
+fn shm_name(name: &str) -> Result<CString, SlabError> {
+    if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) {
+        return Err(SlabError::BadName(name.into()));
+    }
+    Ok(CString::new(format!("/{name}")).expect("no NUL"))
+}
+
+/// Path of a slab's file on Linux (for tests and cleanup).
+pub fn shm_file_path(name: &str) -> std::path::PathBuf {
+    std::path::PathBuf::from(format!("/dev/shm/{name}"))
+}
+
+/// Remove a slab name if it exists (cleanup after a crashed owner). Returns whether it existed.
+pub fn unlink(name: &str) -> bool {
+    match shm_name(name) {
+        Ok(c) => unsafe { libc::shm_unlink(c.as_ptr()) == 0 },
+        Err(_) => false,
+    }
+}
+
+unsafe fn map(fd: i32, len: usize, name: &str) -> Result<*mut u8, SlabError> {
+    let p = libc::mmap(std::ptr::null_mut(), len, libc::PROT_READ | libc::PROT_WRITE, libc::MAP_SHARED, fd, 0);
+    if p == libc::MAP_FAILED {
+        return Err(os_err(name, "mmap"));
+    }
+    Ok(p as *mut u8)
+}
+
+impl Slab {
+    /// Create the slab for `schema` with the given parameters: owner-only (0600), zeroed, with a
+    /// header carrying magic, layout version and schema hash. Fails if the name exists.
+    pub fn create(name: &str, schema: &EnvSchema, params: LayoutParams) -> Result<Slab, SlabError> {
+        let cname = shm_name(name)?;
+        let layout = SlotLayout::new(schema, params);
+        unsafe {
+            let fd = libc::shm_open(cname.as_ptr(), libc::O_CREAT | libc::O_EXCL | libc::O_RDWR, 0o600);
+            if fd < 0 {
+                return Err(os_err(name, "shm_open(create)"));
+            }
+            // The umask cannot widen 0600, but make the mode explicit whatever the umask is.
+            libc::fchmod(fd, 0o600);
+            if libc::ftruncate(fd, layout.slab_bytes as libc::off_t) != 0 {
+                let e = os_err(name, "ftruncate");
+                libc::close(fd);
+                libc::shm_unlink(cname.as_ptr());
+                return Err(e);
+            }
+            let base = map(fd, layout.slab_bytes, name);
+            libc::close(fd);
+            let base = match base {
+                Ok(b) => b,
+                Err(e) => {
+                    libc::shm_unlink(cname.as_ptr());
+                    return Err(e);
+                }
+            };
+            let h = &mut *(base as *mut SlabHeader);
+            h.magic = MAGIC;
+            h.layout_version = LAYOUT_VERSION;
+            h.hash = layout.hash;
+            h.num_envs = params.num_envs as u32;
+            h.msg_dim = params.msg_dim as u32;
+            h.n_slots = params.n_slots as u32;
+            h.owner_pid = std::process::id();
+            let nb = schema.name.as_bytes();
+            let k = nb.len().min(h.env_name.len());
+            h.env_name[..k].copy_from_slice(&nb[..k]);
+            h.state.store(STATE_READY, Ordering::Release);
+            Ok(Slab { name: name.into(), base, len: layout.slab_bytes, layout, owner: true })
+        }
+    }
+
+    /// Open a slab created by a peer, waiting up to `wait` for it to appear and be initialised.
+    /// The layout parameters are read from its header; the hash must match ours for `schema`.
+    pub fn open(name: &str, schema: &EnvSchema, wait: Duration) -> Result<Slab, SlabError> {
+        let cname = shm_name(name)?;
+        let t0 = Instant::now();
+        let fd = loop {
+            let fd = unsafe { libc::shm_open(cname.as_ptr(), libc::O_RDWR, 0) };
+            if fd >= 0 {
+                break fd;
+            }
+            let err = std::io::Error::last_os_error();
+            if err.raw_os_error() != Some(libc::ENOENT) || t0.elapsed() >= wait {
+                return Err(SlabError::Os { name: name.into(), op: "shm_open", err });
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        };
+        let res = unsafe { Self::open_fd(fd, name, schema, wait.saturating_sub(t0.elapsed())) };
+        unsafe { libc::close(fd) };
+        res
+    }
+
+    unsafe fn open_fd(fd: i32, name: &str, schema: &EnvSchema, wait: Duration) -> Result<Slab, SlabError> {
+        let t0 = Instant::now();
+        // Wait until the owner has sized and initialised it.
+        loop {
+            let mut st: libc::stat = std::mem::zeroed();
+            if libc::fstat(fd, &mut st) != 0 {
+                return Err(os_err(name, "fstat"));
+            }
+            if st.st_size as usize >= SLAB_HEADER_BYTES {
+                let hdr = map(fd, SLAB_HEADER_BYTES, name)?;
+                let h = &*(hdr as *const SlabHeader);
+                let ready = h.state.load(Ordering::Acquire) == STATE_READY;
+                let (magic, version) = (h.magic, h.layout_version);
+                let params = LayoutParams {
+                    num_envs: h.num_envs as usize,
+                    msg_dim: h.msg_dim as usize,
+                    n_slots: h.n_slots as usize,
+                };
+                let hash = h.hash;
+                let env_name = String::from_utf8_lossy(&h.env_name).trim_end_matches('\0').to_string();
+                libc::munmap(hdr as *mut _, SLAB_HEADER_BYTES);
+                if ready {
+                    if magic != MAGIC {
+                        return Err(SlabError::BadMagic { name: name.into() });
+                    }
+                    if version != LAYOUT_VERSION {
+                        return Err(SlabError::Version { name: name.into(), found: version, ours: LAYOUT_VERSION });
+                    }
+                    let layout = SlotLayout::new(schema, params);
+                    if layout.hash != hash {
+                        return Err(SlabError::SchemaMismatch {
+                            name: name.into(),
+                            theirs_env: env_name,
+                            theirs: hash.iter().map(|b| format!("{b:02x}")).collect::<String>()[..16].into(),
+                            ours_env: schema.name.clone(),
+                            ours: layout.hash_hex()[..16].into(),
+                        });
+                    }
+                    if (st.st_size as usize) < layout.slab_bytes {
+                        return Err(SlabError::Size { name: name.into(), found: st.st_size as usize, need: layout.slab_bytes });
+                    }
+                    let base = map(fd, layout.slab_bytes, name)?;
+                    return Ok(Slab { name: name.into(), base, len: layout.slab_bytes, layout, owner: false });
+                }
+            }
+            if t0.elapsed() >= wait {
+                return Err(SlabError::NotReady { name: name.into(), waited: wait });
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+    pub fn layout(&self) -> &SlotLayout {
+        &self.layout
+    }
+    pub fn is_owner(&self) -> bool {
+        self.owner
+    }
+
+    fn slot_base(&self, i: usize) -> *mut u8 {
+        assert!(i < self.layout.n_slots, "slot {i} out of range (slab has {})", self.layout.n_slots);
+        unsafe { self.base.add(self.layout.slot_offset(i)) }
+    }
+
+    /// The stage currently recorded as the writer of slot `i`.
+    pub fn stage(&self, i: usize) -> Option<Stage> {
+        let h = unsafe { &*(self.slot_base(i) as *const SlotHeader) };
+        Stage::from_u32(h.stage.load(Ordering::Acquire))
+    }
+
+    /// Record `to` as the writer of slot `i` (done by the current writer right before handing
+    /// the slot over).
+    pub fn set_stage(&self, i: usize, to: Stage) {
+        let h = unsafe { &*(self.slot_base(i) as *const SlotHeader) };
+        h.stage.store(to as u32, Ordering::Release);
+    }
+
+    /// Check that `me` owns slot `i` and give typed access to it.
+    pub fn slot(&self, i: usize, me: Stage) -> Result<Slot<'_>, SlabError> {
+        let owner = self.stage(i);
+        if owner != Some(me) {
+            return Err(SlabError::NotOwner {
+                name: self.name.clone(),
+                slot: i,
+                owner: owner.map_or("unknown stage", |s| s.name()),
+                me: me.name(),
+            });
+        }
+        Ok(Slot { base: self.slot_base(i), layout: &self.layout })
+    }
+
+    /// Raw pointer to slot `i` (for the Python bindings, which build numpy views over it).
+    pub fn slot_ptr(&self, i: usize) -> *mut u8 {
+        self.slot_base(i)
+    }
+}
+
+impl Drop for Slab {
+    fn drop(&mut self) {
+        unsafe {
+            libc::munmap(self.base as *mut _, self.len);
+        }
+        if self.owner {
+            unlink(&self.name);
+        }
+    }
+}
+
+/// Typed access to one slot owned by the caller's stage. Obtained from [`Slab::slot`], which
+/// checks ownership; holding it while handing the slot over is the caller's bug to avoid.
+pub struct Slot<'a> {
+    base: *mut u8,
+    layout: &'a SlotLayout,
+}
+
+macro_rules! section {
+    ($get:ident, $get_mut:ident, $field:ident, $t:ty) => {
+        pub fn $get(&self) -> &[$t] {
+            let s = self.layout.$field;
+            unsafe { std::slice::from_raw_parts(self.base.add(s.offset) as *const $t, s.bytes / std::mem::size_of::<$t>()) }
+        }
+        pub fn $get_mut(&mut self) -> &mut [$t] {
+            let s = self.layout.$field;
+            unsafe { std::slice::from_raw_parts_mut(self.base.add(s.offset) as *mut $t, s.bytes / std::mem::size_of::<$t>()) }
+        }
+    };
+}
+
+impl<'a> Slot<'a> {
+    pub fn layout(&self) -> &SlotLayout {
+        self.layout
+    }
+    pub fn header(&self) -> &SlotHeader {
+        unsafe { &*(self.base as *const SlotHeader) }
+    }
+    pub fn header_mut(&mut self) -> &mut SlotHeader {
+        unsafe { &mut *(self.base as *mut SlotHeader) }
+    }
+    section!(obs, obs_mut, obs, f32);
+    section!(state, state_mut, state, f32);
+    section!(avail, avail_mut, avail, u8);
+    section!(reward, reward_mut, reward, f32);
+    section!(terminated, terminated_mut, terminated, u8);
+    section!(truncated, truncated_mut, truncated, u8);
+    section!(last_actions, last_actions_mut, last_actions, i32);
+    section!(actions, actions_mut, actions, i32);
+
+    /// Per env: (episode id, step in episode, flags).
+    pub fn env_meta(&self, env: usize) -> (u64, u32, u32) {
+        assert!(env < self.layout.num_envs);
+        unsafe {
+            let p = self.base.add(self.layout.env_meta.offset + env * 16);
+            (
+                (p as *const u64).read(),
+                (p.add(8) as *const u32).read(),
+                (p.add(12) as *const u32).read(),
+            )
+        }
+    }
+    pub fn set_env_meta(&mut self, env: usize, episode: u64, step: u32, flags: u32) {
+        assert!(env < self.layout.num_envs);
+        unsafe {
+            let p = self.base.add(self.layout.env_meta.offset + env * 16);
+            (p as *mut u64).write(episode);
+            (p.add(8) as *mut u32).write(step);
+            (p.add(12) as *mut u32).write(flags);
+        }
+    }
+    /// Mutable observation rows together with read access to the per-env metadata and the
+    /// last actions: what the protocol runner needs at once.
+    pub fn runner_parts(&mut self) -> (&mut [f32], Vec<bool>, &[i32]) {
+        let first: Vec<bool> =
+            (0..self.layout.num_envs).map(|e| self.env_meta(e).2 & crate::layout::FLAG_FIRST != 0).collect();
+        let l = self.layout;
+        unsafe {
+            let obs = std::slice::from_raw_parts_mut(self.base.add(l.obs.offset) as *mut f32, l.obs.bytes / 4);
+            let la = std::slice::from_raw_parts(self.base.add(l.last_actions.offset) as *const i32, l.last_actions.bytes / 4);
+            (obs, first, la)
+        }
+    }
+}

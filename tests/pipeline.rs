@@ -1,0 +1,161 @@
+//! End-to-end tests of the data plane with real processes, real shared memory and the real
+//! Level-Based Foraging environment. They run the release `lmac` binary built by
+//! `scripts/setup.sh` (or `$LMAC_BIN`).
+
+use std::collections::HashSet;
+use std::os::unix::fs::PermissionsExt;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// The tests watch /dev/shm; one at a time.
+static SERIAL: Mutex<()> = Mutex::new(());
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+}
+
+fn lmac() -> Command {
+    let bin = std::env::var("LMAC_BIN").map(PathBuf::from).unwrap_or_else(|_| root().join("target/release/lmac"));
+    assert!(bin.exists(), "{} not found: run scripts/setup.sh (it builds the release binary) or set LMAC_BIN", bin.display());
+    let mut c = Command::new(bin);
+    c.current_dir(root());
+    c
+}
+
+fn lmac_shm_files() -> HashSet<String> {
+    std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .filter(|n| n.starts_with("lmac-"))
+        .collect()
+}
+
+fn all_shm_files() -> HashSet<String> {
+    std::fs::read_dir("/dev/shm").unwrap().flatten().map(|e| e.file_name().to_string_lossy().to_string()).collect()
+}
+
+fn wait_for<T>(timeout: Duration, mut f: impl FnMut() -> Option<T>) -> Option<T> {
+    let t0 = Instant::now();
+    while t0.elapsed() < timeout {
+        if let Some(v) = f() {
+            return Some(v);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    None
+}
+
+fn wait_exit(child: &mut Child, timeout: Duration) -> Option<std::process::ExitStatus> {
+    wait_for(timeout, || child.try_wait().unwrap())
+}
+
+/// The env server's pid, read from its slab header (owner_pid at byte 60).
+fn slab_owner_pid(file: &str) -> u32 {
+    let bytes = std::fs::read(format!("/dev/shm/{file}")).unwrap();
+    assert_eq!(&bytes[..8], b"LMACSLAB");
+    u32::from_le_bytes(bytes[60..64].try_into().unwrap())
+}
+
+#[test]
+fn lbf_episodes_flow_end_to_end_with_fullcomm_messages() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = std::env::temp_dir().join(format!("lmac-e2e-{}.jsonl", std::process::id()));
+    let out = lmac()
+        .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "8", "--servers", "2", "--protocol", "fullcomm"])
+        .args(["--steps", "4000", "--verify", "--json", "--episodes-out"])
+        .arg(&tmp)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "lmac run failed: {stderr}");
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON report");
+    assert_eq!(report["violation_count"], 0, "invariant violations: {}", report["violations"]);
+    assert!(report["env_steps"].as_u64().unwrap() >= 4000);
+    let episodes: Vec<serde_json::Value> =
+        std::fs::read_to_string(&tmp).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    std::fs::remove_file(&tmp).ok();
+    assert!(episodes.len() >= 100, "only {} episodes finished", episodes.len());
+    let mut servers = HashSet::new();
+    for e in &episodes {
+        servers.insert(e["server"].as_u64().unwrap());
+        let len = e["len"].as_u64().unwrap();
+        let ret = e["team_return"].as_f64().unwrap();
+        let (term, trunc) = (e["terminated"].as_bool().unwrap(), e["truncated"].as_bool().unwrap());
+        assert!(term ^ trunc, "an episode ends exactly one way: {e}");
+        assert!((1..=25).contains(&len), "episode length {len} outside 1..=25: {e}");
+        if trunc {
+            assert_eq!(len, 25, "truncation happens at the episode limit: {e}");
+        }
+        // LBF's normalised rewards add up to 1 exactly when all food is eaten (termination).
+        assert!((-1e-5..=1.0 + 1e-5).contains(&ret), "team return {ret} outside [0, 1]: {e}");
+        assert_eq!(term, (ret - 1.0).abs() < 1e-4, "terminated iff all food eaten (return 1): {e}");
+    }
+    assert_eq!(servers.len(), 2, "both env servers delivered episodes");
+    // Episode ids are unique.
+    let ids: HashSet<u64> = episodes.iter().map(|e| e["episode_id"].as_u64().unwrap()).collect();
+    assert_eq!(ids.len(), episodes.len());
+}
+
+#[test]
+fn clean_shutdown_leaves_no_shared_memory_and_files_are_owner_only() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = all_shm_files();
+    let mut child = lmac()
+        .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "4", "--steps", "3000000"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let ours = wait_for(Duration::from_secs(30), || {
+        let f: Vec<String> = lmac_shm_files().difference(&before).cloned().collect();
+        (!f.is_empty()).then_some(f)
+    })
+    .expect("the run's slab appears in /dev/shm");
+    for f in &ours {
+        let mode = std::fs::metadata(format!("/dev/shm/{f}")).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o600, "/dev/shm/{f} has mode {mode:o}");
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    // Ctrl-C: stop everything and clean up.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let st = wait_exit(&mut child, Duration::from_secs(10)).expect("lmac exits after Ctrl-C");
+    assert!(!st.success(), "an interrupted run reports it was interrupted");
+    let left: Vec<String> = all_shm_files().difference(&before).cloned().collect();
+    assert!(left.is_empty(), "shared-memory files left after shutdown: {left:?}");
+}
+
+#[test]
+fn a_killed_env_server_is_reported_by_name_and_nothing_hangs() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = all_shm_files();
+    let mut child = lmac()
+        .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "4", "--servers", "2", "--steps", "3000000"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let slab = wait_for(Duration::from_secs(30), || {
+        lmac_shm_files().difference(&before).find(|f| f.ends_with("-s1")).cloned()
+    })
+    .expect("env server 1's slab appears");
+    std::thread::sleep(Duration::from_millis(1500)); // let the ring run
+    let pid = slab_owner_pid(&slab);
+    unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    let killed_at = Instant::now();
+    let st = wait_exit(&mut child, Duration::from_secs(10)).expect("lmac exits after an env server dies");
+    let took = killed_at.elapsed();
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(child.stderr.as_mut().unwrap(), &mut stderr).unwrap();
+    assert!(!st.success());
+    assert!(stderr.contains("env server 1") && stderr.contains("died"), "stderr names the dead server: {stderr}");
+    assert!(took < Duration::from_secs(6), "took {took:?} to notice and shut down");
+    let left: Vec<String> = lmac_shm_files().difference(&before).cloned().collect();
+    assert!(left.is_empty(), "slabs left after the failure: {left:?}");
+    // Nothing of the run survives: no process still holds the killed server's peers.
+    let run = slab.trim_start_matches("lmac-").trim_end_matches("-s1");
+    let pids_alive = std::process::Command::new("pgrep").args(["-f", &format!("--run {run}")]).output().unwrap();
+    assert!(String::from_utf8_lossy(&pids_alive.stdout).trim().is_empty());
+}

@@ -1,0 +1,103 @@
+//! Schema validation: every shipped schema is valid, and bad schemas give errors that name the
+//! file, the field and the problem.
+use lmac_shm_schema::layout::{LayoutParams, SlotLayout, ALIGN};
+use lmac_shm_schema::schema::{all_envs, EnvSchema};
+use std::path::Path;
+
+const GOOD: &str = r#"
+name = "toy:two"
+task = "A toy task."
+n_agents = 2
+obs_dim = 3
+state_dim = 4
+n_actions = 2
+episode_limit = 10
+message_columns = 10
+alpha = 0.1
+reward = "1 per step."
+actions = ["left", "right"]
+[[obs_dims]]
+count = 2
+meaning = "position {k}"
+[[obs_dims]]
+count = 1
+meaning = "speed"
+[[state_dims]]
+count = 4
+shape = [2, 2]
+meaning = "cell ({i0}, {i1})"
+"#;
+
+fn errors(text: &str) -> String {
+    EnvSchema::parse(text, Path::new("schemas/toy/two.toml")).expect_err("must be rejected").to_string()
+}
+
+#[test]
+fn shipped_schemas_are_valid() {
+    let all = all_envs().expect("schema directory");
+    assert!(all.len() >= 2, "at least the two LBF schemas");
+    for (path, r) in all {
+        let s = r.unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        assert_eq!(s.obs_meanings().len(), s.obs_dim);
+        assert_eq!(s.state_meanings().len(), s.state_dim);
+        assert!(s.message_columns >= s.fullcomm_columns(), "{}: reserves too few message columns for fullcomm", s.name);
+    }
+}
+
+#[test]
+fn good_schema_expands_meanings() {
+    let s = EnvSchema::parse(GOOD, Path::new("x.toml")).unwrap();
+    assert_eq!(s.obs_meanings(), vec!["position 0", "position 1", "speed"]);
+    assert_eq!(s.state_meanings()[3], "cell (1, 1)");
+}
+
+#[test]
+fn missing_field_names_file_and_field() {
+    let e = errors(&GOOD.replace("n_agents = 2\n", ""));
+    assert!(e.contains("schemas/toy/two.toml") && e.contains("n_agents") && e.contains("missing"), "{e}");
+}
+
+#[test]
+fn zero_agents_is_rejected() {
+    let e = errors(&GOOD.replace("n_agents = 2", "n_agents = 0"));
+    assert!(e.contains("schemas/toy/two.toml: n_agents: must be at least 1"), "{e}");
+}
+
+#[test]
+fn dims_that_disagree_with_descriptions_are_rejected() {
+    let e = errors(&GOOD.replace("obs_dim = 3", "obs_dim = 4"));
+    assert!(e.contains("obs_dims: the groups describe 3 dimensions but obs_dim = 4"), "{e}");
+    let e = errors(&GOOD.replace("shape = [2, 2]", "shape = [2, 3]"));
+    assert!(e.contains("state_dims[0]: shape [2, 3] holds 6 dimensions but count = 4"), "{e}");
+    let e = errors(&GOOD.replace("actions = [\"left\", \"right\"]", "actions = [\"left\"]"));
+    assert!(e.contains("actions: lists 1 action names but n_actions = 2"), "{e}");
+}
+
+#[test]
+fn several_problems_are_reported_together() {
+    let e = errors(&GOOD.replace("n_actions = 2", "n_actions = 0").replace("alpha = 0.1", "alpha = -1.0"));
+    assert!(e.contains("n_actions: must be at least 1") && e.contains("alpha: must be a positive number"), "{e}");
+}
+
+#[test]
+fn unknown_fields_and_type_errors_are_named() {
+    let e = errors(&GOOD.replace("alpha = 0.1", "alpha = 0.1\nalpah = 3"));
+    assert!(e.contains("alpah"), "{e}");
+    let e = errors(&GOOD.replace("obs_dim = 3", "obs_dim = \"three\""));
+    assert!(e.contains("obs_dim") || e.contains("line"), "{e}");
+}
+
+#[test]
+fn layout_sections_are_aligned_and_disjoint() {
+    let s = EnvSchema::parse(GOOD, Path::new("x.toml")).unwrap();
+    let l = SlotLayout::new(&s, LayoutParams { num_envs: 5, msg_dim: 7, n_slots: 3 });
+    let secs = [l.env_meta, l.obs, l.state, l.avail, l.reward, l.terminated, l.truncated, l.last_actions, l.actions];
+    for w in secs.windows(2) {
+        assert_eq!(w[0].offset % ALIGN, 0);
+        assert!(w[0].offset + w[0].bytes <= w[1].offset);
+    }
+    assert_eq!(l.obs.bytes, 5 * 2 * (3 + 7) * 4);
+    assert_eq!(l.slot_stride % ALIGN, 0);
+    let other = SlotLayout::new(&s, LayoutParams { num_envs: 5, msg_dim: 8, n_slots: 3 });
+    assert_ne!(l.hash, other.hash, "the hash covers the layout parameters");
+}

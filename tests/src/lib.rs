@@ -1,0 +1,1 @@
+//! End-to-end tests: see pipeline.rs and schemas.rs; Python tests in tests/python.

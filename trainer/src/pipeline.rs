@@ -1,0 +1,348 @@
+//! The trainer's side of the data plane: receive slots from the protocol runner, copy each env's
+//! step into its episode (the trainer's only copy), choose actions, write them into the slot and
+//! hand it back to the env server. Counts throughput and checks the data-plane invariants.
+
+use crate::episode::{Episode, EpisodeDims};
+use lmac_shm_schema::ring::{Port, RingError, RingSpec, KIND_BYE, KIND_SLOT};
+use lmac_shm_schema::{EnvSchema, Slab, Slot, Stage, FLAG_FIRST};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use serde::Serialize;
+use std::time::{Duration, Instant};
+
+/// Chooses the actions of one batched step. The learner's epsilon-greedy controller implements
+/// this too; `RandomActor` is the policy until a learner is attached.
+pub trait Actor {
+    /// `slot` is owned by the trainer; write `num_envs * n_agents` actions into `actions`.
+    fn act(&mut self, server: usize, slot: &Slot<'_>, obs_width: usize, actions: &mut [i32]);
+}
+
+/// Uniform over the available actions.
+pub struct RandomActor {
+    rng: StdRng,
+}
+
+impl RandomActor {
+    pub fn new(seed: u64) -> Self {
+        RandomActor { rng: StdRng::seed_from_u64(seed) }
+    }
+}
+
+impl Actor for RandomActor {
+    fn act(&mut self, _server: usize, slot: &Slot<'_>, _obs_width: usize, actions: &mut [i32]) {
+        let na = slot.layout().n_actions;
+        for (k, av) in slot.avail().chunks_exact(na).enumerate() {
+            let n_avail = av.iter().filter(|&&a| a != 0).count();
+            actions[k] = if n_avail == 0 {
+                0
+            } else {
+                let pick = self.rng.random_range(0..n_avail);
+                av.iter().enumerate().filter(|(_, &a)| a != 0).nth(pick).map_or(0, |(i, _)| i as i32)
+            };
+        }
+    }
+}
+
+/// What the runner's messages must look like, checked on every slot when verifying.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MessageCheck {
+    None,
+    /// Built-in fullcomm: [obs_j, onehot(j)] for every other agent j.
+    FullComm,
+}
+
+pub struct TrainerArgs {
+    pub run: String,
+    pub schema: EnvSchema,
+    pub n_servers: usize,
+    pub n_slots: usize,
+    /// Message columns the plan writes (the episode's obs width is obs_dim + msg_used).
+    pub msg_used: usize,
+    /// Stop after this many env steps (counted after warm-up).
+    pub env_steps: u64,
+    /// Batched steps before the clock starts.
+    pub warmup_slots: u64,
+    pub startup_timeout: Duration,
+    pub verify: Option<MessageCheck>,
+    /// Draw a progress bar on stderr.
+    pub progress: bool,
+}
+
+#[derive(Debug, Default, Serialize)]
+pub struct EpisodeSummary {
+    pub server: usize,
+    pub env: usize,
+    pub episode_id: u64,
+    pub len: usize,
+    pub team_return: f32,
+    pub terminated: bool,
+    pub truncated: bool,
+}
+
+#[derive(Debug, Default, Serialize)]
+pub struct TrainerReport {
+    pub env: String,
+    pub servers: usize,
+    pub envs_per_server: usize,
+    pub env_steps: u64,
+    pub batched_steps: u64,
+    pub seconds: f64,
+    pub env_steps_per_s: f64,
+    pub episodes: u64,
+    pub mean_return: f64,
+    /// Time spent in the trainer per batched step (assembly + acting), microseconds.
+    pub trainer_us_per_slot: f64,
+    pub violation_count: u64,
+    pub violations: Vec<String>,
+    #[serde(skip)]
+    pub episode_log: Vec<EpisodeSummary>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error("trainer: {0}")]
+    Ring(#[from] RingError),
+    #[error("trainer: {0}")]
+    Slab(#[from] lmac_shm_schema::SlabError),
+}
+
+/// Per env: the episode being assembled.
+struct EnvTrack {
+    ep: Episode,
+    episode_id: u64,
+    expect_step: u32,
+    started: bool,
+}
+
+pub struct Assembler {
+    dims: EpisodeDims,
+    limit: usize,
+    tracks: Vec<Vec<EnvTrack>>,
+    pub finished: Vec<(usize, usize, u64, Episode)>,
+    violations: Vec<String>,
+    violation_count: u64,
+}
+
+impl Assembler {
+    pub fn new(dims: EpisodeDims, limit: usize, n_servers: usize, num_envs: usize) -> Self {
+        let tracks = (0..n_servers)
+            .map(|_| {
+                (0..num_envs)
+                    .map(|_| EnvTrack { ep: Episode::with_capacity(&dims, limit), episode_id: 0, expect_step: 0, started: false })
+                    .collect()
+            })
+            .collect();
+        Assembler { dims, limit, tracks, finished: Vec::new(), violations: Vec::new(), violation_count: 0 }
+    }
+
+    fn violate(&mut self, msg: String) {
+        self.violation_count += 1;
+        if self.violations.len() < 20 {
+            self.violations.push(msg);
+        }
+    }
+
+    /// Take in the step of every env in `slot`: close the previous transition with this row's
+    /// reward (finishing the episode if it ended) and open the next one with this row's obs.
+    pub fn ingest(&mut self, server: usize, slot: &Slot<'_>) {
+        let l = slot.layout().clone();
+        let d = self.dims;
+        let (obs, state, avail) = (slot.obs(), slot.state(), slot.avail());
+        let (reward, term, trunc) = (slot.reward(), slot.terminated(), slot.truncated());
+        for e in 0..l.num_envs {
+            let (eid, step, flags) = slot.env_meta(e);
+            let first = flags & FLAG_FIRST != 0;
+            let mut t = std::mem::replace(&mut self.tracks[server][e], EnvTrack { ep: Episode::default(), episode_id: 0, expect_step: 0, started: false });
+            if t.started {
+                // This row's reward/termination belong to the previous step of this env.
+                t.ep.reward.push(reward[e]);
+                t.ep.len += 1;
+                let (te, tr) = (term[e] != 0, trunc[e] != 0);
+                if te && tr {
+                    self.violate(format!("server {server} env {e}: episode {} both terminated and truncated", t.episode_id));
+                }
+                if tr && t.ep.len != self.limit {
+                    self.violate(format!("server {server} env {e}: episode {} truncated after {} steps, limit is {}", t.episode_id, t.ep.len, self.limit));
+                }
+                if t.ep.len > self.limit {
+                    self.violate(format!("server {server} env {e}: episode {} ran {} steps, limit is {}", t.episode_id, t.ep.len, self.limit));
+                }
+                if (te || tr) != first {
+                    self.violate(format!("server {server} env {e}: episode end flags (terminated {te}, truncated {tr}) disagree with the first-step flag {first}"));
+                }
+                if te || tr {
+                    t.ep.terminated = te;
+                    t.ep.truncated = tr;
+                    let done = std::mem::replace(&mut t.ep, Episode::with_capacity(&d, self.limit));
+                    self.finished.push((server, e, t.episode_id, done));
+                }
+            } else if !first {
+                self.violate(format!("server {server} env {e}: the first step seen is not flagged as an episode start"));
+            }
+            if first {
+                if t.started && eid == t.episode_id {
+                    self.violate(format!("server {server} env {e}: a new episode reuses id {eid}"));
+                }
+                t.episode_id = eid;
+                t.expect_step = 0;
+            } else if eid != t.episode_id {
+                self.violate(format!("server {server} env {e}: episode id changed {} -> {eid} without a first-step flag", t.episode_id));
+            }
+            if step != t.expect_step {
+                self.violate(format!("server {server} env {e}: episode {eid} step {step}, expected {}", t.expect_step));
+            }
+            t.expect_step = step + 1;
+            t.started = true;
+            let row = l.row_width;
+            for a in 0..l.n_agents {
+                let base = (e * l.n_agents + a) * row;
+                t.ep.obs.extend_from_slice(&obs[base..base + d.obs_width]);
+            }
+            t.ep.state.extend_from_slice(&state[e * l.state_dim..(e + 1) * l.state_dim]);
+            let na = l.n_agents * l.n_actions;
+            t.ep.avail.extend_from_slice(&avail[e * na..(e + 1) * na]);
+            self.tracks[server][e] = t;
+        }
+    }
+
+    /// Record the actions chosen for the step just ingested.
+    pub fn record_actions(&mut self, server: usize, actions: &[i32]) {
+        let n = self.dims.n_agents;
+        for (e, t) in self.tracks[server].iter_mut().enumerate() {
+            t.ep.actions.extend_from_slice(&actions[e * n..(e + 1) * n]);
+        }
+    }
+
+    /// Check the message columns against the rule the runner applies.
+    pub fn check_messages(&mut self, server: usize, slot: &Slot<'_>, check: MessageCheck) {
+        let l = slot.layout();
+        let (n, od, rw) = (l.n_agents, l.obs_dim, l.row_width);
+        let obs = slot.obs();
+        for e in 0..l.num_envs {
+            for i in 0..n {
+                let row = &obs[(e * n + i) * rw..(e * n + i + 1) * rw];
+                let mut expect = Vec::with_capacity(l.msg_dim);
+                if check == MessageCheck::FullComm {
+                    for j in (0..n).filter(|&j| j != i) {
+                        expect.extend_from_slice(&obs[(e * n + j) * rw..(e * n + j) * rw + od]);
+                        expect.extend((0..n).map(|k| if k == j { 1.0 } else { 0.0 }));
+                    }
+                }
+                expect.resize(l.msg_dim, 0.0);
+                if row[od..] != expect[..] {
+                    self.violate(format!("server {server} env {e} agent {i}: message columns differ from the {check:?} rule"));
+                }
+            }
+        }
+    }
+}
+
+/// Run the trainer loop with `actor` until `env_steps` env steps have been collected.
+pub fn run(args: &TrainerArgs, actor: &mut dyn Actor, mut on_episode: impl FnMut(usize, usize, Episode)) -> Result<TrainerReport, PipelineError> {
+    let mut slabs = Vec::new();
+    for s in 0..args.n_servers {
+        slabs.push(Slab::open(&lmac_protocol_runner::runner::slab_name(&args.run, s), &args.schema, args.startup_timeout)?);
+    }
+    let l0 = slabs[0].layout().clone();
+    let dims = EpisodeDims {
+        n_agents: args.schema.n_agents,
+        obs_width: args.schema.obs_dim + args.msg_used,
+        state_dim: args.schema.state_dim,
+        n_actions: args.schema.n_actions,
+    };
+    let mut port = Port::new(RingSpec {
+        run: args.run.clone(),
+        n_servers: args.n_servers,
+        n_slots: args.n_slots,
+        role: Stage::Trainer,
+        server: 0,
+    })?;
+    port.set_startup_timeout(args.startup_timeout);
+    let mut asm = Assembler::new(dims, args.schema.episode_limit, args.n_servers, l0.num_envs);
+    let mut actions = vec![0i32; l0.num_envs * l0.n_agents];
+    let mut report = TrainerReport {
+        env: args.schema.name.clone(),
+        servers: args.n_servers,
+        envs_per_server: l0.num_envs,
+        ..Default::default()
+    };
+    let bar = if args.progress {
+        let b = indicatif::ProgressBar::new(args.env_steps);
+        b.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:32} {pos}/{len} env steps {per_sec} eta {eta} {msg}")
+                .expect("valid template"),
+        );
+        Some(b)
+    } else {
+        None
+    };
+    let (mut slots_seen, mut timed_steps) = (0u64, 0u64);
+    // The clock starts after the warm-up slots (at least the first, which carries start-up).
+    let warmup = args.warmup_slots.max(1);
+    let mut t_start: Option<Instant> = None;
+    let mut busy = Duration::ZERO;
+    let mut return_sum = 0.0f64;
+    while timed_steps < args.env_steps {
+        let Some(m) = port.recv(Duration::from_millis(500))? else { continue };
+        if m.kind != KIND_SLOT {
+            continue;
+        }
+        let t0 = Instant::now();
+        let (server, idx) = (m.server as usize, m.slot as usize);
+        {
+            let mut slot = slabs[server].slot(idx, Stage::Trainer)?;
+            if let Some(check) = args.verify {
+                asm.check_messages(server, &slot, check);
+            }
+            asm.ingest(server, &slot);
+            actor.act(server, &slot, dims.obs_width, &mut actions);
+            slot.actions_mut().copy_from_slice(&actions);
+            asm.record_actions(server, &actions);
+        }
+        slabs[server].set_stage(idx, Stage::Env);
+        port.send_slot(server, idx, m.seq)?;
+        for (s, e, eid, ep) in asm.finished.drain(..) {
+            report.episodes += 1;
+            return_sum += ep.team_return() as f64;
+            report.episode_log.push(EpisodeSummary {
+                server: s,
+                env: e,
+                episode_id: eid,
+                len: ep.len,
+                team_return: ep.team_return(),
+                terminated: ep.terminated,
+                truncated: ep.truncated,
+            });
+            on_episode(s, e, ep);
+        }
+        slots_seen += 1;
+        if slots_seen == warmup {
+            t_start = Some(Instant::now());
+        }
+        if slots_seen > warmup {
+            timed_steps += l0.num_envs as u64;
+            report.batched_steps += 1;
+            busy += t0.elapsed();
+            if let Some(b) = &bar {
+                b.set_position(timed_steps.min(args.env_steps));
+            }
+        }
+    }
+    let secs = t_start.map_or(0.0, |t| t.elapsed().as_secs_f64());
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    for s in 0..args.n_servers {
+        port.send_bye(s)?;
+    }
+    // Keep the publishers alive until the env servers have taken their goodbye.
+    let _ = port.wait_peers_gone(Duration::from_secs(5));
+    report.env_steps = timed_steps;
+    report.seconds = secs;
+    report.env_steps_per_s = if secs > 0.0 { timed_steps as f64 / secs } else { 0.0 };
+    report.mean_return = if report.episodes > 0 { return_sum / report.episodes as f64 } else { 0.0 };
+    report.trainer_us_per_slot = if report.batched_steps > 0 { busy.as_secs_f64() * 1e6 / report.batched_steps as f64 } else { 0.0 };
+    report.violation_count = asm.violation_count;
+    report.violations = asm.violations.clone();
+    Ok(report)
+}

@@ -1,0 +1,202 @@
+//! The `lmac` parent process: starts the env servers (Python), the protocol runner and the
+//! trainer as child processes, watches them, and on Ctrl-C or a dead child stops the rest and
+//! removes the run's shared memory. A child that dies is reported by name.
+
+use anyhow::{bail, Context, Result};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Everything a pipeline run needs to start its processes.
+#[derive(Clone, Debug)]
+pub struct RunPlan {
+    pub run: String,
+    pub env: String,
+    pub servers: usize,
+    pub envs_per_server: usize,
+    pub slots: usize,
+    /// Message columns reserved in the slab.
+    pub msg_dim: usize,
+    pub protocol: String,
+    pub seed: u64,
+    pub startup_timeout_s: f64,
+    /// Extra arguments for the trainer child (after `lmac child trainer ...`).
+    pub trainer_args: Vec<String>,
+}
+
+/// The repository root (the folder holding `env-server/`), from the schema directory.
+pub fn repo_root() -> Result<PathBuf> {
+    let dir = lmac_shm_schema::schema::schema_dir().context("cannot find env-server/schemas (set LMAC_SCHEMA_DIR)")?;
+    Ok(dir.parent().and_then(Path::parent).context("schema dir has no repository root")?.to_path_buf())
+}
+
+/// The Python that runs env servers: $LMAC_PYTHON, else the project's .venv, else python3.
+pub fn python() -> Result<PathBuf> {
+    if let Ok(p) = std::env::var("LMAC_PYTHON") {
+        return Ok(PathBuf::from(p));
+    }
+    let venv = repo_root()?.join(".venv/bin/python");
+    if venv.exists() {
+        return Ok(venv);
+    }
+    Ok(PathBuf::from("python3"))
+}
+
+/// A Python command with env-server/ on its path.
+pub fn python_command() -> Result<Command> {
+    let mut c = Command::new(python()?);
+    let root = repo_root()?;
+    let mut pp = root.join("env-server").into_os_string();
+    if let Some(old) = std::env::var_os("PYTHONPATH") {
+        pp.push(":");
+        pp.push(old);
+    }
+    c.env("PYTHONPATH", pp);
+    Ok(c)
+}
+
+pub struct Proc {
+    pub name: String,
+    pub child: Child,
+    pub status: Option<ExitStatus>,
+}
+
+fn describe(status: &ExitStatus) -> String {
+    use std::os::unix::process::ExitStatusExt;
+    match (status.code(), status.signal()) {
+        (Some(c), _) => format!("exit code {c}"),
+        (None, Some(s)) => format!("killed by signal {s}{}", if s == libc::SIGKILL { " (SIGKILL)" } else if s == libc::SIGSEGV { " (SIGSEGV)" } else { "" }),
+        _ => "unknown status".into(),
+    }
+}
+
+/// Remove what a run may leave in shared memory: its slabs and dead iceoryx2 nodes.
+pub fn cleanup_run(run: &str, servers: usize) {
+    for s in 0..servers {
+        lmac_shm_schema::slab::unlink(&lmac_protocol_runner::runner::slab_name(run, s));
+    }
+    lmac_shm_schema::ring::cleanup_dead_nodes();
+}
+
+/// The outcome of a run: the trainer's stdout (its JSON report) when everything ended well.
+pub struct RunOutcome {
+    pub trainer_stdout: String,
+}
+
+/// Start all processes and supervise them until the trainer finishes, a child dies, or
+/// `interrupted` is set (Ctrl-C).
+pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunOutcome> {
+    let exe = std::env::current_exe().context("locating the lmac executable")?;
+    let mut procs: Vec<Proc> = Vec::new();
+    let spawn_all = |procs: &mut Vec<Proc>| -> Result<()> {
+        for s in 0..plan.servers {
+            let mut c = python_command()?;
+            c.args(["-m", "lmac_env.server", "--env", &plan.env, "--run", &plan.run])
+                .args(["--envs", &plan.envs_per_server.to_string(), "--server", &s.to_string()])
+                .args(["--n-servers", &plan.servers.to_string(), "--slots", &plan.slots.to_string()])
+                .args(["--msg-dim", &plan.msg_dim.to_string(), "--seed", &plan.seed.to_string()])
+                .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
+                .stdin(Stdio::null());
+            let child = c.spawn().context("starting an env server (python)")?;
+            procs.push(Proc { name: format!("env server {s} ({})", plan.env), child, status: None });
+        }
+        let common = |c: &mut Command| {
+            c.args(["--run", &plan.run, "--env", &plan.env, "--servers", &plan.servers.to_string()])
+                .args(["--slots", &plan.slots.to_string(), "--protocol", &plan.protocol])
+                .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
+                .stdin(Stdio::null());
+        };
+        let mut r = Command::new(&exe);
+        r.args(["child", "runner"]);
+        common(&mut r);
+        procs.push(Proc { name: "protocol runner".into(), child: r.spawn().context("starting the protocol runner")?, status: None });
+        let mut t = Command::new(&exe);
+        t.args(["child", "trainer"]);
+        common(&mut t);
+        t.args(["--seed", &plan.seed.to_string()]).args(&plan.trainer_args).stdout(Stdio::piped());
+        procs.push(Proc { name: "trainer".into(), child: t.spawn().context("starting the trainer")?, status: None });
+        Ok(())
+    };
+    let started = spawn_all(&mut procs);
+    let trainer_idx = procs.len().saturating_sub(1);
+    // Read the trainer's stdout on a thread so a full pipe never blocks it.
+    let stdout_reader = procs.last_mut().and_then(|p| p.child.stdout.take()).map(|mut out| {
+        std::thread::spawn(move || {
+            let mut s = String::new();
+            let _ = std::io::Read::read_to_string(&mut out, &mut s);
+            s
+        })
+    });
+    let result = match started {
+        Err(e) => Err(e),
+        Ok(()) => supervise(&mut procs, trainer_idx, &interrupted),
+    };
+    stop_all(&mut procs);
+    cleanup_run(&plan.run, plan.servers);
+    let out = stdout_reader.map(|h| h.join().unwrap_or_default()).unwrap_or_default();
+    result.map(|()| RunOutcome { trainer_stdout: out })
+}
+
+fn supervise(procs: &mut [Proc], trainer_idx: usize, interrupted: &AtomicBool) -> Result<()> {
+    loop {
+        if interrupted.load(Ordering::SeqCst) {
+            bail!("interrupted: stopped all processes and removed the run's shared memory");
+        }
+        let mut newly_dead = Vec::new();
+        for (i, p) in procs.iter_mut().enumerate() {
+            if p.status.is_none() {
+                if let Some(st) = p.child.try_wait()? {
+                    p.status = Some(st);
+                    newly_dead.push(i);
+                }
+            }
+        }
+        if let Some(st) = procs[trainer_idx].status {
+            if st.success() {
+                // The trainer said goodbye; give the others a moment to finish cleanly.
+                let t0 = Instant::now();
+                while t0.elapsed() < Duration::from_secs(5) && procs.iter_mut().any(|p| p.status.is_none() && p.child.try_wait().ok().flatten().is_none()) {
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+                return Ok(());
+            }
+        }
+        // A child that ended before the trainer finished is a failure. Prefer reporting one
+        // that was killed or crashed over the peers that exited because they noticed it.
+        let failed: Vec<usize> = procs.iter().enumerate().filter(|(_, p)| p.status.is_some_and(|s| !s.success()) || (p.status.is_some() && p.name != "trainer")).map(|(i, _)| i).collect();
+        if !failed.is_empty() {
+            let culprit = failed
+                .iter()
+                .copied()
+                .find(|&i| procs[i].status.is_some_and(|s| s.code().is_none()))
+                .or_else(|| failed.iter().copied().find(|&i| procs[i].status.is_some_and(|s| s.code() != Some(3))))
+                .unwrap_or(failed[0]);
+            let p = &procs[culprit];
+            bail!("{} (pid {}) died: {}", p.name, p.child.id(), describe(p.status.as_ref().expect("exited")));
+        }
+        let _ = newly_dead;
+        std::thread::sleep(Duration::from_millis(25));
+    }
+}
+
+/// SIGTERM every live child, wait up to 3 s, then SIGKILL.
+fn stop_all(procs: &mut [Proc]) {
+    for p in procs.iter_mut() {
+        if p.status.is_none() && p.child.try_wait().ok().flatten().is_none() {
+            unsafe { libc::kill(p.child.id() as i32, libc::SIGTERM) };
+        }
+    }
+    let t0 = Instant::now();
+    while t0.elapsed() < Duration::from_secs(3) {
+        if procs.iter_mut().all(|p| p.status.is_some() || p.child.try_wait().ok().flatten().is_some()) {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for p in procs.iter_mut() {
+        let _ = p.child.kill();
+        let _ = p.child.wait();
+    }
+}
