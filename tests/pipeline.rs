@@ -33,8 +33,15 @@ fn lmac_shm_files() -> HashSet<String> {
         .collect()
 }
 
+/// Every file in /dev/shm except iceoryx2's machine-wide node-id counter (`*global_mgmt`),
+/// which iceoryx2 keeps across runs by design.
 fn all_shm_files() -> HashSet<String> {
-    std::fs::read_dir("/dev/shm").unwrap().flatten().map(|e| e.file_name().to_string_lossy().to_string()).collect()
+    std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .filter(|n| !n.ends_with("global_mgmt"))
+        .collect()
 }
 
 fn wait_for<T>(timeout: Duration, mut f: impl FnMut() -> Option<T>) -> Option<T> {

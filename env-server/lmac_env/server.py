@@ -155,9 +155,8 @@ def serve(args) -> int:
             lease.release()
             port.send_slot(args.server, slot, seq)
         dt = time.perf_counter() - t0
-        print(json.dumps({"server": args.server, "batched_steps": seq, "env_steps": seq * args.envs,
-                          "seconds": round(dt, 3), "episodes": driver.episodes_done}),
-              file=sys.stderr, flush=True)
+        print(f"lmac: {who}: {seq * args.envs} env steps, {driver.episodes_done} episodes "
+              f"in {dt:.1f} s; goodbye", file=sys.stderr, flush=True)
         return 0
     except lmac_shm.StoppedError:
         return 0

@@ -133,6 +133,8 @@ fn event(node: &Node<ipc::Service>, name: &str) -> Result<iceoryx2::service::por
 impl Port {
     /// Create this process's node and ports. Nothing is sent yet.
     pub fn new(spec: RingSpec) -> Result<Port, RingError> {
+        // iceoryx2 warns on stderr that it runs on its default config; that is intended here.
+        set_log_level(LogLevel::Error);
         let run = spec.run.clone();
         let me = node_name(&run, spec.role, spec.server);
         let node = NodeBuilder::new()
@@ -410,6 +412,7 @@ impl Port {
 
 /// Remove the iceoryx2 resources of dead nodes (after a crash); returns how many were cleaned.
 pub fn cleanup_dead_nodes() -> usize {
+    set_log_level(LogLevel::Error);
     let mut n = 0;
     let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
         if let NodeState::Dead(v) = state {

@@ -3,7 +3,7 @@
 //! hand it back to the env server. Counts throughput and checks the data-plane invariants.
 
 use crate::episode::{Episode, EpisodeDims};
-use lmac_shm_schema::ring::{Port, RingError, RingSpec, KIND_BYE, KIND_SLOT};
+use lmac_shm_schema::ring::{Port, RingError, RingSpec, KIND_SLOT};
 use lmac_shm_schema::{EnvSchema, Slab, Slot, Stage, FLAG_FIRST};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};

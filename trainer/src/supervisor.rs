@@ -165,7 +165,9 @@ fn supervise(procs: &mut [Proc], trainer_idx: usize, interrupted: &AtomicBool) -
         }
         // A child that ended before the trainer finished is a failure. Prefer reporting one
         // that was killed or crashed over the peers that exited because they noticed it.
-        let failed: Vec<usize> = procs.iter().enumerate().filter(|(_, p)| p.status.is_some_and(|s| !s.success()) || (p.status.is_some() && p.name != "trainer")).map(|(i, _)| i).collect();
+        // Children exit 0 only after a goodbye or a stop request; an unexpected clean exit is
+        // noticed by the trainer's liveness check (which then fails with exit code 3).
+        let failed: Vec<usize> = procs.iter().enumerate().filter(|(_, p)| p.status.is_some_and(|s| !s.success())).map(|(i, _)| i).collect();
         if !failed.is_empty() {
             let culprit = failed
                 .iter()

@@ -1,0 +1,58 @@
+//! One learner update (QMIX / VDN / QPLEX) at the DESIGN.md reference size: 32 episodes x 50
+//! steps x 3 agents, GRU 64, mixing embed 32; plus one batched acting step for 8 envs.
+//! Needs in benches/Cargo.toml: `lmac-trainer.workspace = true` under [dependencies] and
+//! `[[bench]] name = "learner" harness = false`.
+
+use lmac_trainer::learn::Device;
+use criterion::{criterion_group, criterion_main, Criterion};
+use lmac_trainer::episode::{Episode, EpisodeDims};
+use lmac_trainer::learn::{Controller, LearnConfig, LearnRng, Learner, MixerKind};
+
+const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 30, state_dim: 48, n_actions: 9 };
+
+fn filled_learner(mixer: MixerKind) -> Learner {
+    let cfg = LearnConfig { mixer, ..LearnConfig::default() };
+    let mut learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+    let mut rng = LearnRng::seed_from(0);
+    let d = DIMS;
+    for _ in 0..64 {
+        let len = 50;
+        let mut ep = Episode::with_capacity(&d, len);
+        ep.len = len;
+        ep.obs = (0..len * d.n_agents * d.obs_width).map(|_| rng.uniform()).collect();
+        ep.state = (0..len * d.state_dim).map(|_| rng.uniform()).collect();
+        ep.avail = vec![1; len * d.n_agents * d.n_actions];
+        ep.actions = (0..len * d.n_agents).map(|_| rng.below(d.n_actions) as i32).collect();
+        ep.reward = (0..len).map(|_| rng.uniform()).collect();
+        ep.terminated = true;
+        learner.add_episode(ep).unwrap();
+    }
+    learner
+}
+
+fn bench_update(c: &mut Criterion) {
+    let mut g = c.benchmark_group("learner_update_32x50x3");
+    g.sample_size(10);
+    for mixer in [MixerKind::Qmix, MixerKind::Vdn, MixerKind::Qplex] {
+        let mut learner = filled_learner(mixer);
+        g.bench_function(format!("{mixer:?}").to_lowercase(), |b| b.iter(|| learner.train_step().unwrap()));
+    }
+    g.finish();
+}
+
+fn bench_act(c: &mut Criterion) {
+    let mut learner = filled_learner(MixerKind::Qmix);
+    let envs = 8;
+    let mut ctl = Controller::new(&learner, envs);
+    let d = DIMS;
+    let obs = vec![0.5f32; envs * d.n_agents * d.obs_width];
+    let last = vec![0i32; envs * d.n_agents];
+    let avail = vec![1u8; envs * d.n_agents * d.n_actions];
+    let first = vec![false; envs];
+    c.bench_function("act_step_8_envs", |b| {
+        b.iter(|| ctl.select_actions(&obs, None, &last, &avail, &first, 0.1, learner.rng_mut()))
+    });
+}
+
+criterion_group!(benches, bench_update, bench_act);
+criterion_main!(benches);
