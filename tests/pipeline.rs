@@ -166,3 +166,19 @@ fn a_killed_env_server_is_reported_by_name_and_nothing_hangs() {
     let pids_alive = std::process::Command::new("pgrep").args(["-f", &format!("--run {run}")]).output().unwrap();
     assert!(String::from_utf8_lossy(&pids_alive.stdout).trim().is_empty());
 }
+
+#[test]
+fn all_smaclite_maps_run_through_the_pipeline() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    for map in ["bane_vs_hM", "1o_10b_vs_1r", "2o_20b_vs_2r", "5z_vs_1ul"] {
+        let env = format!("smaclite:{map}");
+        let out = lmac()
+            .args(["run", "--env", &env, "--envs", "4", "--protocol", "fullcomm", "--steps", "1200", "--verify", "--json"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{env}: {}", String::from_utf8_lossy(&out.stderr));
+        let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(report["violation_count"], 0, "{env}: {}", report["violations"]);
+        assert!(report["episodes"].as_u64().unwrap() > 0, "{env}: no episode finished");
+    }
+}

@@ -35,6 +35,9 @@ pub const KIND_HELLO: u32 = 1;
 /// Shutdown: the trainer tells the env servers, which tell the runner.
 pub const KIND_BYE: u32 = 2;
 
+/// Event id iceoryx2 sends when a notifier of the service died (see `event`).
+const NOTIFIER_DEAD: usize = 200;
+
 /// How long a wait sleeps before looking at peers' liveness.
 const LIVENESS_PERIOD: Duration = Duration::from_millis(250);
 /// How long an expected peer may take to appear at start-up.
@@ -109,6 +112,8 @@ pub struct Port {
     /// Peers that said goodbye (their disappearance is expected).
     departed: HashSet<String>,
     closing: bool,
+    /// iceoryx2 reported a dead notifier: check peers before sleeping again.
+    dead_notified: bool,
 }
 
 fn pubsub(node: &Node<ipc::Service>, name: &str, n_slots: usize) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, SlotMsg, ()>, RingError> {
@@ -127,7 +132,13 @@ fn pubsub(node: &Node<ipc::Service>, name: &str, n_slots: usize) -> Result<iceor
 
 fn event(node: &Node<ipc::Service>, name: &str) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, RingError> {
     let sname = ServiceName::new(name).map_err(ipc("service name"))?;
-    node.service_builder(&sname).event().open_or_create().map_err(ipc(name))
+    // When a notifier's process dies and its resources are cleaned up, iceoryx2 wakes the
+    // listener with NOTIFIER_DEAD, so a sleeping process looks at its peers at once.
+    node.service_builder(&sname)
+        .event()
+        .notifier_dead_event(EventId::new(NOTIFIER_DEAD))
+        .open_or_create()
+        .map_err(ipc(name))
 }
 
 impl Port {
@@ -208,6 +219,7 @@ impl Port {
             peers,
             departed: HashSet::new(),
             closing: false,
+            dead_notified: false,
         })
     }
 
@@ -313,7 +325,8 @@ impl Port {
                 return Err(RingError::Stopped);
             }
             let now = Instant::now();
-            if now.duration_since(self.last_check) >= LIVENESS_PERIOD {
+            if self.dead_notified || now.duration_since(self.last_check) >= LIVENESS_PERIOD {
+                self.dead_notified = false;
                 self.check_peers()?;
                 self.last_check = now;
             }
@@ -321,7 +334,11 @@ impl Port {
                 return Ok(None);
             }
             let wait = (deadline - now).min(LIVENESS_PERIOD);
-            self.listener.timed_wait(|_| {}, wait).map_err(ipc("wait"))?;
+            let mut dead = false;
+            self.listener
+                .timed_wait(|ev| dead |= ev.id == EventId::new(NOTIFIER_DEAD), wait)
+                .map_err(ipc("wait"))?;
+            self.dead_notified |= dead;
         }
     }
 

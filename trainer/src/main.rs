@@ -87,6 +87,9 @@ enum BenchCmd {
     Pipeline {
         #[command(flatten)]
         p: PipelineOpts,
+        /// Alternate raw and pipeline runs this many times; report medians.
+        #[arg(long, default_value_t = 3)]
+        repeat: usize,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -146,7 +149,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
     match cli.cmd {
         Cmd::Envs { check, json } => envs(check, json),
         Cmd::Run(a) => run(a),
-        Cmd::Bench(BenchCmd::Pipeline { p, json }) => bench_pipeline(p, json),
+        Cmd::Bench(BenchCmd::Pipeline { p, repeat, json }) => bench_pipeline(p, repeat, json),
         Cmd::Child(c) => child(c),
     }
 }
@@ -240,34 +243,47 @@ fn run(a: RunArgs) -> Result<i32> {
     Ok(if report["violation_count"].as_u64().unwrap_or(0) > 0 { 1 } else { 0 })
 }
 
-fn bench_pipeline(p: PipelineOpts, json: bool) -> Result<i32> {
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    if v.is_empty() { 0.0 } else { v[v.len() / 2] }
+}
+
+fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
     let interrupted = interrupt_flag();
-    // 1. Raw: the same environments stepped in one Python process, no pipeline.
     let batched = (p.steps / (p.envs * p.servers) as u64).max(1);
-    let out = supervisor::python_command()?
-        .args(["-m", "lmac_env.server", "--raw", "--env", &p.env, "--envs", &(p.envs * p.servers).to_string()])
-        .args(["--steps", &batched.to_string(), "--seed", &p.seed.to_string()])
-        .output()
-        .context("running the raw baseline (python -m lmac_env.server --raw)")?;
-    if !out.status.success() {
-        bail!("raw baseline failed: {}", String::from_utf8_lossy(&out.stderr));
+    let (mut raws, mut pipes, mut trainer_us) = (Vec::new(), Vec::new(), Vec::new());
+    // Alternate raw and pipeline runs so a change of machine load hits both alike.
+    for _ in 0..repeat.max(1) {
+        // 1. Raw: the same environments stepped in one Python process, no pipeline.
+        let out = supervisor::python_command()?
+            .args(["-m", "lmac_env.server", "--raw", "--env", &p.env, "--envs", &(p.envs * p.servers).to_string()])
+            .args(["--steps", &batched.to_string(), "--seed", &p.seed.to_string()])
+            .output()
+            .context("running the raw baseline (python -m lmac_env.server --raw)")?;
+        if !out.status.success() {
+            bail!("raw baseline failed: {}", String::from_utf8_lossy(&out.stderr));
+        }
+        let raw: serde_json::Value = serde_json::from_slice(&out.stdout).context("raw baseline output")?;
+        raws.push(raw["env_steps_per_s"].as_f64().unwrap_or(0.0));
+        // 2. The full pipeline on the same number of env steps.
+        let pipe = pipeline_report(&p, vec![], interrupted.clone())?;
+        pipes.push(pipe["env_steps_per_s"].as_f64().unwrap_or(0.0));
+        trainer_us.push(pipe["trainer_us_per_slot"].as_f64().unwrap_or(0.0));
     }
-    let raw: serde_json::Value = serde_json::from_slice(&out.stdout).context("raw baseline output")?;
-    // 2. The full pipeline on the same number of env steps.
-    let pipe = pipeline_report(&p, vec![], interrupted)?;
-    let raw_rate = raw["env_steps_per_s"].as_f64().unwrap_or(0.0);
-    let pipe_rate = pipe["env_steps_per_s"].as_f64().unwrap_or(0.0);
-    let ratio = if raw_rate > 0.0 { pipe_rate / raw_rate } else { 0.0 };
+    let ratios: Vec<f64> = raws.iter().zip(&pipes).map(|(r, q)| if *r > 0.0 { q / r } else { 0.0 }).collect();
+    let (raw_rate, pipe_rate, ratio) = (median(raws.clone()), median(pipes.clone()), median(ratios.clone()));
     let v = serde_json::json!({
-        "env": p.env, "envs": p.envs, "servers": p.servers, "protocol": p.protocol, "env_steps": p.steps,
+        "env": p.env, "envs_total": p.envs * p.servers, "servers": p.servers, "protocol": p.protocol,
+        "env_steps": p.steps, "repeats": repeat,
         "raw_env_steps_per_s": raw_rate, "pipeline_env_steps_per_s": pipe_rate, "ratio": ratio,
-        "trainer_us_per_batched_step": pipe["trainer_us_per_slot"],
+        "raw_runs": raws, "pipeline_runs": pipes, "ratio_runs": ratios,
+        "trainer_us_per_batched_step": median(trainer_us),
     });
     if json {
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
-        println!("{} ({} envs): raw {:.0} env-steps/s, pipeline {:.0} env-steps/s ({} servers, protocol {}), ratio {:.3}",
-            p.env, p.envs * p.servers, raw_rate, pipe_rate, p.servers, p.protocol, ratio);
+        println!("{} ({} envs): raw {:.0} env-steps/s, pipeline {:.0} env-steps/s ({} servers, protocol {}), ratio {:.3} (median of {})",
+            p.env, p.envs * p.servers, raw_rate, pipe_rate, p.servers, p.protocol, ratio, repeat);
     }
     Ok(0)
 }
