@@ -22,7 +22,8 @@ import numpy as np
 from .core import Batch, Schema, VecEnv, schema_path
 from .registry import make
 
-FLAG_FIRST = 1  # shm-schema layout.rs FLAG_FIRST
+FLAG_FIRST = 1     # shm-schema layout.rs FLAG_FIRST: this row starts an episode
+FLAG_PREV_WON = 2  # FLAG_PREV_WON: the episode that ended at this row was won
 
 
 @dataclasses.dataclass
@@ -76,6 +77,11 @@ class Driver:
         meta.flags[:] = 0
         if done.any():
             ids = np.nonzero(done)[0]
+            # Success of the finished episodes: the env's own `won` (SMAC) or, by default,
+            # termination before the time limit (LBF: all food eaten).
+            won = getattr(self.env, "won", None)
+            won = (out.terminated != 0) if won is None else np.asarray(won, bool)
+            won_ids = ids[won[ids]]
             self.episodes_done += len(ids)
             self.return_sum += float(self._returns[ids].sum())
             self._returns[ids] = 0.0
@@ -84,6 +90,7 @@ class Driver:
             self.episode_id[ids] = self.next_id + np.arange(len(ids), dtype=np.uint64)
             self.next_id += np.uint64(len(ids))
             meta.flags[ids] = FLAG_FIRST
+            meta.flags[won_ids] |= FLAG_PREV_WON
             meta.last_actions[ids] = -1
         meta.episode_id[:] = self.episode_id
         meta.ep_step[:] = self.ep_step

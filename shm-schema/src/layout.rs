@@ -17,6 +17,8 @@ pub const ENV_META_BYTES: usize = 16;
 
 /// `flags` bit: this row's observation is the first of a new episode.
 pub const FLAG_FIRST: u32 = 1;
+/// `flags` bit: the episode that ended at this row was won (SMAC win, LBF all food eaten).
+pub const FLAG_PREV_WON: u32 = 2;
 
 /// Run-time parameters that, with the schema, fix the byte layout.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

@@ -22,6 +22,8 @@ struct Cli {
 enum Cmd {
     /// Run the pipeline: env servers -> protocol runner -> trainer (random policy until learning lands).
     Run(RunArgs),
+    /// Train VDN / QMIX / QPLEX and the baselines through the pipeline, over several seeds.
+    Train(TrainArgs),
     /// List the environments with their dimensions.
     Envs {
         /// Validate every schema file and fail on the first bad one.
@@ -81,6 +83,44 @@ struct RunArgs {
     json: bool,
 }
 
+#[derive(Args)]
+struct TrainArgs {
+    /// Environment (overrides run.env).
+    #[arg(long)]
+    env: Option<String>,
+    /// qmix | vdn | qplex | fullcomm | qmix-state (overrides run.algo).
+    #[arg(long)]
+    algo: Option<String>,
+    /// Seeds, comma separated: one run directory each, run one after the other.
+    #[arg(long, default_value = "0", value_delimiter = ',')]
+    seeds: Vec<u64>,
+    /// Env steps per seed, e.g. 2M, 500k (overrides run.steps).
+    #[arg(long, value_parser = parse_steps)]
+    steps: Option<u64>,
+    /// Config file (TOML with [run] and [learn] sections).
+    #[arg(long)]
+    config: Option<std::path::PathBuf>,
+    /// Override a config value: --set learn.lr=0.001 --set run.envs=8
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// Where run directories go.
+    #[arg(long, default_value = "runs")]
+    out: std::path::PathBuf,
+    /// Continue the runs in this directory (a seed's directory or a group of seeds).
+    #[arg(long, conflicts_with_all = ["env", "algo", "config", "set", "steps"])]
+    resume: Option<std::path::PathBuf>,
+}
+
+fn parse_steps(s: &str) -> Result<u64, String> {
+    let t = s.trim().to_ascii_lowercase();
+    let (num, mul) = match t.chars().last() {
+        Some('k') => (&t[..t.len() - 1], 1_000f64),
+        Some('m') => (&t[..t.len() - 1], 1_000_000f64),
+        _ => (&t[..], 1f64),
+    };
+    num.parse::<f64>().map(|v| (v * mul) as u64).map_err(|_| format!("{s:?} is not a step count (e.g. 2M, 500k, 20000)"))
+}
+
 #[derive(Subcommand)]
 enum BenchCmd {
     /// Raw vectorized stepping in one Python process vs the full pipeline, in one run.
@@ -130,6 +170,9 @@ enum ChildCmd {
         episodes_out: Option<std::path::PathBuf>,
         #[arg(long)]
         progress: bool,
+        /// Train with the run directory's config (instead of acting randomly).
+        #[arg(long)]
+        train_dir: Option<std::path::PathBuf>,
     },
 }
 
@@ -149,6 +192,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
     match cli.cmd {
         Cmd::Envs { check, json } => envs(check, json),
         Cmd::Run(a) => run(a),
+        Cmd::Train(a) => train(a),
         Cmd::Bench(BenchCmd::Pipeline { p, repeat, json }) => bench_pipeline(p, repeat, json),
         Cmd::Child(c) => child(c),
     }
@@ -200,6 +244,9 @@ fn interrupt_flag() -> Arc<AtomicBool> {
 fn pipeline_report(p: &PipelineOpts, extra: Vec<String>, interrupted: Arc<AtomicBool>) -> Result<serde_json::Value> {
     let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
     let plan = lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?;
+    if plan.msg_dim() > schema.message_columns {
+        bail!("protocol {} writes {} message columns but {} allows {} (its message_columns budget)", p.protocol, plan.msg_dim(), p.env, schema.message_columns);
+    }
     if p.envs == 0 || p.servers == 0 || p.slots == 0 {
         bail!("--envs, --servers and --slots must be at least 1");
     }
@@ -209,7 +256,7 @@ fn pipeline_report(p: &PipelineOpts, extra: Vec<String>, interrupted: Arc<Atomic
         servers: p.servers,
         envs_per_server: p.envs,
         slots: p.slots,
-        msg_dim: schema.message_columns.max(plan.msg_dim()),
+        msg_dim: plan.msg_dim(),
         protocol: p.protocol.clone(),
         seed: p.seed,
         startup_timeout_s: p.startup_timeout,
@@ -288,6 +335,92 @@ fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
     Ok(0)
 }
 
+fn train(a: TrainArgs) -> Result<i32> {
+    use lmac_trainer::train::{algo, TrainConfig};
+    let interrupted = interrupt_flag();
+    // The seed directories to run, each with its resolved config.toml.
+    let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
+        if r.join("config.toml").exists() {
+            (r.parent().unwrap_or(r).to_path_buf(), vec![r.clone()])
+        } else {
+            let mut d: Vec<_> = std::fs::read_dir(r).with_context(|| format!("reading {}", r.display()))?
+                .flatten().map(|e| e.path()).filter(|p| p.join("config.toml").exists()).collect();
+            d.sort();
+            if d.is_empty() {
+                bail!("{} holds no run (no config.toml in it or its subfolders)", r.display());
+            }
+            (r.clone(), d)
+        }
+    } else {
+        let mut overrides = a.set.clone();
+        if let Some(e) = &a.env { overrides.push(format!("run.env={e:?}")); }
+        if let Some(al) = &a.algo { overrides.push(format!("run.algo={al:?}")); }
+        if let Some(st) = a.steps { overrides.push(format!("run.steps={st}")); }
+        let cfg = TrainConfig::resolve(a.config.as_deref(), &overrides)?;
+        let stamp = chrono_stamp();
+        let group = a.out.join(cfg.run.env.replace(':', "_")).join(&cfg.run.algo).join(stamp);
+        let mut dirs = Vec::new();
+        for &seed in &a.seeds {
+            let mut c = cfg.clone();
+            c.learn.seed = seed;
+            let d = group.join(format!("seed{seed}"));
+            std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
+            std::fs::write(d.join("config.toml"), toml::to_string_pretty(&c)?)?;
+            dirs.push(d);
+        }
+        (group, dirs)
+    };
+    eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
+    for d in &dirs {
+        let cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(d.join("config.toml"))?)
+            .map_err(|e| anyhow::anyhow!("{}: {}", d.join("config.toml").display(), e.message()))?;
+        cfg.check()?;
+        let al = algo(&cfg.run.algo)?;
+        eprintln!("lmac: {} {} seed {} -> {}", cfg.run.env, cfg.run.algo, cfg.learn.seed, d.display());
+        let p = PipelineOpts {
+            env: cfg.run.env.clone(),
+            envs: cfg.run.envs,
+            servers: cfg.run.servers,
+            slots: 4,
+            protocol: al.protocol.into(),
+            steps: u64::MAX / 4,
+            seed: cfg.learn.seed,
+            startup_timeout: 60.0,
+        };
+        let extra = vec!["--train-dir".to_string(), std::fs::canonicalize(d)?.display().to_string(), "--progress".into(), "--warmup".into(), "1".into()];
+        pipeline_report(&p, extra, interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
+    }
+    plot_runs(&group);
+    Ok(0)
+}
+
+/// Plots and the multi-seed summary (matplotlib, in the project's Python).
+fn plot_runs(group: &std::path::Path) {
+    let script = supervisor::repo_root().map(|r| r.join("trainer/plot_runs.py"));
+    let out = script.and_then(|s| Ok(supervisor::python_command()?.arg(s).arg(group).output()?));
+    match out {
+        Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
+        Ok(o) => eprintln!("lmac: plotting failed: {}", String::from_utf8_lossy(&o.stderr)),
+        Err(e) => eprintln!("lmac: plotting failed: {e}"),
+    }
+}
+
+fn chrono_stamp() -> String {
+    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+    let (d, s) = (secs / 86400, secs % 86400);
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = d as i64 + 719468;
+    let era = z.div_euclid(146097);
+    let doe = z - era * 146097;
+    let yoe = (doe - doe / 1460 + doe / 36524 - doe / 146096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + if month <= 2 { 1 } else { 0 };
+    format!("{year:04}{month:02}{day:02}-{:02}{:02}{:02}", s / 3600, (s / 60) % 60, s % 60)
+}
+
 fn child(c: ChildCmd) -> Result<i32> {
     // Stop gracefully on SIGTERM/SIGINT: the waits return and the process cleans up.
     let _ = ctrlc::set_handler(lmac_shm_schema::ring::request_stop);
@@ -305,7 +438,7 @@ fn child(c: ChildCmd) -> Result<i32> {
                 }
             }
         }
-        ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress } => {
+        ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress, train_dir } => {
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
             let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
             let check = match o.protocol.as_str() {
@@ -324,8 +457,21 @@ fn child(c: ChildCmd) -> Result<i32> {
                 verify: verify.then_some(check),
                 progress,
             };
+            if let Some(dir) = train_dir {
+                return match lmac_trainer::train::train_in_child(&dir, &args, progress) {
+                    Ok(report) => {
+                        println!("{}", serde_json::to_string(&report)?);
+                        Ok(0)
+                    }
+                    Err(e) if e.to_string().contains("stopped by request") => Ok(0),
+                    Err(e) => {
+                        eprintln!("lmac: trainer: {e:#}");
+                        Ok(4)
+                    }
+                };
+            }
             let mut actor = RandomActor::new(seed);
-            match pipeline::run(&args, &mut actor, |_, _, _| {}) {
+            match pipeline::run(&args, &mut actor) {
                 Ok(report) => {
                     if let Some(path) = episodes_out {
                         let mut f = std::io::BufWriter::new(std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?);

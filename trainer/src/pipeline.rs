@@ -4,7 +4,7 @@
 
 use crate::episode::{Episode, EpisodeDims};
 use lmac_shm_schema::ring::{Port, RingError, RingSpec, KIND_SLOT};
-use lmac_shm_schema::{EnvSchema, Slab, Slot, Stage, FLAG_FIRST};
+use lmac_shm_schema::{EnvSchema, Slab, Slot, Stage, FLAG_FIRST, FLAG_PREV_WON};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
@@ -15,6 +15,12 @@ use std::time::{Duration, Instant};
 pub trait Actor {
     /// `slot` is owned by the trainer; write `num_envs * n_agents` actions into `actions`.
     fn act(&mut self, server: usize, slot: &Slot<'_>, obs_width: usize, actions: &mut [i32]);
+    /// An episode of env `env` of server `server` finished (`won`: the env's success flag).
+    fn episode_done(&mut self, _server: usize, _env: usize, _ep: Episode, _won: bool) {}
+    /// True when the actor wants the run to end (e.g. a training budget is spent, an error).
+    fn finished(&self) -> bool {
+        false
+    }
 }
 
 /// Uniform over the available actions.
@@ -77,6 +83,7 @@ pub struct EpisodeSummary {
     pub team_return: f32,
     pub terminated: bool,
     pub truncated: bool,
+    pub won: bool,
 }
 
 #[derive(Debug, Default, Serialize)]
@@ -118,7 +125,8 @@ pub struct Assembler {
     dims: EpisodeDims,
     limit: usize,
     tracks: Vec<Vec<EnvTrack>>,
-    pub finished: Vec<(usize, usize, u64, Episode)>,
+    /// (server, env, episode id, episode, won)
+    pub finished: Vec<(usize, usize, u64, Episode, bool)>,
     violations: Vec<String>,
     violation_count: u64,
 }
@@ -174,7 +182,7 @@ impl Assembler {
                     t.ep.terminated = te;
                     t.ep.truncated = tr;
                     let done = std::mem::replace(&mut t.ep, Episode::with_capacity(&d, self.limit));
-                    self.finished.push((server, e, t.episode_id, done));
+                    self.finished.push((server, e, t.episode_id, done, flags & FLAG_PREV_WON != 0));
                 }
             } else if !first {
                 self.violate(format!("server {server} env {e}: the first step seen is not flagged as an episode start"));
@@ -238,7 +246,7 @@ impl Assembler {
 }
 
 /// Run the trainer loop with `actor` until `env_steps` env steps have been collected.
-pub fn run(args: &TrainerArgs, actor: &mut dyn Actor, mut on_episode: impl FnMut(usize, usize, Episode)) -> Result<TrainerReport, PipelineError> {
+pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, PipelineError> {
     let mut slabs = Vec::new();
     for s in 0..args.n_servers {
         slabs.push(Slab::open(&lmac_protocol_runner::runner::slab_name(&args.run, s), &args.schema, args.startup_timeout)?);
@@ -282,7 +290,7 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor, mut on_episode: impl FnMut
     let mut t_start: Option<Instant> = None;
     let mut busy = Duration::ZERO;
     let mut return_sum = 0.0f64;
-    while timed_steps < args.env_steps {
+    while timed_steps < args.env_steps && !actor.finished() {
         let Some(m) = port.recv(Duration::from_millis(500))? else { continue };
         if m.kind != KIND_SLOT {
             continue;
@@ -301,7 +309,7 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor, mut on_episode: impl FnMut
         }
         slabs[server].set_stage(idx, Stage::Env);
         port.send_slot(server, idx, m.seq)?;
-        for (s, e, eid, ep) in asm.finished.drain(..) {
+        for (s, e, eid, ep, won) in asm.finished.drain(..) {
             report.episodes += 1;
             return_sum += ep.team_return() as f64;
             report.episode_log.push(EpisodeSummary {
@@ -312,8 +320,9 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor, mut on_episode: impl FnMut
                 team_return: ep.team_return(),
                 terminated: ep.terminated,
                 truncated: ep.truncated,
+                won,
             });
-            on_episode(s, e, ep);
+            actor.episode_done(s, e, ep, won);
         }
         slots_seen += 1;
         if slots_seen == warmup {

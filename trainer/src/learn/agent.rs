@@ -1,0 +1,92 @@
+//! The shared-parameter RNN agent (pymarl `RNNAgent`): linear -> ReLU -> GRU cell -> linear,
+//! one network for all agents (agent id one-hot in the input). The GRU cell is hand-written
+//! with fused gates: one input and one hidden matmul of width 3H per step.
+
+use burn::module::Module;
+use burn::nn::{Linear, LinearConfig};
+use burn::tensor::activation::{relu, sigmoid, tanh};
+use burn::tensor::{Device, Tensor};
+
+/// GRU cell, torch conventions (gate order r, z, n; `n = tanh(W_in x + b_in + r * (W_hn h + b_hn))`,
+/// `h' = (1 - z) * n + z * h`).
+#[derive(Module, Debug)]
+pub struct FusedGru {
+    pub input: Linear,
+    pub hidden: Linear,
+    pub hidden_dim: usize,
+}
+
+impl FusedGru {
+    pub fn new(input_dim: usize, hidden_dim: usize, device: &Device) -> Self {
+        // torch initializes GRU weights U(-1/sqrt(H), 1/sqrt(H)); fan_in = H for both here
+        // only when input_dim == H (it is: the GRU reads fc1's output).
+        FusedGru {
+            input: LinearConfig::new(input_dim, 3 * hidden_dim).init(device),
+            hidden: LinearConfig::new(hidden_dim, 3 * hidden_dim).init(device),
+            hidden_dim,
+        }
+    }
+
+    /// x: [N, in], h: [N, H] -> h': [N, H]
+    pub fn forward(&self, x: Tensor<2>, h: Tensor<2>) -> Tensor<2> {
+        let hd = self.hidden_dim;
+        let n = x.dims()[0];
+        let gi = self.input.forward(x);
+        let gh = self.hidden.forward(h.clone());
+        let rz = sigmoid(gi.clone().slice([0..n, 0..2 * hd]) + gh.clone().slice([0..n, 0..2 * hd]));
+        let r = rz.clone().slice([0..n, 0..hd]);
+        let z = rz.slice([0..n, hd..2 * hd]);
+        let cand = tanh(gi.slice([0..n, 2 * hd..3 * hd]) + r * gh.slice([0..n, 2 * hd..3 * hd]));
+        // (1 - z) * n + z * h = n + z * (h - n)
+        cand.clone() + z * (h - cand)
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct RnnAgent {
+    pub fc1: Linear,
+    pub gru: FusedGru,
+    pub fc2: Linear,
+    pub input_dim: usize,
+    pub hidden_dim: usize,
+    pub n_actions: usize,
+}
+
+impl RnnAgent {
+    pub fn new(input_dim: usize, hidden_dim: usize, n_actions: usize, device: &Device) -> Self {
+        RnnAgent {
+            fc1: LinearConfig::new(input_dim, hidden_dim).init(device),
+            gru: FusedGru::new(hidden_dim, hidden_dim, device),
+            fc2: LinearConfig::new(hidden_dim, n_actions).init(device),
+            input_dim,
+            hidden_dim,
+            n_actions,
+        }
+    }
+
+    /// One step for acting: x [N, in], h [N, H] -> (q [N, A], h' [N, H]).
+    pub fn step(&self, x: Tensor<2>, h: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+        let e = relu(self.fc1.forward(x));
+        let h = self.gru.forward(e, h);
+        (self.fc2.forward(h.clone()), h)
+    }
+
+    /// Unroll over time from a zero hidden state. `inputs[t]` is [N, in] (N = batch * agents);
+    /// returns Q-values [T, N, A]. Per-step hidden states are collected and stacked once, and
+    /// the output layer runs once over all steps (no slicing of gradient-carrying sequences).
+    pub fn unroll(&self, inputs: Vec<Tensor<2>>) -> Tensor<3> {
+        let t_len = inputs.len();
+        assert!(t_len > 0, "unroll needs at least one step");
+        let n = inputs[0].dims()[0];
+        let device = inputs[0].device();
+        let mut h: Tensor<2> = Tensor::zeros([n, self.hidden_dim], &device);
+        let mut hs = Vec::with_capacity(t_len);
+        for x in inputs {
+            let e = relu(self.fc1.forward(x));
+            h = self.gru.forward(e, h);
+            hs.push(h.clone());
+        }
+        let hs: Tensor<3> = Tensor::stack(hs, 0);
+        self.fc2.forward(hs)
+    }
+}

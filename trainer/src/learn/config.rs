@@ -1,0 +1,210 @@
+//! Learner hyperparameters. Defaults follow the LMAC paper's Table C.3 and the pymarl/EPyMARL
+//! QMIX conventions where the paper is silent. Every value is configurable (serde, TOML/JSON);
+//! `validate()` reports the offending field by name.
+
+use serde::{Deserialize, Serialize};
+
+/// Value-decomposition backbone (the mixer).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MixerKind {
+    /// Q_tot = sum_i Q_i.
+    Vdn,
+    /// Monotonic hypernetwork mixer (Rashid et al. 2018).
+    Qmix,
+    /// Duplex dueling mixer with multi-head attention weights (Wang et al. 2021).
+    Qplex,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OptimizerKind {
+    Adam,
+    Rmsprop,
+}
+
+/// All learner hyperparameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LearnConfig {
+    pub mixer: MixerKind,
+    /// Agent network width (linear -> GRU -> linear), pymarl `rnn_hidden_dim`.
+    pub rnn_hidden_dim: usize,
+    /// QMIX mixing embedding (Table C.3: 32).
+    pub mixing_embed_dim: usize,
+    /// Layers of the QMIX/QPLEX hypernetworks (1 or 2), pymarl `hypernet_layers`.
+    pub hypernet_layers: usize,
+    /// Hidden width of 2-layer hypernetworks, pymarl `hypernet_embed`.
+    pub hypernet_embed: usize,
+    /// QPLEX: number of attention heads (kernels) of the advantage weights.
+    pub qplex_num_kernel: usize,
+    /// QPLEX: layers (1..=3) of each attention extractor.
+    pub qplex_adv_hypernet_layers: usize,
+    /// QPLEX: hidden width of the attention extractors.
+    pub qplex_adv_hypernet_embed: usize,
+    /// Replay capacity in episodes (Table C.3: 5000).
+    pub buffer_size: usize,
+    /// Episodes per update (Table C.3: 32).
+    pub batch_size: usize,
+    /// Discount (Table C.3: 0.99).
+    pub gamma: f32,
+    /// Learning rate (Table C.3: 5e-4).
+    pub lr: f64,
+    /// Table C.3: Adam.
+    pub optimizer: OptimizerKind,
+    /// Adam epsilon (torch default 1e-8).
+    pub adam_eps: f32,
+    /// RMSprop smoothing (pymarl `optim_alpha`).
+    pub rmsprop_alpha: f32,
+    /// RMSprop epsilon (pymarl `optim_eps`).
+    pub rmsprop_eps: f32,
+    /// Global gradient-norm clip (pymarl `grad_norm_clip`: 10).
+    pub grad_norm_clip: f32,
+    /// Double Q-learning: online-network argmax, target-network value.
+    pub double_q: bool,
+    /// Target networks are copied every this many collected episodes (Table C.3: 200).
+    pub target_update_interval_episodes: u64,
+    pub epsilon_start: f32,
+    pub epsilon_finish: f32,
+    /// Env steps over which epsilon is annealed linearly (Table C.3: 50k).
+    pub epsilon_anneal_steps: u64,
+    /// Agent input gets the last action one-hot.
+    pub obs_last_action: bool,
+    /// Agent input gets the agent id one-hot.
+    pub obs_agent_id: bool,
+    /// Agent input gets the global state (the `qmix-state` baseline, an upper bound).
+    pub agent_sees_state: bool,
+    /// Seed for parameter init, replay sampling and exploration.
+    pub seed: u64,
+}
+
+impl Default for LearnConfig {
+    fn default() -> Self {
+        LearnConfig {
+            mixer: MixerKind::Qmix,
+            rnn_hidden_dim: 64,
+            mixing_embed_dim: 32,
+            hypernet_layers: 2,
+            hypernet_embed: 64,
+            qplex_num_kernel: 10,
+            qplex_adv_hypernet_layers: 3,
+            qplex_adv_hypernet_embed: 64,
+            buffer_size: 5000,
+            batch_size: 32,
+            gamma: 0.99,
+            lr: 5e-4,
+            optimizer: OptimizerKind::Adam,
+            adam_eps: 1e-8,
+            rmsprop_alpha: 0.99,
+            rmsprop_eps: 1e-5,
+            grad_norm_clip: 10.0,
+            double_q: true,
+            target_update_interval_episodes: 200,
+            epsilon_start: 1.0,
+            epsilon_finish: 0.05,
+            epsilon_anneal_steps: 50_000,
+            obs_last_action: true,
+            obs_agent_id: true,
+            agent_sees_state: false,
+            seed: 0,
+        }
+    }
+}
+
+/// A configuration value that cannot be used; `field` names it as written in the config file.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("invalid learner config: `{field}` {reason}")]
+pub struct ConfigError {
+    pub field: &'static str,
+    pub reason: String,
+}
+
+fn err(field: &'static str, reason: impl Into<String>) -> ConfigError {
+    ConfigError { field, reason: reason.into() }
+}
+
+impl LearnConfig {
+    /// Check every field; the error names the first offending one.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let pos = |field: &'static str, v: usize| {
+            if v == 0 {
+                Err(err(field, "must be at least 1"))
+            } else {
+                Ok(())
+            }
+        };
+        pos("rnn_hidden_dim", self.rnn_hidden_dim)?;
+        pos("mixing_embed_dim", self.mixing_embed_dim)?;
+        pos("hypernet_embed", self.hypernet_embed)?;
+        pos("qplex_num_kernel", self.qplex_num_kernel)?;
+        pos("qplex_adv_hypernet_embed", self.qplex_adv_hypernet_embed)?;
+        pos("buffer_size", self.buffer_size)?;
+        pos("batch_size", self.batch_size)?;
+        if !(1..=2).contains(&self.hypernet_layers) {
+            return Err(err("hypernet_layers", format!("must be 1 or 2, got {}", self.hypernet_layers)));
+        }
+        if !(1..=3).contains(&self.qplex_adv_hypernet_layers) {
+            return Err(err(
+                "qplex_adv_hypernet_layers",
+                format!("must be 1, 2 or 3, got {}", self.qplex_adv_hypernet_layers),
+            ));
+        }
+        if self.batch_size > self.buffer_size {
+            return Err(err(
+                "batch_size",
+                format!("({}) must not exceed buffer_size ({})", self.batch_size, self.buffer_size),
+            ));
+        }
+        if !(self.gamma.is_finite() && (0.0..=1.0).contains(&self.gamma)) {
+            return Err(err("gamma", format!("must be in [0, 1], got {}", self.gamma)));
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0) {
+            return Err(err("lr", format!("must be positive, got {}", self.lr)));
+        }
+        if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
+            return Err(err("adam_eps", format!("must be positive, got {}", self.adam_eps)));
+        }
+        if !(self.rmsprop_eps.is_finite() && self.rmsprop_eps > 0.0) {
+            return Err(err("rmsprop_eps", format!("must be positive, got {}", self.rmsprop_eps)));
+        }
+        if !(self.rmsprop_alpha.is_finite() && self.rmsprop_alpha > 0.0 && self.rmsprop_alpha < 1.0) {
+            return Err(err("rmsprop_alpha", format!("must be in (0, 1), got {}", self.rmsprop_alpha)));
+        }
+        if !(self.grad_norm_clip.is_finite() && self.grad_norm_clip > 0.0) {
+            return Err(err("grad_norm_clip", format!("must be positive, got {}", self.grad_norm_clip)));
+        }
+        if self.target_update_interval_episodes == 0 {
+            return Err(err("target_update_interval_episodes", "must be at least 1"));
+        }
+        for (field, v) in [("epsilon_start", self.epsilon_start), ("epsilon_finish", self.epsilon_finish)] {
+            if !(v.is_finite() && (0.0..=1.0).contains(&v)) {
+                return Err(err(field, format!("must be in [0, 1], got {v}")));
+            }
+        }
+        Ok(())
+    }
+
+    /// Parse a TOML table (unknown keys are errors) and validate it.
+    pub fn from_toml_str(s: &str) -> Result<Self, anyhow::Error> {
+        let cfg: LearnConfig = toml::from_str(s)?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Linear epsilon schedule over environment steps (pymarl `DecayThenFlatSchedule`, linear).
+    pub fn epsilon_at(&self, t_env: u64) -> f32 {
+        if self.epsilon_anneal_steps == 0 {
+            return self.epsilon_finish;
+        }
+        let frac = (t_env as f64 / self.epsilon_anneal_steps as f64).min(1.0) as f32;
+        self.epsilon_start + (self.epsilon_finish - self.epsilon_start) * frac
+    }
+
+    /// Width of one agent's network input for the given episode sizes.
+    pub fn agent_input_dim(&self, dims: &crate::episode::EpisodeDims) -> usize {
+        dims.obs_width
+            + if self.obs_last_action { dims.n_actions } else { 0 }
+            + if self.obs_agent_id { dims.n_agents } else { 0 }
+            + if self.agent_sees_state { dims.state_dim } else { 0 }
+    }
+}

@@ -1,0 +1,400 @@
+//! The Q-learner (pymarl `QLearner` / QPLEX `DMAQ_qattenLearner`): double-Q TD(0) targets from a
+//! target network, masked mean-squared TD error, a global gradient-norm clip, Adam or RMSprop,
+//! target copies every N collected episodes, and NaN/inf detection naming the step.
+
+use burn::module::{Module, ModuleVisitor, Param, ParamId};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer, RmsPropConfig};
+use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
+
+use super::agent::RnnAgent;
+use super::buffer::{Batch, ReplayBuffer};
+use super::config::{ConfigError, LearnConfig, MixerKind, OptimizerKind};
+use super::mixer::{Mixer, QplexInputs};
+use super::{InputLayout, LearnRng};
+use crate::episode::{Episode, EpisodeDims};
+
+/// Agent network plus mixer: the unit that is optimized, copied to the target and saved.
+#[derive(Module, Debug)]
+pub struct QNet {
+    pub agent: RnnAgent,
+    pub mixer: Mixer,
+}
+
+impl QNet {
+    pub fn new(dims: &EpisodeDims, cfg: &LearnConfig, device: &Device) -> Self {
+        let layout = InputLayout::new(*dims, cfg);
+        QNet {
+            agent: RnnAgent::new(layout.width(), cfg.rnn_hidden_dim, dims.n_actions, device),
+            mixer: Mixer::new(cfg.mixer, dims.n_agents, dims.state_dim, dims.n_actions, cfg, device),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum LearnError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("non-finite {what} ({value}) at update {update} (t_env {t_env}, episode {episode})")]
+    NonFinite { what: &'static str, value: f32, update: u64, t_env: u64, episode: u64 },
+    #[error("episode does not match the run's dimensions: {0}")]
+    BadEpisode(String),
+    #[error("checkpoint: {0}")]
+    Checkpoint(String),
+}
+
+/// Progress counters; saved in checkpoints.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Counters {
+    /// Environment steps of all episodes added.
+    pub t_env: u64,
+    /// Episodes added.
+    pub episodes: u64,
+    /// Gradient updates done.
+    pub updates: u64,
+    /// `episodes` at the last target copy.
+    pub last_target_update_episode: u64,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TrainStats {
+    pub loss: f32,
+    /// Global gradient norm before clipping.
+    pub grad_norm: f32,
+    pub td_error_abs: f32,
+    pub q_taken_mean: f32,
+    pub target_mean: f32,
+    pub target_updated: bool,
+}
+
+pub struct Learner {
+    pub(crate) cfg: LearnConfig,
+    pub(crate) dims: EpisodeDims,
+    pub(crate) layout: InputLayout,
+    /// Plain (no autodiff) device; the online network lives on `device.autodiff()`.
+    pub(crate) device: Device,
+    pub(crate) net: QNet,
+    pub(crate) target: QNet,
+    pub(crate) optim: ModuleOptimizer,
+    pub(crate) buffer: ReplayBuffer,
+    pub(crate) rng: LearnRng,
+    pub(crate) counters: Counters,
+}
+
+pub(crate) fn make_optimizer(cfg: &LearnConfig) -> ModuleOptimizer {
+    match cfg.optimizer {
+        OptimizerKind::Adam => AdamConfig::new().with_epsilon(cfg.adam_eps).init(),
+        OptimizerKind::Rmsprop => RmsPropConfig::new()
+            .with_alpha(cfg.rmsprop_alpha)
+            .with_epsilon(cfg.rmsprop_eps)
+            .with_momentum(0.0)
+            .init(),
+    }
+}
+
+impl Learner {
+    /// Validate `cfg`, seed the device and build online + target networks.
+    pub fn new(dims: EpisodeDims, cfg: LearnConfig, device: Device) -> Result<Self, LearnError> {
+        cfg.validate()?;
+        if dims.n_agents == 0 || dims.n_actions == 0 || dims.obs_width == 0 {
+            return Err(LearnError::BadEpisode(format!("dims must be non-zero: {dims:?}")));
+        }
+        let device = device.inner();
+        device.seed(cfg.seed);
+        let net = QNet::new(&dims, &cfg, &device.clone().autodiff());
+        let target = net.valid();
+        Ok(Learner {
+            layout: InputLayout::new(dims, &cfg),
+            optim: make_optimizer(&cfg),
+            buffer: ReplayBuffer::new(cfg.buffer_size),
+            rng: LearnRng::seed_from(cfg.seed ^ 0x5EED_1EA4_0000_0001),
+            counters: Counters::default(),
+            cfg,
+            dims,
+            device,
+            net,
+            target,
+        })
+    }
+
+    pub fn config(&self) -> &LearnConfig {
+        &self.cfg
+    }
+    pub fn dims(&self) -> &EpisodeDims {
+        &self.dims
+    }
+    pub fn layout(&self) -> &InputLayout {
+        &self.layout
+    }
+    pub fn counters(&self) -> Counters {
+        self.counters
+    }
+    pub fn buffer(&self) -> &ReplayBuffer {
+        &self.buffer
+    }
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+    /// The learner's RNG (exploration and replay sampling share it so a checkpoint captures all).
+    pub fn rng_mut(&mut self) -> &mut LearnRng {
+        &mut self.rng
+    }
+    /// Online network snapshot without autodiff (for acting and evaluation).
+    pub fn acting_net(&self) -> QNet {
+        self.net.valid()
+    }
+    pub fn target_net(&self) -> &QNet {
+        &self.target
+    }
+    /// Exploration rate at the current `t_env`.
+    pub fn epsilon(&self) -> f32 {
+        self.cfg.epsilon_at(self.counters.t_env)
+    }
+
+    /// Store a finished episode; advances `t_env` and the episode count.
+    pub fn add_episode(&mut self, ep: Episode) -> Result<(), LearnError> {
+        let d = &self.dims;
+        let l = ep.len;
+        let ok = l > 0
+            && ep.obs.len() == l * d.n_agents * d.obs_width
+            && ep.state.len() == l * d.state_dim
+            && ep.avail.len() == l * d.n_agents * d.n_actions
+            && ep.actions.len() == l * d.n_agents
+            && ep.reward.len() == l
+            && ep.actions.iter().all(|&a| a >= 0 && (a as usize) < d.n_actions);
+        if !ok {
+            return Err(LearnError::BadEpisode(format!(
+                "len {l}: obs {}, state {}, avail {}, actions {}, reward {} (dims {d:?})",
+                ep.obs.len(),
+                ep.state.len(),
+                ep.avail.len(),
+                ep.actions.len(),
+                ep.reward.len()
+            )));
+        }
+        self.counters.t_env += l as u64;
+        self.counters.episodes += 1;
+        self.buffer.push(ep);
+        Ok(())
+    }
+
+    pub fn can_train(&self) -> bool {
+        self.buffer.len() >= self.cfg.batch_size
+    }
+
+    /// Sample `batch_size` episodes and do one update; then copy the target if due.
+    pub fn train_step(&mut self) -> Result<TrainStats, LearnError> {
+        let batch = self.sample_batch();
+        let mut stats = self.train_on(&batch)?;
+        if self.counters.episodes - self.counters.last_target_update_episode
+            >= self.cfg.target_update_interval_episodes
+        {
+            self.update_target();
+            stats.target_updated = true;
+        }
+        Ok(stats)
+    }
+
+    /// Sample `batch_size` distinct episodes (uniformly) into a padded batch.
+    pub fn sample_batch(&mut self) -> Batch {
+        let idx = self.buffer.sample_indices(self.cfg.batch_size, &mut self.rng);
+        let eps: Vec<&Episode> = idx.iter().map(|&i| self.buffer.get(i)).collect();
+        Batch::from_episodes(&eps, &self.dims, &self.layout)
+    }
+
+    /// Copy the online network into the target network.
+    pub fn update_target(&mut self) {
+        self.target = self.net.valid();
+        self.counters.last_target_update_episode = self.counters.episodes;
+    }
+
+    /// One gradient update on a prepared batch (no target-copy bookkeeping).
+    pub fn train_on(&mut self, batch: &Batch) -> Result<TrainStats, LearnError> {
+        let (loss, stats) = self.td_loss(batch)?;
+        self.apply_loss(loss, stats)
+    }
+
+    /// The masked double-Q TD(0) loss of `batch` (a scalar on the autodiff device, graph kept)
+    /// and its statistics. Extension point: a module that adds auxiliary losses (LMAC's
+    /// representation losses) adds them to this tensor and calls [`apply_loss`](Self::apply_loss).
+    pub fn td_loss(&self, batch: &Batch) -> Result<(Tensor<1>, TrainStats), LearnError> {
+        let (b, t, n, a) = (batch.b, batch.t, batch.n_agents, batch.n_actions);
+        let (nb, iw, sd) = (t * b, batch.input_dim, batch.state_dim);
+        let dev = self.device.clone();
+        let ad = dev.clone().autodiff();
+
+        // Per-step inputs built straight from host memory (no slicing of sequences).
+        let step_inputs = |device: &Device| -> Vec<Tensor<2>> {
+            (0..t)
+                .map(|ti| {
+                    let rows = &batch.inputs[ti * b * n * iw..(ti + 1) * b * n * iw];
+                    Tensor::from_data(TensorData::new(rows.to_vec(), [b * n, iw]), device)
+                })
+                .collect()
+        };
+        let actions_i: Vec<i64> = batch.actions.iter().map(|&x| x as i64).collect();
+        let actions_t = |device: &Device| -> Tensor<4, Int> {
+            Tensor::from_data(TensorData::new(actions_i.clone(), [t, b, n, 1]), device)
+        };
+        let unavail: Vec<bool> = batch.avail.iter().map(|&x| x == 0).collect();
+        let unavail_t: Tensor<4, Bool> = Tensor::from_data(TensorData::new(unavail, [t, b, n, a]), &dev);
+        let states_t = |device: &Device| -> Tensor<2> {
+            Tensor::from_data(TensorData::new(batch.state.clone(), [nb, sd]), device)
+        };
+        let kind = self.cfg.mixer;
+        let onehot = |idx: Tensor<4, Int>| -> Tensor<2> {
+            // idx [t, b, n, 1] -> [nb, n * a]
+            idx.reshape([nb * n]).one_hot::<2>(a).float().reshape([nb, n * a])
+        };
+
+        // ---- online network (autodiff)
+        let mac_out: Tensor<4> = self.net.agent.unroll(step_inputs(&ad)).reshape([t, b, n, a]);
+        let chosen = mac_out.clone().gather(3, actions_t(&ad)).reshape([nb, n]);
+        let mac_plain = mac_out.clone().detach().inner().mask_fill(unavail_t.clone(), -1e9);
+
+        // ---- target network (plain device)
+        let target_out: Tensor<4> = self.target.agent.unroll(step_inputs(&dev)).reshape([t, b, n, a]);
+        let target_masked = target_out.clone().mask_fill(unavail_t.clone(), -1e9);
+        let (target_q, target_actions) = if self.cfg.double_q {
+            let cur = mac_plain.clone().argmax(3);
+            (target_out.gather(3, cur.clone()), cur)
+        } else {
+            let cur = target_masked.clone().argmax(3);
+            (target_masked.clone().gather(3, cur.clone()), cur)
+        };
+        let target_q = target_q.reshape([nb, n]);
+        let target_extra = (kind == MixerKind::Qplex).then(|| QplexInputs {
+            actions_onehot: onehot(target_actions),
+            max_q: target_masked.max_dim(3).reshape([nb, n]),
+        });
+        let target_tot: Vec<f32> = self
+            .target
+            .mixer
+            .forward(target_q, states_t(&dev), target_extra)
+            .into_data()
+            .try_into_vec::<f32>()
+            .expect("f32 target values");
+
+        // ---- TD(0) targets on the host: y_t = r_t + gamma (1 - term_t) Q_tot'(t+1)
+        let mut y = vec![0.0f32; nb];
+        for ti in 0..t {
+            for bi in 0..b {
+                let i = ti * b + bi;
+                let next = if batch.has_next[i] > 0.0 && batch.terminated[i] == 0.0 {
+                    target_tot[(ti + 1) * b + bi]
+                } else {
+                    0.0
+                };
+                y[i] = batch.reward[i] + self.cfg.gamma * next;
+            }
+        }
+        let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
+        let target_mean = y.iter().zip(&batch.mask).map(|(v, m)| v * m).sum::<f32>() / mask_sum;
+
+        // ---- mixed online values and loss
+        let extra = (kind == MixerKind::Qplex).then(|| QplexInputs {
+            actions_onehot: onehot(actions_t(&ad)),
+            max_q: mac_plain.max_dim(3).reshape([nb, n]),
+        });
+        let q_tot = self.net.mixer.forward(chosen, states_t(&ad), extra);
+        let y_t: Tensor<1> = Tensor::from_data(TensorData::new(y, [nb]), &ad);
+        let mask_t: Tensor<1> = Tensor::from_data(TensorData::new(batch.mask.clone(), [nb]), &ad);
+        let td = (q_tot.clone() - y_t) * mask_t.clone();
+        let loss = td.clone().square().sum().div_scalar(mask_sum);
+
+        let td_abs: f32 = td.detach().abs().sum().into_scalar::<f32>() / mask_sum;
+        let q_taken: f32 = (q_tot.detach() * mask_t).sum().into_scalar::<f32>() / mask_sum;
+        let stats = TrainStats {
+            loss: f32::NAN,
+            grad_norm: f32::NAN,
+            td_error_abs: td_abs,
+            q_taken_mean: q_taken,
+            target_mean,
+            target_updated: false,
+        };
+        Ok((loss, stats))
+    }
+
+    /// Backward of `loss`, global gradient-norm clip, optimizer step. Fails (naming the update)
+    /// when the loss or the gradient norm is NaN or infinite; the network is then unchanged.
+    pub fn apply_loss(&mut self, loss: Tensor<1>, mut stats: TrainStats) -> Result<TrainStats, LearnError> {
+        let loss_v: f32 = loss.clone().detach().into_scalar();
+        self.check_finite("loss", loss_v)?;
+        let grads = loss.backward();
+        let mut grads = GradientsParams::from_grads(grads, &self.net);
+        let grad_norm = global_grad_norm(&self.net, &grads);
+        self.check_finite("gradient norm", grad_norm)?;
+        let clip = self.cfg.grad_norm_clip;
+        let coef = clip / (grad_norm + 1e-6);
+        if coef < 1.0 {
+            scale_grads(&self.net, &mut grads, coef);
+        }
+        self.net = self.optim.step(self.cfg.lr, self.net.clone(), grads);
+        self.counters.updates += 1;
+        stats.loss = loss_v;
+        stats.grad_norm = grad_norm;
+        Ok(stats)
+    }
+
+    fn check_finite(&self, what: &'static str, value: f32) -> Result<(), LearnError> {
+        if value.is_finite() {
+            Ok(())
+        } else {
+            Err(LearnError::NonFinite {
+                what,
+                value,
+                update: self.counters.updates + 1,
+                t_env: self.counters.t_env,
+                episode: self.counters.episodes,
+            })
+        }
+    }
+}
+
+struct SquaredNorm<'a> {
+    grads: &'a GradientsParams,
+    acc: Option<Tensor<1>>,
+}
+
+impl ModuleVisitor for SquaredNorm<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if let Some(g) = self.grads.get::<D>(param.id) {
+            let s = g.square().sum();
+            self.acc = Some(match self.acc.take() {
+                Some(acc) => acc + s,
+                None => s,
+            });
+        }
+    }
+}
+
+/// sqrt(sum of squares of every parameter gradient), as torch's `clip_grad_norm_`.
+pub fn global_grad_norm<M: Module>(module: &M, grads: &GradientsParams) -> f32 {
+    let mut v = SquaredNorm { grads, acc: None };
+    module.visit(&mut v);
+    v.acc.map(|t| t.into_scalar::<f32>().sqrt()).unwrap_or(0.0)
+}
+
+struct Scale<'a> {
+    grads: &'a mut GradientsParams,
+    coef: f32,
+    seen: Vec<ParamId>,
+}
+
+impl ModuleVisitor for Scale<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if self.seen.contains(&param.id) {
+            return;
+        }
+        if let Some(g) = self.grads.remove::<D>(param.id) {
+            self.grads.register::<D>(param.id, g.mul_scalar(self.coef));
+            self.seen.push(param.id);
+        }
+    }
+}
+
+/// Multiply every parameter gradient by `coef`.
+pub fn scale_grads<M: Module>(module: &M, grads: &mut GradientsParams, coef: f32) {
+    let mut v = Scale { grads, coef, seen: Vec::new() };
+    module.visit(&mut v);
+}

@@ -1,0 +1,231 @@
+//! Mixers: VDN (sum), QMIX (monotonic hypernetwork mixer) and QPLEX (duplex dueling with
+//! multi-head attention weights), following pymarl / the QPLEX reference code.
+
+use burn::module::{Module, Param};
+use burn::nn::{Initializer, Linear, LinearConfig};
+use burn::tensor::activation::{elu, relu, sigmoid};
+use burn::tensor::{Device, Tensor};
+
+use super::config::{LearnConfig, MixerKind};
+
+/// A hypernetwork of 1 or 2 layers (pymarl `hypernet_layers`), ReLU between.
+#[derive(Module, Debug)]
+pub struct HyperNet {
+    pub l1: Linear,
+    pub l2: Option<Linear>,
+}
+
+impl HyperNet {
+    pub fn new(input: usize, output: usize, layers: usize, embed: usize, device: &Device) -> Self {
+        if layers >= 2 {
+            HyperNet {
+                l1: LinearConfig::new(input, embed).init(device),
+                l2: Some(LinearConfig::new(embed, output).init(device)),
+            }
+        } else {
+            HyperNet { l1: LinearConfig::new(input, output).init(device), l2: None }
+        }
+    }
+
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        let y = self.l1.forward(x);
+        match &self.l2 {
+            Some(l2) => l2.forward(relu(y)),
+            None => y,
+        }
+    }
+}
+
+/// QMIX: Q_tot = elu(q . |W1(s)| + b1(s)) . |W2(s)| + V(s); monotonic in every Q_i.
+#[derive(Module, Debug)]
+pub struct QmixMixer {
+    pub hyper_w1: HyperNet,
+    pub hyper_w_final: HyperNet,
+    pub hyper_b1: Linear,
+    pub v1: Linear,
+    pub v2: Linear,
+    pub n_agents: usize,
+    pub embed: usize,
+}
+
+impl QmixMixer {
+    pub fn new(n_agents: usize, state_dim: usize, cfg: &LearnConfig, device: &Device) -> Self {
+        let e = cfg.mixing_embed_dim;
+        QmixMixer {
+            hyper_w1: HyperNet::new(state_dim, e * n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
+            hyper_w_final: HyperNet::new(state_dim, e, cfg.hypernet_layers, cfg.hypernet_embed, device),
+            hyper_b1: LinearConfig::new(state_dim, e).init(device),
+            v1: LinearConfig::new(state_dim, e).init(device),
+            v2: LinearConfig::new(e, 1).init(device),
+            n_agents,
+            embed: e,
+        }
+    }
+
+    /// qs [N, n_agents], states [N, S] -> Q_tot [N].
+    pub fn forward(&self, qs: Tensor<2>, states: Tensor<2>) -> Tensor<1> {
+        let [n, _] = qs.dims();
+        let (na, e) = (self.n_agents, self.embed);
+        let w1 = self.hyper_w1.forward(states.clone()).abs().reshape([n, na, e]);
+        let b1 = self.hyper_b1.forward(states.clone());
+        // q . W1 as a broadcast multiply-and-sum: cheaper than N tiny batched matmuls on CPU.
+        let hidden = (qs.reshape([n, na, 1]) * w1).sum_dim(1).reshape([n, e]) + b1;
+        let hidden = elu(hidden, 1.0);
+        let w_final = self.hyper_w_final.forward(states.clone()).abs();
+        let v = self.v2.forward(relu(self.v1.forward(states)));
+        ((hidden * w_final).sum_dim(1) + v).reshape([n])
+    }
+}
+
+/// K independent linear layers applied in one batched matmul: x [K, N, in] -> [K, N, out].
+#[derive(Module, Debug)]
+pub struct StackedLinear {
+    pub weight: Param<Tensor<3>>,
+    pub bias: Param<Tensor<3>>,
+}
+
+impl StackedLinear {
+    pub fn new(k: usize, input: usize, output: usize, device: &Device) -> Self {
+        let bound = 1.0 / (input as f64).sqrt();
+        let init = Initializer::Uniform { min: -bound, max: bound };
+        StackedLinear { weight: init.init([k, input, output], device), bias: init.init([k, 1, output], device) }
+    }
+
+    pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
+        x.matmul(self.weight.val()) + self.bias.val()
+    }
+}
+
+/// K independent MLPs (1..=3 layers, ReLU between) over the same input, as in QPLEX's
+/// `DMAQ_SI_Weight` extractors. The first layer of all K is one wide Linear.
+#[derive(Module, Debug)]
+pub struct KernelMlp {
+    pub first: Linear,
+    pub mid: Option<StackedLinear>,
+    pub last: Option<StackedLinear>,
+    pub k: usize,
+    pub first_out: usize,
+}
+
+impl KernelMlp {
+    pub fn new(k: usize, input: usize, output: usize, layers: usize, embed: usize, device: &Device) -> Self {
+        let first_out = if layers >= 2 { embed } else { output };
+        KernelMlp {
+            first: LinearConfig::new(input, k * first_out).init(device),
+            mid: (layers >= 3).then(|| StackedLinear::new(k, embed, embed, device)),
+            last: (layers >= 2).then(|| StackedLinear::new(k, embed, output, device)),
+            k,
+            first_out,
+        }
+    }
+
+    /// x [N, in] -> [K, N, out]
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<3> {
+        let [n, _] = x.dims();
+        let mut y: Tensor<3> = self.first.forward(x).reshape([n, self.k, self.first_out]).swap_dims(0, 1);
+        if let Some(mid) = &self.mid {
+            y = mid.forward(relu(y));
+        }
+        if let Some(last) = &self.last {
+            y = last.forward(relu(y));
+        }
+        y
+    }
+}
+
+/// QPLEX (DMAQ general): Q_tot = sum_i (w_i(s) Q_i + v_i(s))
+///   + sum_i [(w_i Q_i + v_i) - (w_i max Q_i + v_i)]_detached * (lambda_i(s, a) - 1),
+/// lambda_i = sum_k |key_k(s)| * sigmoid(agents_k(s))_i * sigmoid(action_k(s, a))_i.
+#[derive(Module, Debug)]
+pub struct QplexMixer {
+    pub hyper_w_final: HyperNet,
+    pub v: HyperNet,
+    pub key: KernelMlp,
+    pub agents: KernelMlp,
+    pub action: KernelMlp,
+    pub n_agents: usize,
+}
+
+impl QplexMixer {
+    pub fn new(n_agents: usize, state_dim: usize, n_actions: usize, cfg: &LearnConfig, device: &Device) -> Self {
+        let k = cfg.qplex_num_kernel;
+        let (l, e) = (cfg.qplex_adv_hypernet_layers, cfg.qplex_adv_hypernet_embed);
+        QplexMixer {
+            hyper_w_final: HyperNet::new(state_dim, n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
+            v: HyperNet::new(state_dim, n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
+            key: KernelMlp::new(k, state_dim, 1, l, e, device),
+            agents: KernelMlp::new(k, state_dim, n_agents, l, e, device),
+            action: KernelMlp::new(k, state_dim + n_agents * n_actions, n_agents, l, e, device),
+            n_agents,
+        }
+    }
+
+    /// qs [N, n] chosen utilities, states [N, S], actions_onehot [N, n*A] of the evaluated joint
+    /// action, max_q [N, n] per-agent max utilities -> Q_tot [N].
+    pub fn forward(&self, qs: Tensor<2>, states: Tensor<2>, actions_onehot: Tensor<2>, max_q: Tensor<2>) -> Tensor<1> {
+        let [n, _] = qs.dims();
+        let w = self.hyper_w_final.forward(states.clone()).abs().add_scalar(1e-10);
+        let v = self.v.forward(states.clone());
+        let q = w.clone() * qs + v.clone();
+        let qmax = w * max_q + v;
+        let adv_q = (q.clone() - qmax).detach();
+        let key = self.key.forward(states.clone()).abs().add_scalar(1e-10); // [K, N, 1]
+        let agents = sigmoid(self.agents.forward(states.clone())); // [K, N, n]
+        let data = Tensor::cat(vec![states, actions_onehot], 1);
+        let action = sigmoid(self.action.forward(data)); // [K, N, n]
+        let lambda = (key * agents * action).sum_dim(0).reshape([n, self.n_agents]);
+        let v_tot = q.sum_dim(1);
+        let adv_tot = (adv_q * lambda.sub_scalar(1.0)).sum_dim(1);
+        (v_tot + adv_tot).reshape([n])
+    }
+}
+
+/// The mixer of a run: VDN when neither network is present.
+#[derive(Module, Debug)]
+pub struct Mixer {
+    pub qmix: Option<QmixMixer>,
+    pub qplex: Option<QplexMixer>,
+}
+
+/// Extra inputs QPLEX needs; other mixers ignore them.
+pub struct QplexInputs {
+    /// [N, n_agents * n_actions]
+    pub actions_onehot: Tensor<2>,
+    /// [N, n_agents]
+    pub max_q: Tensor<2>,
+}
+
+impl Mixer {
+    pub fn new(kind: MixerKind, n_agents: usize, state_dim: usize, n_actions: usize, cfg: &LearnConfig, device: &Device) -> Self {
+        match kind {
+            MixerKind::Vdn => Mixer { qmix: None, qplex: None },
+            MixerKind::Qmix => Mixer { qmix: Some(QmixMixer::new(n_agents, state_dim, cfg, device)), qplex: None },
+            MixerKind::Qplex => {
+                Mixer { qmix: None, qplex: Some(QplexMixer::new(n_agents, state_dim, n_actions, cfg, device)) }
+            }
+        }
+    }
+
+    pub fn kind(&self) -> MixerKind {
+        if self.qmix.is_some() {
+            MixerKind::Qmix
+        } else if self.qplex.is_some() {
+            MixerKind::Qplex
+        } else {
+            MixerKind::Vdn
+        }
+    }
+
+    /// qs [N, n_agents], states [N, S] -> Q_tot [N]. `extra` is required for QPLEX.
+    pub fn forward(&self, qs: Tensor<2>, states: Tensor<2>, extra: Option<QplexInputs>) -> Tensor<1> {
+        if let Some(m) = &self.qmix {
+            m.forward(qs, states)
+        } else if let Some(m) = &self.qplex {
+            let extra = extra.expect("QPLEX mixer needs the joint action and per-agent max utilities");
+            m.forward(qs, states, extra.actions_onehot, extra.max_q)
+        } else {
+            let [n, _] = qs.dims();
+            qs.sum_dim(1).reshape([n])
+        }
+    }
+}

@@ -1,0 +1,138 @@
+//! The learning core: shared-parameter RNN agents, VDN/QMIX/QPLEX mixers, an episode replay
+//! buffer, a double-Q TD(0) learner with a global gradient-norm clip, an acting controller and
+//! atomic checkpoints. Runs on burn 0.22 (flex CPU backend by default, `ndarray` by feature).
+//!
+//! How the pipeline drives it:
+//! ```ignore
+//! let mut learner = Learner::new(dims, cfg, Device::flex())?;       // validates the config
+//! let mut ctl = Controller::new(&learner, n_envs);
+//! // per batched env step:
+//! let eps = learner.epsilon();
+//! let acts = ctl.select_actions(&obs, state.as_deref(), &last, &avail, &first, eps, learner.rng_mut());
+//! // per finished episode:
+//! learner.add_episode(episode);
+//! if learner.can_train() { let stats = learner.train_step()?; ctl.sync_weights(&learner); }
+//! learner.save_checkpoint(dir, true)?;  /  Learner::load_checkpoint(dir, Device::flex())?
+//! ```
+
+pub mod agent;
+pub mod buffer;
+pub mod checkpoint;
+pub mod config;
+pub mod controller;
+pub mod learner;
+pub mod mixer;
+
+pub use buffer::{Batch, ReplayBuffer};
+pub use config::{ConfigError, LearnConfig, MixerKind, OptimizerKind};
+pub use controller::Controller;
+pub use learner::{Counters, LearnError, Learner, QNet, TrainStats};
+
+use crate::episode::EpisodeDims;
+/// The burn device type (re-exported so callers need no direct burn dependency).
+pub use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+/// Small, fast, serializable PRNG (xoshiro256++), so checkpoints can hold the exact RNG state.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LearnRng {
+    s: [u64; 4],
+}
+
+impl LearnRng {
+    pub fn seed_from(seed: u64) -> Self {
+        let mut x = seed;
+        let mut next = || {
+            x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = x;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^ (z >> 31)
+        };
+        LearnRng { s: [next(), next(), next(), next()] }
+    }
+
+    /// Uniform in [0, 1).
+    pub fn uniform(&mut self) -> f32 {
+        (rand::RngCore::next_u64(self) >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// Uniform integer in 0..n (n > 0).
+    pub fn below(&mut self, n: usize) -> usize {
+        ((rand::RngCore::next_u64(self) as u128 * n as u128) >> 64) as usize
+    }
+}
+
+impl rand::RngCore for LearnRng {
+    fn next_u32(&mut self) -> u32 {
+        (self.next_u64() >> 32) as u32
+    }
+
+    fn next_u64(&mut self) -> u64 {
+        let s = &mut self.s;
+        let result = s[0].wrapping_add(s[3]).rotate_left(23).wrapping_add(s[0]);
+        let t = s[1] << 17;
+        s[2] ^= s[0];
+        s[3] ^= s[1];
+        s[1] ^= s[2];
+        s[0] ^= s[3];
+        s[2] ^= t;
+        s[3] = s[3].rotate_left(45);
+        result
+    }
+
+    fn fill_bytes(&mut self, dst: &mut [u8]) {
+        for chunk in dst.chunks_mut(8) {
+            let v = self.next_u64().to_le_bytes();
+            chunk.copy_from_slice(&v[..chunk.len()]);
+        }
+    }
+}
+
+/// Layout of one agent's network input: obs (+ message columns) | state (qmix-state only) |
+/// last action one-hot | agent id one-hot (pymarl order, with the state after the observation).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct InputLayout {
+    pub dims: EpisodeDims,
+    pub state: bool,
+    pub last_action: bool,
+    pub agent_id: bool,
+}
+
+impl InputLayout {
+    pub fn new(dims: EpisodeDims, cfg: &LearnConfig) -> Self {
+        InputLayout { dims, state: cfg.agent_sees_state, last_action: cfg.obs_last_action, agent_id: cfg.obs_agent_id }
+    }
+
+    pub fn width(&self) -> usize {
+        let d = &self.dims;
+        d.obs_width
+            + if self.state { d.state_dim } else { 0 }
+            + if self.last_action { d.n_actions } else { 0 }
+            + if self.agent_id { d.n_agents } else { 0 }
+    }
+
+    /// Write one agent's input row into `out` (length `width()`, overwritten entirely).
+    /// `last_action < 0` means none (first step): the one-hot stays zero.
+    pub fn write(&self, out: &mut [f32], obs: &[f32], state: Option<&[f32]>, last_action: i32, agent: usize) {
+        let d = &self.dims;
+        out.fill(0.0);
+        out[..d.obs_width].copy_from_slice(obs);
+        let mut o = d.obs_width;
+        if self.state {
+            if let Some(s) = state {
+                out[o..o + d.state_dim].copy_from_slice(s);
+            }
+            o += d.state_dim;
+        }
+        if self.last_action {
+            if last_action >= 0 && (last_action as usize) < d.n_actions {
+                out[o + last_action as usize] = 1.0;
+            }
+            o += d.n_actions;
+        }
+        if self.agent_id {
+            out[o + agent] = 1.0;
+        }
+    }
+}

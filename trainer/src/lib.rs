@@ -1,0 +1,6 @@
+//! lmac trainer: episode assembly from shared-memory slots, acting, learning, and the CLI.
+pub mod episode;
+pub mod learn;
+pub mod pipeline;
+pub mod supervisor;
+pub mod train;

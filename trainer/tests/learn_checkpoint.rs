@@ -1,0 +1,145 @@
+//! Checkpoint round trip (identical Q-values, counters, epsilon, and the same next update after
+//! resuming), non-finite loss detection, and config errors that name the field.
+
+use burn::tensor::Device;
+use lmac_trainer::episode::{Episode, EpisodeDims};
+use lmac_trainer::learn::{Controller, LearnConfig, LearnError, LearnRng, Learner, MixerKind};
+
+const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 5, state_dim: 7, n_actions: 4 };
+
+fn random_episode(rng: &mut LearnRng, len: usize, terminated: bool) -> Episode {
+    let d = DIMS;
+    let mut ep = Episode::with_capacity(&d, len);
+    for _ in 0..len {
+        for _ in 0..d.n_agents * d.obs_width {
+            ep.obs.push(rng.uniform() * 2.0 - 1.0);
+        }
+        for _ in 0..d.state_dim {
+            ep.state.push(rng.uniform());
+        }
+        for ag in 0..d.n_agents {
+            let mut av = vec![0u8; d.n_actions];
+            av[0] = 1;
+            for a in 1..d.n_actions {
+                av[a] = (rng.uniform() < 0.7) as u8;
+            }
+            let choices: Vec<usize> = (0..d.n_actions).filter(|&a| av[a] == 1).collect();
+            ep.actions.push(choices[rng.below(choices.len())] as i32);
+            ep.avail.extend_from_slice(&av);
+            let _ = ag;
+        }
+        ep.reward.push(rng.uniform());
+        ep.len += 1;
+    }
+    ep.terminated = terminated;
+    ep.truncated = !terminated;
+    ep
+}
+
+fn q_values(learner: &Learner, obs_seed: u64) -> Vec<f32> {
+    let mut ctl = Controller::new(learner, 2);
+    let mut rng = LearnRng::seed_from(obs_seed);
+    let mut out = Vec::new();
+    let mut last = vec![-1; 2 * DIMS.n_agents];
+    for t in 0..3 {
+        let obs: Vec<f32> = (0..2 * DIMS.n_agents * DIMS.obs_width).map(|_| rng.uniform()).collect();
+        out.extend_from_slice(ctl.q_values(&obs, None, &last, &[t == 0, t == 0]));
+        last = (0..2 * DIMS.n_agents).map(|i| (i % DIMS.n_actions) as i32).collect();
+    }
+    out
+}
+
+fn run_round_trip(mixer: MixerKind) {
+    let cfg = LearnConfig { mixer, batch_size: 4, buffer_size: 16, seed: 3, qplex_num_kernel: 2, ..LearnConfig::default() };
+    let mut learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+    let mut rng = LearnRng::seed_from(11);
+    for i in 0..20 {
+        learner.add_episode(random_episode(&mut rng, 3 + i % 4, i % 3 != 0)).unwrap();
+    }
+    for _ in 0..3 {
+        learner.train_step().unwrap();
+    }
+    let dir = std::env::temp_dir().join(format!("lmac-learn-ckpt-{}-{mixer:?}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    learner.save_checkpoint(&dir, true).unwrap();
+    // A second save over the first one must also succeed (atomic replace).
+    learner.save_checkpoint(&dir, true).unwrap();
+    let mut loaded = Learner::load_checkpoint(&dir, Device::default()).unwrap();
+
+    assert_eq!(loaded.counters(), learner.counters());
+    assert_eq!(loaded.epsilon(), learner.epsilon());
+    assert_eq!(loaded.config(), learner.config());
+    assert_eq!(loaded.buffer().len(), learner.buffer().len());
+    assert_eq!(q_values(&loaded, 5), q_values(&learner, 5), "online Q-values differ after load");
+
+    // Resuming continues the same curve: the next updates match.
+    for step in 0..2 {
+        let a = learner.train_step().unwrap();
+        let b = loaded.train_step().unwrap();
+        assert!((a.loss - b.loss).abs() <= 1e-5 * a.loss.abs().max(1.0), "{mixer:?} step {step}: loss {} vs {}", a.loss, b.loss);
+    }
+    assert_eq!(q_values(&loaded, 9), q_values(&learner, 9));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn checkpoint_round_trip_qmix() {
+    run_round_trip(MixerKind::Qmix);
+}
+
+#[test]
+fn checkpoint_round_trip_qplex_and_vdn() {
+    run_round_trip(MixerKind::Qplex);
+    run_round_trip(MixerKind::Vdn);
+}
+
+#[test]
+fn non_finite_loss_names_the_step() {
+    let cfg = LearnConfig { batch_size: 2, buffer_size: 4, ..LearnConfig::default() };
+    let mut learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+    let mut rng = LearnRng::seed_from(1);
+    for _ in 0..2 {
+        let mut ep = random_episode(&mut rng, 3, true);
+        ep.reward[1] = f32::NAN;
+        learner.add_episode(ep).unwrap();
+    }
+    match learner.train_step() {
+        Err(e @ LearnError::NonFinite { update: 1, .. }) => {
+            let msg = e.to_string();
+            assert!(msg.contains("loss") && msg.contains("update 1"), "{msg}");
+        }
+        other => panic!("expected a non-finite loss error, got {other:?}"),
+    }
+}
+
+#[test]
+fn config_errors_name_the_field() {
+    let e = LearnConfig { batch_size: 0, ..LearnConfig::default() }.validate().unwrap_err();
+    assert_eq!(e.field, "batch_size");
+    assert!(e.to_string().contains("batch_size"));
+    let e = LearnConfig { gamma: 1.5, ..LearnConfig::default() }.validate().unwrap_err();
+    assert_eq!(e.field, "gamma");
+    let e = LearnConfig { hypernet_layers: 3, ..LearnConfig::default() }.validate().unwrap_err();
+    assert_eq!(e.field, "hypernet_layers");
+    let e = LearnConfig::from_toml_str("lr = -0.1").unwrap_err();
+    assert!(e.to_string().contains("`lr`"), "{e}");
+    let e = LearnConfig::from_toml_str("mixing_embed = 32").unwrap_err();
+    assert!(e.to_string().contains("mixing_embed"), "{e}");
+    let e = LearnConfig::from_toml_str("mixer = \"qmx\"").unwrap_err();
+    assert!(e.to_string().contains("mixer"), "{e}");
+    let ok = LearnConfig::from_toml_str("mixer = \"qplex\"\nbatch_size = 16").unwrap();
+    assert_eq!(ok.mixer, MixerKind::Qplex);
+    assert_eq!(ok.batch_size, 16);
+    // Learner::new validates too.
+    let bad = LearnConfig { grad_norm_clip: 0.0, ..LearnConfig::default() };
+    match Learner::new(DIMS, bad, Device::default()) {
+        Err(LearnError::Config(e)) => assert_eq!(e.field, "grad_norm_clip"),
+        other => panic!("expected a config error, got {:?}", other.err()),
+    }
+    // Table C.3 defaults.
+    let d = LearnConfig::default();
+    assert_eq!((d.buffer_size, d.batch_size, d.target_update_interval_episodes), (5000, 32, 200));
+    assert_eq!((d.gamma, d.lr, d.mixing_embed_dim, d.grad_norm_clip), (0.99, 5e-4, 32, 10.0));
+    assert_eq!((d.epsilon_start, d.epsilon_finish, d.epsilon_anneal_steps), (1.0, 0.05, 50_000));
+    assert!((d.epsilon_at(25_000) - 0.525).abs() < 1e-6);
+}
