@@ -182,3 +182,45 @@ fn all_smaclite_maps_run_through_the_pipeline() {
         assert!(report["episodes"].as_u64().unwrap() > 0, "{env}: no episode finished");
     }
 }
+
+#[test]
+fn a_three_phase_protocol_runs_in_the_runner_and_matches_an_independent_recomputation() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let ex = root().join("prompts/examples");
+    let protocol = ["lbf_8x8_phase0.json", "lbf_8x8_phase1.json", "lbf_8x8_phase2.json"]
+        .map(|f| ex.join(f).display().to_string())
+        .join("+");
+    let out = lmac()
+        .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "8", "--servers", "2", "--protocol", &protocol])
+        .args(["--steps", "4000", "--verify", "--json"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["violation_count"], 0, "{}", report["violations"]);
+}
+
+#[test]
+fn a_protocol_over_the_message_budget_is_refused_before_anything_starts() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    // A copy of the LBF schema whose message budget is smaller than FullComm's 29 columns.
+    let dir = std::env::temp_dir().join(format!("lmac-budget-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("lbf")).unwrap();
+    let text = std::fs::read_to_string(root().join("env-server/schemas/lbf/8x8-2p-2f-s1-coop.toml")).unwrap();
+    std::fs::write(dir.join("lbf/8x8-2p-2f-s1-coop.toml"), text.replace("message_columns = 64", "message_columns = 10")).unwrap();
+    let before = lmac_shm_files();
+    let out = lmac()
+        .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--protocol", "fullcomm", "--steps", "100"])
+        .env("LMAC_SCHEMA_DIR", &dir)
+        .output()
+        .unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("writes 29 message columns") && err.contains("allows 10"), "{err}");
+    assert_eq!(lmac_shm_files(), before, "nothing was started");
+    let out = lmac().args(["run", "--protocol", "nonsense", "--steps", "100"]).output().unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("unknown protocol \"nonsense\""), "{err}");
+}

@@ -27,7 +27,8 @@ def plot_seed(run: pathlib.Path, test: np.ndarray) -> None:
     ax.plot(test[:, 0], test[:, 1], label="test return")
     ax.plot(test[:, 0], test[:, 2], label="test win rate", alpha=0.7)
     ax.set_xlabel("env steps")
-    ax.set_title(run.parent.name + " / " + run.name)
+    env, algo = run.parents[2].name, run.parents[1].name
+    ax.set_title(f"{env} {algo} {run.name}")
     ax.legend()
     fig.tight_layout()
     fig.savefig(run / "test_return.png", dpi=120)
@@ -55,7 +56,7 @@ def main(group: pathlib.Path) -> None:
     ax.plot(grid, m, label=f"test return (mean of {len(curves)} seeds)")
     ax.fill_between(grid, m - s, m + s, alpha=0.25)
     ax.set_xlabel("env steps")
-    ax.set_title(str(group))
+    ax.set_title(f"{group.parents[1].name} {group.parent.name}")
     ax.legend()
     fig.tight_layout()
     fig.savefig(group / "summary.png", dpi=120)

@@ -54,9 +54,11 @@ pub fn apply_to_slot(plan: &mut dyn MessagePlan, slab: &Slab, slot: usize) -> Re
 }
 
 /// Run until every env server has said goodbye (or a peer dies / a stop is requested).
-pub fn run(args: &RunnerArgs, plan: &mut dyn MessagePlan) -> Result<RunnerStats, RunnerError> {
+/// `plans[s]` serves env server `s` (each plan keeps its own observation history).
+pub fn run(args: &RunnerArgs, plans: &mut [Box<dyn MessagePlan>]) -> Result<RunnerStats, RunnerError> {
+    assert_eq!(plans.len(), args.n_servers, "one plan per env server");
     let mut slabs = Vec::new();
-    for s in 0..args.n_servers {
+    for (s, plan) in plans.iter().enumerate() {
         let slab = Slab::open(&slab_name(&args.run, s), &args.schema, args.startup_timeout)?;
         if plan.msg_dim() > slab.layout().msg_dim {
             return Err(RunnerError::Width { plan: plan.name(), need: plan.msg_dim(), have: slab.layout().msg_dim });
@@ -79,7 +81,7 @@ pub fn run(args: &RunnerArgs, plan: &mut dyn MessagePlan) -> Result<RunnerStats,
             KIND_SLOT => {
                 let t0 = Instant::now();
                 let (server, slot) = (m.server as usize, m.slot as usize);
-                apply_to_slot(plan, &slabs[server], slot)?;
+                apply_to_slot(plans[server].as_mut(), &slabs[server], slot)?;
                 slabs[server].set_stage(slot, Stage::Trainer);
                 port.send_slot(server, slot, m.seq)?;
                 stats.slots += 1;

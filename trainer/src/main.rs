@@ -24,6 +24,9 @@ enum Cmd {
     Run(RunArgs),
     /// Train VDN / QMIX / QPLEX and the baselines through the pipeline, over several seeds.
     Train(TrainArgs),
+    /// Protocols: check a protocol file against an environment, explain it, print the JSON Schema.
+    #[command(subcommand)]
+    Protocol(ProtocolCmd),
     /// List the environments with their dimensions.
     Envs {
         /// Validate every schema file and fail on the first bad one.
@@ -122,6 +125,28 @@ fn parse_steps(s: &str) -> Result<u64, String> {
 }
 
 #[derive(Subcommand)]
+enum ProtocolCmd {
+    /// Validate protocol phase files (in order) against an environment; errors are the text an LLM gets back.
+    Check {
+        /// Protocol JSON files: phase 0, then phase 1, ... (concatenated in this order).
+        #[arg(required = true)]
+        files: Vec<String>,
+        #[arg(long)]
+        env: String,
+    },
+    /// Explain protocol files in plain words: who sends what to whom and why.
+    Explain {
+        #[arg(required = true)]
+        files: Vec<String>,
+        /// Name dimensions by their meaning in this environment.
+        #[arg(long)]
+        env: Option<String>,
+    },
+    /// Print the protocol language's JSON Schema.
+    Schema,
+}
+
+#[derive(Subcommand)]
 enum BenchCmd {
     /// Raw vectorized stepping in one Python process vs the full pipeline, in one run.
     Pipeline {
@@ -193,8 +218,51 @@ fn dispatch(cli: Cli) -> Result<i32> {
         Cmd::Envs { check, json } => envs(check, json),
         Cmd::Run(a) => run(a),
         Cmd::Train(a) => train(a),
+        Cmd::Protocol(p) => protocol_cmd(p),
         Cmd::Bench(BenchCmd::Pipeline { p, repeat, json }) => bench_pipeline(p, repeat, json),
         Cmd::Child(c) => child(c),
+    }
+}
+
+fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
+    use lmac_protocol_runner::protocol;
+    match c {
+        ProtocolCmd::Schema => {
+            println!("{}", protocol::schema_json());
+            Ok(0)
+        }
+        ProtocolCmd::Check { files, env } => {
+            let schema = load_env(&env).map_err(anyhow::Error::msg)?;
+            let penv = lmac_protocol_runner::protocol_env(&schema);
+            let refs: Vec<&str> = files.iter().map(|s| s.as_str()).collect();
+            match lmac_protocol_runner::load_phases(&refs, &penv) {
+                Ok(phases) => {
+                    for (f, p) in files.iter().zip(&phases) {
+                        println!("{f}: {}", protocol::check_summary(p));
+                    }
+                    let total = protocol::check_phases(&phases, &penv).map_err(|e| anyhow::anyhow!(protocol::errors_to_text(&e)))?;
+                    println!("all phases: {total} message columns per agent (budget {})", schema.message_columns);
+                    Ok(0)
+                }
+                Err(e) => {
+                    eprintln!("{e}");
+                    Ok(1)
+                }
+            }
+        }
+        ProtocolCmd::Explain { files, env } => {
+            let mut ps = Vec::new();
+            for f in &files {
+                let text = std::fs::read_to_string(f).with_context(|| format!("reading {f}"))?;
+                ps.push(protocol::parse_str(&text).map_err(|e| anyhow::anyhow!("{f}:\n{}", protocol::errors_to_text(&e)))?);
+            }
+            let penv = match env {
+                Some(e) => Some(lmac_protocol_runner::protocol_env(&load_env(&e).map_err(anyhow::Error::msg)?)),
+                None => None,
+            };
+            println!("{}", protocol::explain_phases(&ps, penv.as_ref()));
+            Ok(0)
+        }
     }
 }
 
@@ -427,9 +495,12 @@ fn child(c: ChildCmd) -> Result<i32> {
     let code = match c {
         ChildCmd::Runner(o) => {
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
-            let mut plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
+            let mut plans = (0..o.servers)
+                .map(|_| lmac_protocol_runner::plan_for(&o.protocol, &schema))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(anyhow::Error::msg)?;
             let args = RunnerArgs { run: o.run, schema, n_servers: o.servers, n_slots: o.slots, startup_timeout: Duration::from_secs_f64(o.startup_timeout) };
-            match prunner::run(&args, plan.as_mut()) {
+            match prunner::run(&args, &mut plans) {
                 Ok(_) => 0,
                 Err(prunner::RunnerError::Ring(lmac_shm_schema::RingError::Stopped)) => 0,
                 Err(e) => {
@@ -443,7 +514,8 @@ fn child(c: ChildCmd) -> Result<i32> {
             let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
             let check = match o.protocol.as_str() {
                 "fullcomm" => MessageCheck::FullComm,
-                _ => MessageCheck::None,
+                "none" => MessageCheck::None,
+                _ => MessageCheck::Recompute,
             };
             let args = TrainerArgs {
                 run: o.run,
@@ -455,6 +527,7 @@ fn child(c: ChildCmd) -> Result<i32> {
                 warmup_slots: warmup,
                 startup_timeout: Duration::from_secs_f64(o.startup_timeout),
                 verify: verify.then_some(check),
+                protocol: o.protocol.clone(),
                 progress,
             };
             if let Some(dir) = train_dir {

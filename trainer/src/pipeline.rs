@@ -55,6 +55,9 @@ pub enum MessageCheck {
     None,
     /// Built-in fullcomm: [obs_j, onehot(j)] for every other agent j.
     FullComm,
+    /// A compiled protocol: recompute the messages with an independent plan per server (it sees
+    /// the same steps, so it must agree column for column).
+    Recompute,
 }
 
 pub struct TrainerArgs {
@@ -70,6 +73,8 @@ pub struct TrainerArgs {
     pub warmup_slots: u64,
     pub startup_timeout: Duration,
     pub verify: Option<MessageCheck>,
+    /// The protocol the runner applies (for `MessageCheck::Recompute`).
+    pub protocol: String,
     /// Draw a progress bar on stderr.
     pub progress: bool,
 }
@@ -111,6 +116,8 @@ pub enum PipelineError {
     Ring(#[from] RingError),
     #[error("trainer: {0}")]
     Slab(#[from] lmac_shm_schema::SlabError),
+    #[error("trainer: protocol: {0}")]
+    Protocol(String),
 }
 
 /// Per env: the episode being assembled.
@@ -221,6 +228,32 @@ impl Assembler {
         }
     }
 
+    /// Recompute the messages of `slot` with `plan` on a copy of its rows and compare.
+    pub fn recheck_messages(&mut self, server: usize, slot: &Slot<'_>, plan: &mut dyn lmac_protocol_runner::plan::MessagePlan) {
+        let l = slot.layout();
+        let mut rows = slot.obs().to_vec();
+        let first: Vec<bool> = (0..l.num_envs).map(|e| slot.env_meta(e).2 & FLAG_FIRST != 0).collect();
+        for row in rows.chunks_exact_mut(l.row_width) {
+            row[l.obs_dim..].fill(f32::NAN); // must all be overwritten
+        }
+        let mut view = lmac_protocol_runner::plan::StepView {
+            num_envs: l.num_envs,
+            n_agents: l.n_agents,
+            obs_dim: l.obs_dim,
+            msg_dim: l.msg_dim,
+            rows: &mut rows,
+            first: &first,
+            last_actions: slot.last_actions(),
+        };
+        plan.apply(&mut view);
+        let got = slot.obs();
+        for (k, (a, b)) in rows.chunks_exact(l.row_width).zip(got.chunks_exact(l.row_width)).enumerate() {
+            if a[l.obs_dim..].iter().zip(&b[l.obs_dim..]).any(|(x, y)| x.to_bits() != y.to_bits()) {
+                self.violate(format!("server {server} env {} agent {}: message columns differ from the recomputed protocol", k / l.n_agents, k % l.n_agents));
+            }
+        }
+    }
+
     /// Check the message columns against the rule the runner applies.
     pub fn check_messages(&mut self, server: usize, slot: &Slot<'_>, check: MessageCheck) {
         let l = slot.layout();
@@ -266,6 +299,12 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
         server: 0,
     })?;
     port.set_startup_timeout(args.startup_timeout);
+    let mut recheck = Vec::new();
+    if args.verify == Some(MessageCheck::Recompute) {
+        for _ in 0..args.n_servers {
+            recheck.push(lmac_protocol_runner::plan_for(&args.protocol, &args.schema).map_err(PipelineError::Protocol)?);
+        }
+    }
     let mut asm = Assembler::new(dims, args.schema.episode_limit, args.n_servers, l0.num_envs);
     let mut actions = vec![0i32; l0.num_envs * l0.n_agents];
     let mut report = TrainerReport {
@@ -299,8 +338,10 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
         let (server, idx) = (m.server as usize, m.slot as usize);
         {
             let mut slot = slabs[server].slot(idx, Stage::Trainer)?;
-            if let Some(check) = args.verify {
-                asm.check_messages(server, &slot, check);
+            match args.verify {
+                Some(MessageCheck::Recompute) => asm.recheck_messages(server, &slot, recheck[server].as_mut()),
+                Some(check) => asm.check_messages(server, &slot, check),
+                None => {}
             }
             asm.ingest(server, &slot);
             actor.act(server, &slot, dims.obs_width, &mut actions);

@@ -26,10 +26,18 @@ pub struct RunPlan {
     pub trainer_args: Vec<String>,
 }
 
-/// The repository root (the folder holding `env-server/`), from the schema directory.
+/// The repository root (the folder holding `env-server/lmac_env`): `$LMAC_ROOT`, else found by
+/// walking up from the executable and from the current directory.
 pub fn repo_root() -> Result<PathBuf> {
-    let dir = lmac_shm_schema::schema::schema_dir().context("cannot find env-server/schemas (set LMAC_SCHEMA_DIR)")?;
-    Ok(dir.parent().and_then(Path::parent).context("schema dir has no repository root")?.to_path_buf())
+    if let Ok(r) = std::env::var("LMAC_ROOT") {
+        return Ok(PathBuf::from(r));
+    }
+    let starts = [std::env::current_exe().ok(), std::env::current_dir().ok()];
+    starts
+        .into_iter()
+        .flatten()
+        .find_map(|s| s.ancestors().find(|d| d.join("env-server/lmac_env").is_dir()).map(Path::to_path_buf))
+        .context("cannot find the lmac repository (env-server/lmac_env); set LMAC_ROOT")
 }
 
 /// The Python that runs env servers: $LMAC_PYTHON, else the project's .venv, else python3.

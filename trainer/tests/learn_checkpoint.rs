@@ -3,7 +3,7 @@
 
 use burn::tensor::Device;
 use lmac_trainer::episode::{Episode, EpisodeDims};
-use lmac_trainer::learn::{Controller, LearnConfig, LearnError, LearnRng, Learner, MixerKind};
+use lmac_trainer::learn::{Controller, LearnConfig, LearnError, LearnRng, Learner, MixerKind, OptimizerKind};
 
 const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 5, state_dim: 7, n_actions: 4 };
 
@@ -49,8 +49,8 @@ fn q_values(learner: &Learner, obs_seed: u64) -> Vec<f32> {
     out
 }
 
-fn run_round_trip(mixer: MixerKind) {
-    let cfg = LearnConfig { mixer, batch_size: 4, buffer_size: 16, seed: 3, qplex_num_kernel: 2, ..LearnConfig::default() };
+fn run_round_trip(mixer: MixerKind, optimizer: OptimizerKind) {
+    let cfg = LearnConfig { mixer, optimizer, batch_size: 4, buffer_size: 16, seed: 3, qplex_num_kernel: 2, ..LearnConfig::default() };
     let mut learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
     let mut rng = LearnRng::seed_from(11);
     for i in 0..20 {
@@ -59,7 +59,7 @@ fn run_round_trip(mixer: MixerKind) {
     for _ in 0..3 {
         learner.train_step().unwrap();
     }
-    let dir = std::env::temp_dir().join(format!("lmac-learn-ckpt-{}-{mixer:?}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("lmac-learn-ckpt-{}-{mixer:?}-{optimizer:?}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     learner.save_checkpoint(&dir, true).unwrap();
     // A second save over the first one must also succeed (atomic replace).
@@ -84,13 +84,13 @@ fn run_round_trip(mixer: MixerKind) {
 
 #[test]
 fn checkpoint_round_trip_qmix() {
-    run_round_trip(MixerKind::Qmix);
+    run_round_trip(MixerKind::Qmix, OptimizerKind::Adam);
 }
 
 #[test]
-fn checkpoint_round_trip_qplex_and_vdn() {
-    run_round_trip(MixerKind::Qplex);
-    run_round_trip(MixerKind::Vdn);
+fn checkpoint_round_trip_qplex_adam_and_vdn_rmsprop() {
+    run_round_trip(MixerKind::Qplex, OptimizerKind::Adam);
+    run_round_trip(MixerKind::Vdn, OptimizerKind::Rmsprop);
 }
 
 #[test]
@@ -142,4 +142,68 @@ fn config_errors_name_the_field() {
     assert_eq!((d.gamma, d.lr, d.mixing_embed_dim, d.grad_norm_clip), (0.99, 5e-4, 32, 10.0));
     assert_eq!((d.epsilon_start, d.epsilon_finish, d.epsilon_anneal_steps), (1.0, 0.05, 50_000));
     assert!((d.epsilon_at(25_000) - 0.525).abs() < 1e-6);
+}
+
+#[test]
+fn batches_pad_and_mask() {
+    use lmac_trainer::learn::{Batch, InputLayout};
+    let cfg = LearnConfig::default();
+    let layout = InputLayout::new(DIMS, &cfg);
+    let mut rng = LearnRng::seed_from(4);
+    let a = random_episode(&mut rng, 2, true);
+    let b = random_episode(&mut rng, 4, false);
+    let batch = Batch::from_episodes(&[&a, &b], &DIMS, &layout);
+    assert_eq!((batch.b, batch.t), (2, 4));
+    // time-major [t, b]
+    assert_eq!(batch.mask, vec![1., 1., 1., 1., 0., 1., 0., 0.]);
+    assert_eq!(batch.terminated, vec![0., 0., 1., 0., 0., 0., 0., 0.]);
+    assert_eq!(batch.has_next, vec![1., 1., 0., 1., 0., 1., 0., 0.]);
+    // padded steps of episode a (t = 2, 3): every action available, zero inputs.
+    let (n, na, iw) = (DIMS.n_agents, DIMS.n_actions, layout.width());
+    for t in 2..4 {
+        let row = (t * 2) * n; // b = 0
+        assert!(batch.avail[row * na..(row + n) * na].iter().all(|&x| x == 1));
+        assert!(batch.inputs[row * iw..(row + n) * iw].iter().all(|&x| x == 0.0));
+    }
+    // last-action one-hot at t = 1 of episode b (b = 1) is its action at t = 0.
+    let off = DIMS.obs_width; // agent_sees_state is off: obs | last action | id
+    for ag in 0..n {
+        let row = (2 + 1) * n + ag;
+        let one_hot = &batch.inputs[row * iw + off..row * iw + off + na];
+        let act = b.actions[ag] as usize;
+        assert_eq!(one_hot.iter().position(|&x| x == 1.0), Some(act));
+        assert_eq!(batch.inputs[row * iw + off + na + ag], 1.0, "agent id one-hot");
+    }
+
+    // A masked transition (the truncated last step) does not change the loss.
+    let cfg = LearnConfig { batch_size: 2, buffer_size: 2, ..LearnConfig::default() };
+    let learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+    let (l1, _) = learner.td_loss(&batch).unwrap();
+    let mut b2 = b.clone();
+    *b2.reward.last_mut().unwrap() += 1e6;
+    let batch2 = Batch::from_episodes(&[&a, &b2], &DIMS, &layout);
+    let (l2, _) = learner.td_loss(&batch2).unwrap();
+    let (l1, l2): (f32, f32) = (l1.into_scalar(), l2.into_scalar());
+    assert_eq!(l1, l2);
+    // ... while an unmasked one does.
+    let mut a2 = a.clone();
+    a2.reward[1] += 1.0;
+    let batch3 = Batch::from_episodes(&[&a2, &b], &DIMS, &layout);
+    let l3: f32 = learner.td_loss(&batch3).unwrap().0.into_scalar();
+    assert_ne!(l1, l3);
+}
+
+#[test]
+fn parallel_target_gives_the_same_updates() {
+    let mut losses = Vec::new();
+    for parallel_target in [false, true] {
+        let cfg = LearnConfig { batch_size: 4, buffer_size: 8, parallel_target, ..LearnConfig::default() };
+        let mut learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+        let mut rng = LearnRng::seed_from(8);
+        for i in 0..8 {
+            learner.add_episode(random_episode(&mut rng, 2 + i % 3, i % 2 == 0)).unwrap();
+        }
+        losses.push((0..3).map(|_| learner.train_step().unwrap().loss).collect::<Vec<_>>());
+    }
+    assert_eq!(losses[0], losses[1]);
 }

@@ -119,8 +119,10 @@ fn time_one_update() {
     use lmac_trainer::episode::{Episode, EpisodeDims};
     use lmac_trainer::learn::{LearnRng, Learner};
     let dims = EpisodeDims { n_agents: 3, obs_width: 30, state_dim: 48, n_actions: 9 };
-    for mixer in [MixerKind::Qmix, MixerKind::Vdn, MixerKind::Qplex] {
-        let cfg = LearnConfig { mixer, ..LearnConfig::default() };
+    for (mixer, parallel_target) in
+        [(MixerKind::Qmix, false), (MixerKind::Qmix, true), (MixerKind::Vdn, false), (MixerKind::Qplex, false)]
+    {
+        let cfg = LearnConfig { mixer, parallel_target, ..LearnConfig::default() };
         let mut learner = Learner::new(dims, cfg, Device::default()).unwrap();
         let mut rng = LearnRng::seed_from(0);
         for _ in 0..32 {
@@ -144,6 +146,13 @@ fn time_one_update() {
             learner.train_step().unwrap();
         }
         let ms = t0.elapsed().as_secs_f64() * 1000.0 / n as f64;
-        eprintln!("{mixer:?}: {ms:.1} ms per update (32 x 50 x 3 agents)");
+        eprintln!("{mixer:?} (parallel_target {parallel_target}): {ms:.1} ms per update (32 x 50 x 3 agents)");
     }
+}
+
+#[test]
+fn acting_weights_can_cross_threads() {
+    fn assert_send<T: Send>() {}
+    assert_send::<RnnAgent>();
+    assert_send::<lmac_trainer::learn::QNet>();
 }

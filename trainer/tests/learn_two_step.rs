@@ -86,3 +86,10 @@ fn qmix_learns_the_optimal_joint_policy_and_vdn_does_not() {
     assert_eq!(rq, 8.0, "QMIX should find the return-8 joint policy");
     assert_eq!(rv, 7.0, "VDN should settle for state 2A (return 7)");
 }
+
+#[test]
+fn qplex_solves_the_two_step_game() {
+    // QPLEX's duplex dueling mixer is fully expressive for this game (IGM-complete).
+    let qplex = train(MixerKind::Qplex, 2);
+    assert_eq!(greedy_return(&qplex), 8.0);
+}

@@ -18,8 +18,9 @@ pub struct FusedGru {
 
 impl FusedGru {
     pub fn new(input_dim: usize, hidden_dim: usize, device: &Device) -> Self {
-        // torch initializes GRU weights U(-1/sqrt(H), 1/sqrt(H)); fan_in = H for both here
-        // only when input_dim == H (it is: the GRU reads fc1's output).
+        // burn's Linear default is torch's U(-1/sqrt(fan_in), 1/sqrt(fan_in)); torch's GRUCell
+        // uses U(-1/sqrt(H), 1/sqrt(H)) for both, identical here since the GRU reads fc1's
+        // H-wide output.
         FusedGru {
             input: LinearConfig::new(input_dim, 3 * hidden_dim).init(device),
             hidden: LinearConfig::new(hidden_dim, 3 * hidden_dim).init(device),

@@ -76,6 +76,9 @@ pub struct LearnConfig {
     pub agent_sees_state: bool,
     /// Seed for parameter init, replay sampling and exploration.
     pub seed: u64,
+    /// Unroll the target network on a second thread during the online forward pass
+    /// (faster updates when a core is free; off by default because acting wants that core).
+    pub parallel_target: bool,
 }
 
 impl Default for LearnConfig {
@@ -107,6 +110,7 @@ impl Default for LearnConfig {
             obs_agent_id: true,
             agent_sees_state: false,
             seed: 0,
+            parallel_target: false,
         }
     }
 }

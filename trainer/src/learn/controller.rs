@@ -147,6 +147,22 @@ impl Controller {
     }
 }
 
+impl Controller {
+    /// Greedy actions (epsilon 0), for evaluation and tests.
+    pub fn greedy_actions(
+        &mut self,
+        obs: &[f32],
+        state: Option<&[f32]>,
+        last_actions: &[i32],
+        avail: &[u8],
+        first: &[bool],
+    ) -> Vec<i32> {
+        // epsilon = 0 never draws from the RNG.
+        let mut rng = LearnRng::seed_from(0);
+        self.select_actions(obs, state, last_actions, avail, first, 0.0, &mut rng)
+    }
+}
+
 impl std::fmt::Debug for Controller {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Controller")

@@ -143,6 +143,10 @@ impl Learner {
     pub fn acting_net(&self) -> QNet {
         self.net.valid()
     }
+    /// Trainable parameters of the online network (agent + mixer).
+    pub fn num_params(&self) -> usize {
+        self.net.num_params()
+    }
     pub fn target_net(&self) -> &QNet {
         &self.target
     }
@@ -248,12 +252,22 @@ impl Learner {
         };
 
         // ---- online network (autodiff)
-        let mac_out: Tensor<4> = self.net.agent.unroll(step_inputs(&ad)).reshape([t, b, n, a]);
+        // The target unroll (no autodiff) optionally runs on a second thread meanwhile.
+        let (mac_out, target_out) = if self.cfg.parallel_target {
+            std::thread::scope(|s| {
+                let target = s.spawn(|| self.target.agent.unroll(step_inputs(&dev)));
+                let online = self.net.agent.unroll(step_inputs(&ad));
+                (online, target.join().expect("target unroll thread panicked"))
+            })
+        } else {
+            (self.net.agent.unroll(step_inputs(&ad)), self.target.agent.unroll(step_inputs(&dev)))
+        };
+        let mac_out: Tensor<4> = mac_out.reshape([t, b, n, a]);
         let chosen = mac_out.clone().gather(3, actions_t(&ad)).reshape([nb, n]);
         let mac_plain = mac_out.clone().detach().inner().mask_fill(unavail_t.clone(), -1e9);
 
         // ---- target network (plain device)
-        let target_out: Tensor<4> = self.target.agent.unroll(step_inputs(&dev)).reshape([t, b, n, a]);
+        let target_out: Tensor<4> = target_out.reshape([t, b, n, a]);
         let target_masked = target_out.clone().mask_fill(unavail_t.clone(), -1e9);
         let (target_q, target_actions) = if self.cfg.double_q {
             let cur = mac_plain.clone().argmax(3);
@@ -285,7 +299,8 @@ impl Learner {
                 } else {
                     0.0
                 };
-                y[i] = batch.reward[i] + self.cfg.gamma * next;
+                // Masked transitions get target 0 so a NaN in one cannot leak through `0 * NaN`.
+                y[i] = if batch.mask[i] > 0.0 { batch.reward[i] + self.cfg.gamma * next } else { 0.0 };
             }
         }
         let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);

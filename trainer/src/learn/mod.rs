@@ -4,15 +4,20 @@
 //!
 //! How the pipeline drives it:
 //! ```ignore
-//! let mut learner = Learner::new(dims, cfg, Device::flex())?;       // validates the config
-//! let mut ctl = Controller::new(&learner, n_envs);
-//! // per batched env step:
-//! let eps = learner.epsilon();
-//! let acts = ctl.select_actions(&obs, state.as_deref(), &last, &avail, &first, eps, learner.rng_mut());
+//! let cfg = LearnConfig::from_toml_str(&text)?;                  // or LearnConfig { .. }; validated
+//! let mut learner = Learner::new(dims, cfg, Device::default())?;  // validates again
+//! let mut ctl = Controller::new(&learner, n_envs);                // acting copy, per-env GRU state
+//! // per batched env step (obs: n_envs*n*obs_width, avail: n_envs*n*n_actions, first: n_envs):
+//! let eps = learner.epsilon();                                     // from t_env of added episodes
+//! let acts = ctl.select_actions(&obs, state, &last, &avail, &first, eps, learner.rng_mut());
 //! // per finished episode:
-//! learner.add_episode(episode);
-//! if learner.can_train() { let stats = learner.train_step()?; ctl.sync_weights(&learner); }
-//! learner.save_checkpoint(dir, true)?;  /  Learner::load_checkpoint(dir, Device::flex())?
+//! learner.add_episode(episode)?;                                   // advances t_env, episodes
+//! if learner.can_train() {
+//!     let stats = learner.train_step()?;   // Err(LearnError::NonFinite{update,..}) stops the run
+//!     ctl.sync_weights(&learner);
+//! }
+//! learner.save_checkpoint(&dir, true)?;                            // atomic; true = with replay
+//! let learner = Learner::load_checkpoint(&dir, Device::default())?;
 //! ```
 
 pub mod agent;

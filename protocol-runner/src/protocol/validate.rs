@@ -1,0 +1,668 @@
+//! Parsing and validation. Every error carries the JSON path of the offending element and a
+//! message written to be handed back verbatim to the LLM that wrote the protocol.
+
+use super::ast::*;
+use std::collections::BTreeSet;
+use std::fmt;
+
+/// Longest window (k) an aggregate may use.
+pub const MAX_WINDOW: usize = 64;
+/// Deepest expression nesting accepted.
+pub const MAX_DEPTH: usize = 24;
+/// Most expression nodes in one protocol.
+pub const MAX_NODES: usize = 4096;
+/// Most fields in one protocol.
+pub const MAX_FIELDS: usize = 256;
+
+/// The environment facts validation needs (the lead maps the environment schema onto this).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ProtocolEnv {
+    pub n_agents: usize,
+    pub obs_dim: usize,
+    pub n_actions: usize,
+    pub state_dim: usize,
+    /// Most message columns one receiving agent may get (all phases together).
+    pub message_budget: usize,
+    /// Optional names of the observation dims (for error messages and `explain`); empty = unknown.
+    pub obs_names: Vec<String>,
+    /// Optional names of the state dims; empty = unknown.
+    pub state_names: Vec<String>,
+    /// Optional names of the actions; empty = unknown.
+    pub action_names: Vec<String>,
+}
+
+impl ProtocolEnv {
+    pub fn new(n_agents: usize, obs_dim: usize, n_actions: usize, state_dim: usize, message_budget: usize) -> Self {
+        ProtocolEnv { n_agents, obs_dim, n_actions, state_dim, message_budget, ..Default::default() }
+    }
+    pub(crate) fn obs_name(&self, d: usize) -> Option<&str> {
+        self.obs_names.get(d).map(|s| s.as_str()).filter(|s| !s.is_empty())
+    }
+    pub(crate) fn state_name(&self, d: usize) -> Option<&str> {
+        self.state_names.get(d).map(|s| s.as_str()).filter(|s| !s.is_empty())
+    }
+}
+
+/// What kind of mistake an error reports (for programs; people read the Display text).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ErrorKind {
+    /// Could not read the file.
+    Io,
+    /// Not JSON, or JSON that does not match the schema (unknown key, wrong type, missing key).
+    Parse,
+    /// The environment itself cannot carry messages (e.g. a single agent).
+    Env,
+    /// A required text or list is empty.
+    Empty,
+    /// An identifier is malformed or repeated.
+    Name,
+    /// An agent index is out of range, repeated, or a sender/receiver rule is broken.
+    Agent,
+    /// An observation dim or slice is out of range.
+    ObsDim,
+    /// A state dim is out of range or repeated.
+    StateDim,
+    /// Operand widths do not fit together.
+    Width,
+    /// A window is malformed (k out of range, nested windows).
+    Window,
+    /// A number is not finite or a clip range is empty.
+    Number,
+    /// The protocol is too large (nesting, nodes, fields).
+    Size,
+    /// The message is wider than the budget.
+    Budget,
+    /// Phases given to the compiler do not fit together.
+    Phases,
+}
+
+/// One validation error: where (a JSON path such as `fields[2].value.add[1].obs[0]`) and what.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ValidationError {
+    pub kind: ErrorKind,
+    /// JSON path of the offending element; empty for whole-protocol errors.
+    pub path: String,
+    /// The field's name when the error is inside a field.
+    pub field: Option<String>,
+    pub message: String,
+}
+
+impl ValidationError {
+    pub fn new(kind: ErrorKind, path: impl Into<String>, message: impl Into<String>) -> Self {
+        ValidationError { kind, path: path.into(), field: None, message: message.into() }
+    }
+}
+
+impl fmt::Display for ValidationError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match (&self.path.is_empty(), &self.field) {
+            (true, _) => write!(f, "{}", self.message),
+            (false, None) => write!(f, "{}: {}", self.path, self.message),
+            (false, Some(n)) => write!(f, "{} (field \"{}\"): {}", self.path, n, self.message),
+        }
+    }
+}
+
+impl std::error::Error for ValidationError {}
+
+/// All errors as one text, one per line, ready to hand to an LLM for correction.
+pub fn errors_to_text(errors: &[ValidationError]) -> String {
+    let mut s = format!("The protocol has {} error(s):\n", errors.len());
+    for e in errors {
+        s.push_str("- ");
+        s.push_str(&e.to_string());
+        s.push('\n');
+    }
+    s
+}
+
+/// A protocol that passed validation against one environment, with its derived facts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ValidatedProtocol {
+    pub protocol: Protocol,
+    pub env: ProtocolEnv,
+    /// Width of each field's value, in field order.
+    pub field_widths: Vec<usize>,
+    /// `sends[f][j][i]`: sender j sends field f to receiver i.
+    pub sends: Vec<Vec<Vec<bool>>>,
+    /// Message columns each receiving agent gets from this protocol (phase).
+    pub width: usize,
+    /// The critical state dims, expanded and sorted.
+    pub critical_dims: Vec<usize>,
+}
+
+impl ValidatedProtocol {
+    /// Columns of one sender block: one-hot (if on) + all field widths.
+    pub fn block_width(&self) -> usize {
+        block_width(&self.protocol, &self.env, &self.field_widths)
+    }
+    /// Does sender j send anything to receiver i in this phase?
+    pub fn links(&self, j: usize, i: usize) -> bool {
+        self.sends.iter().any(|s| s[j][i])
+    }
+}
+
+fn block_width(p: &Protocol, env: &ProtocolEnv, widths: &[usize]) -> usize {
+    let onehot = if p.sender_one_hot { env.n_agents } else { 0 };
+    widths.iter().fold(onehot, |a, &w| a.saturating_add(w))
+}
+
+/// Message columns per receiver of a protocol with these field widths (0 with fewer than 2 agents).
+pub fn message_width(p: &Protocol, env: &ProtocolEnv, widths: &[usize]) -> usize {
+    env.n_agents.saturating_sub(1).saturating_mul(block_width(p, env, widths))
+}
+
+// ------------------------------------------------------------------------------------------
+// Parsing
+
+fn parse_error(e: serde_path_to_error::Error<serde_json::Error>) -> ValidationError {
+    let path = e.path().to_string();
+    let inner = e.into_inner();
+    let mut msg = inner.to_string();
+    if msg.contains("unknown variant") && msg.contains("expected one of `obs`") {
+        msg.push_str(" (an expression is an object with exactly one key naming its operator, e.g. {\"obs\": [0, 1]}, or the string \"sender_one_hot\")");
+    }
+    let path = if path == "." { String::new() } else { path };
+    ValidationError::new(ErrorKind::Parse, path, format!("invalid protocol JSON: {msg}"))
+}
+
+/// Parse protocol JSON text (no validation against an environment yet).
+pub fn parse_str(text: &str) -> Result<Protocol, Vec<ValidationError>> {
+    let mut de = serde_json::Deserializer::from_str(text);
+    let p: Protocol = serde_path_to_error::deserialize(&mut de).map_err(|e| vec![parse_error(e)])?;
+    de.end().map_err(|e| {
+        vec![ValidationError::new(ErrorKind::Parse, "", format!("invalid protocol JSON: trailing text after the protocol object ({e})"))]
+    })?;
+    Ok(p)
+}
+
+/// Parse an already-decoded JSON value.
+pub fn parse_value(v: &serde_json::Value) -> Result<Protocol, Vec<ValidationError>> {
+    serde_path_to_error::deserialize(v).map_err(|e| vec![parse_error(e)])
+}
+
+/// Parse the protocol out of an LLM answer: the text itself if it is JSON, else the content of
+/// the first ```json fenced block, else the outermost `{ ... }`.
+pub fn parse_llm_text(text: &str) -> Result<Protocol, Vec<ValidationError>> {
+    let t = text.trim();
+    if t.starts_with('{') {
+        return parse_str(t);
+    }
+    if let Some(start) = t.find("```") {
+        let rest = &t[start + 3..];
+        let rest = rest.strip_prefix("json").or_else(|| rest.strip_prefix("JSON")).unwrap_or(rest);
+        if let Some(end) = rest.find("```") {
+            return parse_str(rest[..end].trim());
+        }
+    }
+    match (t.find('{'), t.rfind('}')) {
+        (Some(a), Some(b)) if a < b => parse_str(&t[a..=b]),
+        _ => Err(vec![ValidationError::new(ErrorKind::Parse, "", "no JSON object found in the answer: reply with the protocol as one JSON object")]),
+    }
+}
+
+// ------------------------------------------------------------------------------------------
+// Validation
+
+/// Validate a parsed protocol against an environment, with the whole budget available.
+pub fn validate(p: &Protocol, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec<ValidationError>> {
+    validate_phase(p, env, &[])
+}
+
+/// Parse and validate JSON text.
+pub fn check_str(text: &str, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec<ValidationError>> {
+    validate(&parse_str(text)?, env)
+}
+
+/// Read, parse and validate a protocol file.
+pub fn check_file(path: impl AsRef<std::path::Path>, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec<ValidationError>> {
+    let path = path.as_ref();
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| vec![ValidationError::new(ErrorKind::Io, "", format!("cannot read protocol file {}: {e}", path.display()))])?;
+    check_str(&text, env)
+}
+
+/// Validate a later phase: `previous` phases already use part of the message budget.
+pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProtocol]) -> Result<ValidatedProtocol, Vec<ValidationError>> {
+    let mut v = Validator { env, errors: Vec::new(), nodes: 0, nodes_reported: false };
+    let n = env.n_agents;
+    if n < 2 {
+        v.err(ErrorKind::Env, "", None, format!("the environment has {n} agent(s): messages need at least 2 agents (a sender never receives its own message)"));
+        return Err(v.errors);
+    }
+
+    if let Some(name) = &p.name {
+        if !valid_ident(name) {
+            v.err(ErrorKind::Name, "name", None, format!("protocol name {name:?} must be 1-64 characters of letters, digits, '_' or '-'"));
+        }
+    }
+    if p.message_design_instruction.trim().is_empty() {
+        v.err(ErrorKind::Empty, "message_design_instruction", None, "the design description is empty: explain what each agent shares, with whom, and why".to_string());
+    }
+    v.critical_dims(p);
+
+    if p.fields.is_empty() {
+        v.err(ErrorKind::Empty, "fields", None, "the protocol has no fields: define at least one message field".to_string());
+    }
+    if p.fields.len() > MAX_FIELDS {
+        v.err(ErrorKind::Size, "fields", None, format!("{} fields is more than the limit of {MAX_FIELDS}", p.fields.len()));
+        return Err(v.errors);
+    }
+
+    let mut names = BTreeSet::new();
+    let mut widths = Vec::with_capacity(p.fields.len());
+    let mut sends = Vec::with_capacity(p.fields.len());
+    for (fi, f) in p.fields.iter().enumerate() {
+        let fp = format!("fields[{fi}]");
+        let fname = Some(f.name.as_str());
+        if !valid_ident(&f.name) {
+            v.err(ErrorKind::Name, &format!("{fp}.name"), None, format!("field name {:?} must be 1-64 characters of letters, digits, '_' or '-'", f.name));
+        } else if !names.insert(f.name.as_str()) {
+            v.err(ErrorKind::Name, &format!("{fp}.name"), None, format!("field name {:?} is used by an earlier field: field names must be unique", f.name));
+        }
+        if f.description.trim().is_empty() {
+            v.err(ErrorKind::Empty, &format!("{fp}.description"), fname, "the description is empty: say what the value means".to_string());
+        }
+        let senders = v.senders(f, &fp);
+        sends.push(v.receivers(f, &fp, &senders));
+        let w = v.expr(&f.value, &format!("{fp}.value"), fname, 0, false);
+        widths.push(w.unwrap_or(0));
+    }
+    if !v.errors.is_empty() {
+        return Err(v.errors);
+    }
+
+    // Budget.
+    let width = message_width(p, env, &widths);
+    let used: usize = previous.iter().map(|q| q.width).fold(0usize, |a, b| a.saturating_add(b));
+    let available = env.message_budget.saturating_sub(used);
+    if width > available {
+        let onehot = if p.sender_one_hot { n } else { 0 };
+        let parts: Vec<String> = p.fields.iter().zip(&widths).map(|(f, w)| format!("{}={w}", f.name)).collect();
+        let prev = if previous.is_empty() {
+            String::new()
+        } else {
+            format!(" (the budget is {} columns and earlier phases already use {used})", env.message_budget)
+        };
+        v.err(
+            ErrorKind::Budget,
+            "fields",
+            None,
+            format!(
+                "the message is {width} columns per receiving agent but only {available} are available{prev}: \
+                 width = (n_agents - 1 = {}) sender blocks x ({onehot} sender one-hot + {} field columns: {}). \
+                 Remove or narrow fields (e.g. aggregate with reduce, or pick fewer obs dims) by at least {} columns per block",
+                n - 1,
+                block_width(p, env, &widths) - onehot,
+                parts.join(", "),
+                (width - available).div_ceil(n - 1)
+            ),
+        );
+        return Err(v.errors);
+    }
+    let critical_dims: BTreeSet<usize> = p.critical_state_dims.iter().flat_map(|s| s.dims()).collect();
+    Ok(ValidatedProtocol { protocol: p.clone(), env: env.clone(), field_widths: widths, sends, width, critical_dims: critical_dims.into_iter().collect() })
+}
+
+fn valid_ident(s: &str) -> bool {
+    !s.is_empty() && s.len() <= 64 && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+struct Validator<'a> {
+    env: &'a ProtocolEnv,
+    errors: Vec<ValidationError>,
+    nodes: usize,
+    nodes_reported: bool,
+}
+
+impl Validator<'_> {
+    fn err(&mut self, kind: ErrorKind, path: &str, field: Option<&str>, message: String) {
+        self.errors.push(ValidationError { kind, path: path.to_string(), field: field.map(str::to_string), message });
+    }
+
+    fn agent_range(&self) -> String {
+        format!("n_agents is {}, so agents are 0..={}", self.env.n_agents, self.env.n_agents - 1)
+    }
+
+    fn critical_dims(&mut self, p: &Protocol) {
+        let sd = self.env.state_dim;
+        if p.critical_state_dims.is_empty() && sd > 0 {
+            self.err(ErrorKind::Empty, "critical_state_dims", None, format!("list the task-critical state dims the protocol targets (indices in 0..{sd})"));
+        }
+        let mut seen = BTreeSet::new();
+        for (k, spec) in p.critical_state_dims.iter().enumerate() {
+            let path = format!("critical_state_dims[{k}]");
+            match *spec {
+                DimSpec::Dim(d) => {
+                    if d >= sd {
+                        self.err(ErrorKind::StateDim, &path, None, format!("state dim {d} is out of range: state_dim is {sd}, valid dims are 0..={}", sd.saturating_sub(1)));
+                    } else if !seen.insert(d) {
+                        self.err(ErrorKind::StateDim, &path, None, format!("state dim {d} is listed twice"));
+                    }
+                }
+                DimSpec::Range(Slice { start, end }) => {
+                    if start >= end {
+                        self.err(ErrorKind::StateDim, &path, None, format!("empty range: start {start} must be below end {end} (end is exclusive)"));
+                    } else if end > sd {
+                        self.err(ErrorKind::StateDim, &path, None, format!("range {start}..{end} is out of range: end is exclusive and at most state_dim = {sd}"));
+                    } else {
+                        let dup = (start..end).filter(|d| !seen.insert(*d)).count();
+                        if dup > 0 {
+                            self.err(ErrorKind::StateDim, &path, None, format!("range {start}..{end} repeats {dup} dim(s) listed earlier"));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Checked sender set (in range, unique, non-empty); falls back to the valid part.
+    fn senders(&mut self, f: &Field, fp: &str) -> Vec<usize> {
+        let n = self.env.n_agents;
+        let fname = Some(f.name.as_str());
+        match &f.senders {
+            Senders::All => (0..n).collect(),
+            Senders::List(list) => {
+                if list.is_empty() {
+                    self.err(ErrorKind::Empty, &format!("{fp}.senders"), fname, "the sender list is empty: use \"all\" or list agent indices".into());
+                }
+                let mut out = BTreeSet::new();
+                for (k, &j) in list.iter().enumerate() {
+                    let path = format!("{fp}.senders[{k}]");
+                    if j >= n {
+                        let r = self.agent_range();
+                        self.err(ErrorKind::Agent, &path, fname, format!("sender agent {j} is out of range: {r}"));
+                    } else if !out.insert(j) {
+                        self.err(ErrorKind::Agent, &path, fname, format!("sender agent {j} is listed twice"));
+                    }
+                }
+                out.into_iter().collect()
+            }
+        }
+    }
+
+    /// `sends[j][i]` for this field.
+    fn receivers(&mut self, f: &Field, fp: &str, senders: &[usize]) -> Vec<Vec<bool>> {
+        let n = self.env.n_agents;
+        let fname = Some(f.name.as_str());
+        let mut m = vec![vec![false; n]; n];
+        match &f.receivers {
+            Receivers::Broadcast => {
+                for &j in senders {
+                    for i in (0..n).filter(|&i| i != j) {
+                        m[j][i] = true;
+                    }
+                }
+            }
+            Receivers::Agents(list) => {
+                let path = format!("{fp}.receivers.agents");
+                if list.is_empty() {
+                    self.err(ErrorKind::Empty, &path, fname, "the receiver list is empty: list agent indices or use \"broadcast\"".into());
+                }
+                let mut set = BTreeSet::new();
+                for (k, &i) in list.iter().enumerate() {
+                    if i >= n {
+                        let r = self.agent_range();
+                        self.err(ErrorKind::Agent, &format!("{path}[{k}]"), fname, format!("receiver agent {i} is out of range: {r}"));
+                    } else if !set.insert(i) {
+                        self.err(ErrorKind::Agent, &format!("{path}[{k}]"), fname, format!("receiver agent {i} is listed twice"));
+                    }
+                }
+                if !set.is_empty() {
+                    for &j in senders {
+                        let to: Vec<usize> = set.iter().copied().filter(|&i| i != j).collect();
+                        if to.is_empty() {
+                            self.err(ErrorKind::Agent, &path, fname, format!("sender agent {j} would send only to itself: messages go to other agents; add other receivers or remove agent {j} from the senders"));
+                        }
+                        for i in to {
+                            m[j][i] = true;
+                        }
+                    }
+                }
+            }
+            Receivers::Peer(links) => {
+                let path = format!("{fp}.receivers.peer");
+                if links.is_empty() {
+                    self.err(ErrorKind::Empty, &path, fname, "the peer list is empty: give each sender its receivers, e.g. [{\"from\": 0, \"to\": [1]}]".into());
+                }
+                let mut froms = BTreeSet::new();
+                for (k, l) in links.iter().enumerate() {
+                    let lp = format!("{path}[{k}]");
+                    if l.from >= n {
+                        let r = self.agent_range();
+                        self.err(ErrorKind::Agent, &format!("{lp}.from"), fname, format!("agent {} is out of range: {r}", l.from));
+                        continue;
+                    }
+                    if !froms.insert(l.from) {
+                        self.err(ErrorKind::Agent, &format!("{lp}.from"), fname, format!("agent {} has more than one peer entry: merge them into one", l.from));
+                        continue;
+                    }
+                    if !senders.contains(&l.from) {
+                        self.err(ErrorKind::Agent, &format!("{lp}.from"), fname, format!("agent {} has a peer entry but is not a sender of this field (senders: {:?})", l.from, senders));
+                        continue;
+                    }
+                    if l.to.is_empty() {
+                        self.err(ErrorKind::Empty, &format!("{lp}.to"), fname, format!("agent {} sends to nobody: list at least one other agent", l.from));
+                    }
+                    let mut tos = BTreeSet::new();
+                    for (q, &i) in l.to.iter().enumerate() {
+                        let tp = format!("{lp}.to[{q}]");
+                        if i >= n {
+                            let r = self.agent_range();
+                            self.err(ErrorKind::Agent, &tp, fname, format!("receiver agent {i} is out of range: {r}"));
+                        } else if i == l.from {
+                            self.err(ErrorKind::Agent, &tp, fname, format!("agent {i} cannot send to itself: messages go to other agents"));
+                        } else if !tos.insert(i) {
+                            self.err(ErrorKind::Agent, &tp, fname, format!("receiver agent {i} is listed twice"));
+                        } else {
+                            m[l.from][i] = true;
+                        }
+                    }
+                }
+                for &j in senders {
+                    if !froms.contains(&j) && !links.is_empty() {
+                        self.err(ErrorKind::Agent, &path, fname, format!("agent {j} is a sender of this field but has no peer entry: add {{\"from\": {j}, \"to\": [...]}} or restrict \"senders\""));
+                    }
+                }
+            }
+        }
+        m
+    }
+
+    /// Width of an expression, or None if it (or a part) is invalid (errors recorded).
+    fn expr(&mut self, e: &Expr, path: &str, field: Option<&str>, depth: usize, in_window: bool) -> Option<usize> {
+        if depth > MAX_DEPTH {
+            self.err(ErrorKind::Size, path, field, format!("expression nested deeper than {MAX_DEPTH} levels: simplify it"));
+            return None;
+        }
+        self.nodes += 1;
+        if self.nodes > MAX_NODES {
+            if !self.nodes_reported {
+                self.nodes_reported = true;
+                self.err(ErrorKind::Size, path, field, format!("the protocol has more than {MAX_NODES} expression nodes: simplify it"));
+            }
+            return None;
+        }
+        let env = self.env;
+        let od = env.obs_dim;
+        match e {
+            Expr::Obs(dims) => {
+                if dims.is_empty() {
+                    self.err(ErrorKind::Empty, &format!("{path}.obs"), field, "the dim list is empty: list at least one observation dim".into());
+                    return None;
+                }
+                let mut ok = true;
+                for (k, &d) in dims.iter().enumerate() {
+                    if d >= od {
+                        ok = false;
+                        self.err(ErrorKind::ObsDim, &format!("{path}.obs[{k}]"), field, format!("observation dim {d} is out of range: obs_dim is {od}, valid dims are 0..={}", od.saturating_sub(1)));
+                    }
+                }
+                ok.then_some(dims.len())
+            }
+            Expr::ObsSlice(s) => {
+                let sp = format!("{path}.obs_slice");
+                if s.start >= s.end {
+                    self.err(ErrorKind::ObsDim, &sp, field, format!("empty slice: start {} must be below end {} (end is exclusive)", s.start, s.end));
+                    None
+                } else if s.end > od {
+                    self.err(ErrorKind::ObsDim, &sp, field, format!("slice {}..{} is out of range: end is exclusive and at most obs_dim = {od} (valid dims are 0..={})", s.start, s.end, od.saturating_sub(1)));
+                    None
+                } else {
+                    Some(s.end - s.start)
+                }
+            }
+            Expr::LastAction(enc) => {
+                if env.n_actions == 0 {
+                    self.err(ErrorKind::Env, &format!("{path}.last_action"), field, "the environment has no discrete actions".into());
+                    return None;
+                }
+                Some(match enc {
+                    ActionEncoding::OneHot => env.n_actions,
+                    ActionEncoding::Index => 1,
+                })
+            }
+            Expr::SenderOneHot => Some(env.n_agents),
+            Expr::Const(c) => {
+                if !c.is_finite() || c.abs() > f32::MAX as f64 {
+                    self.err(ErrorKind::Number, &format!("{path}.const"), field, format!("constant {c} is not a finite 32-bit float"));
+                    None
+                } else {
+                    Some(1)
+                }
+            }
+            Expr::Window(w) => {
+                let wp = format!("{path}.window");
+                let mut ok = true;
+                if in_window {
+                    ok = false;
+                    self.err(ErrorKind::Window, &wp, field, "a window cannot contain another window: aggregate a per-step expression".into());
+                }
+                if w.k == 0 || w.k > MAX_WINDOW {
+                    ok = false;
+                    self.err(ErrorKind::Window, &format!("{wp}.k"), field, format!("window length k = {} is out of range: k must be in 1..={MAX_WINDOW}", w.k));
+                }
+                let inner = self.expr(&w.of, &format!("{wp}.of"), field, depth + 1, true);
+                if ok {
+                    inner
+                } else {
+                    None
+                }
+            }
+            Expr::Add(a, b) | Expr::Sub(a, b) | Expr::Mul(a, b) | Expr::Div(a, b) | Expr::Min(a, b) | Expr::Max(a, b) | Expr::Gt(a, b) | Expr::Lt(a, b) | Expr::Eq(a, b) => {
+                let op = binop_name(e);
+                let wa = self.expr(a, &format!("{path}.{op}[0]"), field, depth + 1, in_window);
+                let wb = self.expr(b, &format!("{path}.{op}[1]"), field, depth + 1, in_window);
+                let (wa, wb) = (wa?, wb?);
+                if wa == wb || wa == 1 || wb == 1 {
+                    Some(wa.max(wb))
+                } else {
+                    self.err(ErrorKind::Width, &format!("{path}.{op}"), field, format!("width mismatch: {op}[0] has width {wa} and {op}[1] has width {wb}; elementwise operators need equal widths or one side of width 1"));
+                    None
+                }
+            }
+            Expr::Neg(a) => self.expr(a, &format!("{path}.neg"), field, depth + 1, in_window),
+            Expr::Abs(a) => self.expr(a, &format!("{path}.abs"), field, depth + 1, in_window),
+            Expr::Clip(c) => {
+                let cp = format!("{path}.clip");
+                let mut ok = true;
+                for (name, x) in [("min", c.min), ("max", c.max)] {
+                    if !x.is_finite() || x.abs() > f32::MAX as f64 {
+                        ok = false;
+                        self.err(ErrorKind::Number, &format!("{cp}.{name}"), field, format!("clip {name} {x} is not a finite 32-bit float"));
+                    }
+                }
+                if ok && c.min > c.max {
+                    ok = false;
+                    self.err(ErrorKind::Number, &cp, field, format!("clip range is empty: min {} is above max {}", c.min, c.max));
+                }
+                let w = self.expr(&c.of, &format!("{cp}.of"), field, depth + 1, in_window);
+                if ok {
+                    w
+                } else {
+                    None
+                }
+            }
+            Expr::Reduce(r) => self.expr(&r.of, &format!("{path}.reduce.of"), field, depth + 1, in_window).map(|_| 1),
+            Expr::Concat(parts) => {
+                if parts.is_empty() {
+                    self.err(ErrorKind::Empty, &format!("{path}.concat"), field, "concat of nothing: list at least one expression".into());
+                    return None;
+                }
+                let mut total = Some(0usize);
+                for (k, x) in parts.iter().enumerate() {
+                    let w = self.expr(x, &format!("{path}.concat[{k}]"), field, depth + 1, in_window);
+                    total = match (total, w) {
+                        (Some(t), Some(w)) => Some(t.saturating_add(w)),
+                        _ => None,
+                    };
+                }
+                total
+            }
+        }
+    }
+}
+
+pub(crate) fn binop_name(e: &Expr) -> &'static str {
+    match e {
+        Expr::Add(..) => "add",
+        Expr::Sub(..) => "sub",
+        Expr::Mul(..) => "mul",
+        Expr::Div(..) => "div",
+        Expr::Min(..) => "min",
+        Expr::Max(..) => "max",
+        Expr::Gt(..) => "gt",
+        Expr::Lt(..) => "lt",
+        Expr::Eq(..) => "eq",
+        _ => "?",
+    }
+}
+
+/// Check that validated phases fit together (same environment, total width within the budget).
+pub fn check_phases(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<usize, Vec<ValidationError>> {
+    let mut errors = Vec::new();
+    let mut total = 0usize;
+    for (k, p) in phases.iter().enumerate() {
+        let (a, b) = (&p.env, env);
+        if (a.n_agents, a.obs_dim, a.n_actions, a.state_dim) != (b.n_agents, b.obs_dim, b.n_actions, b.state_dim) {
+            errors.push(ValidationError::new(
+                ErrorKind::Phases,
+                format!("phases[{k}]"),
+                format!(
+                    "phase was validated for n_agents={} obs_dim={} n_actions={} state_dim={}, not for this environment (n_agents={} obs_dim={} n_actions={} state_dim={})",
+                    a.n_agents, a.obs_dim, a.n_actions, a.state_dim, b.n_agents, b.obs_dim, b.n_actions, b.state_dim
+                ),
+            ));
+        }
+        total = total.saturating_add(p.width);
+    }
+    if total > env.message_budget {
+        let parts: Vec<String> = phases.iter().enumerate().map(|(k, p)| format!("phase {}: {}", p.protocol.phase.map_or(k, |x| x as usize), p.width)).collect();
+        errors.push(ValidationError::new(
+            ErrorKind::Budget,
+            "",
+            format!("the phases together need {total} message columns per receiving agent ({}) but the budget is {}", parts.join(", "), env.message_budget),
+        ));
+    }
+    if errors.is_empty() {
+        Ok(total)
+    } else {
+        Err(errors)
+    }
+}
+
+/// One line for `lmac protocol check`: what passed and how much of the budget it uses.
+pub fn check_summary(v: &ValidatedProtocol) -> String {
+    let p = &v.protocol;
+    let widths: Vec<String> = p.fields.iter().zip(&v.field_widths).map(|(f, w)| format!("{}={w}", f.name)).collect();
+    format!(
+        "OK: {} ({} field(s): {}): {} message columns per receiving agent of a budget of {} ({} agents, {} critical state dims)",
+        p.name.as_deref().unwrap_or("protocol"),
+        p.fields.len(),
+        widths.join(", "),
+        v.width,
+        v.env.message_budget,
+        v.env.n_agents,
+        v.critical_dims.len()
+    )
+}
