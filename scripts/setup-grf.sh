@@ -5,7 +5,7 @@
 # 2. Builds the gfootball 2.10.2 wheel (C++ engine; about 8 minutes on 2 cores) into
 #    ${LMAC_CACHE:-$HOME/.cache/lmac}/wheels, but only when no cached wheel for this Python
 #    version exists, so a second set-up on the same machine skips the build.
-# 3. Installs the wheel plus gym==0.25.2 (0.26 changed reset() and breaks gfootball) and psutil
+# 3. Installs the wheel plus gym==0.25.2 (0.26 changed reset() and breaks gfootball), psutil and six
 #    into the project virtual environment (.venv next to this script's parent directory).
 #
 # Called by scripts/setup.sh when LMAC_WITH_GRF=1; can also be run on its own.
@@ -79,7 +79,8 @@ else
 fi
 
 # --- 3. install ----------------------------------------------------------------------------
-"${PIP[@]}" install -q "$WHEEL" "gym==0.25.2" psutil
+# six: imported by gfootball but not among its declared dependencies.
+"${PIP[@]}" install -q "$WHEEL" "gym==0.25.2" psutil six
 "$VPY" -c 'import gfootball.env, gfootball_engine' \
   || { echo "setup-grf: gfootball installed but does not import" >&2; exit 1; }
 log "gfootball $GF_VERSION ready"

@@ -1,6 +1,8 @@
 //! lmac trainer: episode assembly from shared-memory slots, acting, learning, and the CLI.
+pub mod design;
 pub mod episode;
 pub mod learn;
 pub mod pipeline;
 pub mod supervisor;
+pub mod tensorboard;
 pub mod train;

@@ -20,7 +20,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
-    /// Run the pipeline: env servers -> protocol runner -> trainer (random policy until learning lands).
+    /// Run the pipeline with a random policy: env servers -> protocol runner -> trainer (throughput, checks).
     Run(RunArgs),
     /// Train VDN / QMIX / QPLEX and the baselines through the pipeline, over several seeds.
     Train(TrainArgs),
@@ -159,6 +159,26 @@ enum BenchCmd {
         #[arg(long)]
         json: bool,
     },
+    /// The learner's cost (ms per update on this build's burn backend) and env-steps/s of real
+    /// training runs through the pipeline, against the same pipeline acting randomly.
+    Train {
+        #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
+        env: String,
+        /// qmix | vdn | qplex | fullcomm | qmix-state
+        #[arg(long, default_value = "qmix")]
+        algo: String,
+        /// Total environments of each training run (split over 2 env servers), comma separated.
+        #[arg(long, value_delimiter = ',', default_value = "8,32")]
+        envs: Vec<usize>,
+        /// Env steps of each training run.
+        #[arg(long, default_value_t = 20_000, value_parser = parse_steps)]
+        steps: u64,
+        /// Timed learner updates (after 3 warm-up updates).
+        #[arg(long, default_value_t = 20)]
+        updates: usize,
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 #[derive(Args, Clone)]
@@ -220,6 +240,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
         Cmd::Train(a) => train(a),
         Cmd::Protocol(p) => protocol_cmd(p),
         Cmd::Bench(BenchCmd::Pipeline { p, repeat, json }) => bench_pipeline(p, repeat, json),
+        Cmd::Bench(BenchCmd::Train { env, algo, envs, steps, updates, json }) => bench_train(&env, &algo, &envs, steps, updates, json),
         Cmd::Child(c) => child(c),
     }
 }
@@ -403,8 +424,85 @@ fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
     Ok(0)
 }
 
+fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: usize, json: bool) -> Result<i32> {
+    use lmac_trainer::episode::{Episode, EpisodeDims};
+    use lmac_trainer::learn::{Device, LearnRng, Learner};
+    use lmac_trainer::train::TrainConfig;
+    let interrupted = interrupt_flag();
+    let cfg = TrainConfig::resolve(None, &[format!("run.env={env:?}"), format!("run.algo={algo_name:?}")])?;
+    let schema = load_env(env).map_err(anyhow::Error::msg)?;
+    let msg = lmac_protocol_runner::plan_for(&cfg.protocol()?, &schema).map_err(anyhow::Error::msg)?.msg_dim();
+    let dims = EpisodeDims { n_agents: schema.n_agents, obs_width: schema.obs_dim + msg, state_dim: schema.state_dim, n_actions: schema.n_actions };
+    // 1. One update on full-length episodes of this environment's sizes (values do not change
+    //    the cost of dense math).
+    let learn = cfg.effective_learn()?;
+    let mut learner = Learner::new(dims, learn.clone(), Device::default())?;
+    let mut rng = LearnRng::seed_from(0);
+    let len = schema.episode_limit;
+    for _ in 0..2 * learn.batch_size {
+        let mut ep = Episode::with_capacity(&dims, len);
+        ep.len = len;
+        ep.obs = (0..len * dims.n_agents * dims.obs_width).map(|_| rng.uniform()).collect();
+        ep.state = (0..len * dims.state_dim).map(|_| rng.uniform()).collect();
+        ep.avail = vec![1; len * dims.n_agents * dims.n_actions];
+        ep.actions = (0..len * dims.n_agents).map(|_| rng.below(dims.n_actions) as i32).collect();
+        ep.reward = (0..len).map(|_| rng.uniform()).collect();
+        ep.truncated = true;
+        learner.add_episode(ep)?;
+    }
+    for _ in 0..3 {
+        learner.train_step()?;
+    }
+    let t0 = std::time::Instant::now();
+    for _ in 0..updates.max(1) {
+        learner.train_step()?;
+    }
+    let ms_per_update = t0.elapsed().as_secs_f64() * 1e3 / updates.max(1) as f64;
+    let backend = if cfg!(feature = "ndarray") && !cfg!(feature = "flex") { "ndarray" } else { "flex" };
+    eprintln!("lmac: {env} {algo_name}: {ms_per_update:.1} ms per update ({} episodes x {len} steps, {backend} backend)", learn.batch_size);
+    // 2. Training runs through the pipeline, and the same pipeline acting randomly.
+    let base = std::env::temp_dir().join(format!("lmac-bench-train-{}", run_id()));
+    let mut rows = Vec::new();
+    for &n in envs {
+        let servers = if n >= 2 { 2 } else { 1 };
+        let d = base.join(format!("envs{n}"));
+        std::fs::create_dir_all(&d)?;
+        let c = TrainConfig::resolve(None, &[
+            format!("run.env={env:?}"), format!("run.algo={algo_name:?}"), format!("run.steps={steps}"),
+            format!("run.envs={}", n / servers), format!("run.servers={servers}"), "run.test_episodes=0".into(),
+            format!("run.log_interval={}", (steps / 10).max(1)), format!("run.checkpoint_interval={}", steps * 10),
+        ])?;
+        std::fs::write(d.join("config.toml"), toml::to_string_pretty(&c)?)?;
+        train_dirs(std::slice::from_ref(&d), interrupted.clone())?;
+        let csv = std::fs::read_to_string(d.join("metrics.csv"))?;
+        let last = csv.lines().last().context("no metrics written")?;
+        let cols: Vec<&str> = last.split(',').collect();
+        let (t_env, wall): (f64, f64) = (cols[0].parse()?, cols[3].parse()?);
+        let updates_done: f64 = cols[2].parse()?;
+        let train_rate = t_env / wall.max(1e-9);
+        let p = PipelineOpts { env: env.into(), envs: n / servers, servers, slots: 4, protocol: cfg.protocol()?, steps, seed: 0, startup_timeout: 60.0 };
+        let rand_rate = pipeline_report(&p, vec![], interrupted.clone())?["env_steps_per_s"].as_f64().unwrap_or(0.0);
+        eprintln!("lmac: {n} envs: training {train_rate:.0} env-steps/s ({updates_done} updates), random acting {rand_rate:.0} env-steps/s");
+        rows.push(serde_json::json!({"envs": n, "servers": servers, "train_env_steps_per_s": train_rate, "updates": updates_done,
+            "random_env_steps_per_s": rand_rate, "ratio": if rand_rate > 0.0 { train_rate / rand_rate } else { 0.0 }}));
+    }
+    let _ = std::fs::remove_dir_all(&base);
+    let v = serde_json::json!({"env": env, "algo": algo_name, "backend": backend, "ms_per_update": ms_per_update,
+        "batch_episodes": learn.batch_size, "episode_len": len, "updates_per_episode": cfg.run.updates_per_episode, "runs": rows});
+    if json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("{env} {algo_name} ({backend}): {ms_per_update:.1} ms per update");
+        for r in &rows {
+            println!("  {} envs: {:.0} env-steps/s training, {:.0} random, ratio {:.2}", r["envs"], r["train_env_steps_per_s"].as_f64().unwrap_or(0.0),
+                r["random_env_steps_per_s"].as_f64().unwrap_or(0.0), r["ratio"].as_f64().unwrap_or(0.0));
+        }
+    }
+    Ok(0)
+}
+
 fn train(a: TrainArgs) -> Result<i32> {
-    use lmac_trainer::train::{algo, TrainConfig};
+    use lmac_trainer::train::TrainConfig;
     let interrupted = interrupt_flag();
     // The seed directories to run, each with its resolved config.toml.
     let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
@@ -424,7 +522,14 @@ fn train(a: TrainArgs) -> Result<i32> {
         if let Some(e) = &a.env { overrides.push(format!("run.env={e:?}")); }
         if let Some(al) = &a.algo { overrides.push(format!("run.algo={al:?}")); }
         if let Some(st) = a.steps { overrides.push(format!("run.steps={st}")); }
-        let cfg = TrainConfig::resolve(a.config.as_deref(), &overrides)?;
+        let mut cfg = TrainConfig::resolve(a.config.as_deref(), &overrides)?;
+        // Protocol files by absolute path, so a resumed run finds them from anywhere.
+        if !cfg.run.protocol.is_empty() {
+            let files: Result<Vec<String>> = cfg.run.protocol.split('+')
+                .map(|f| Ok(std::fs::canonicalize(f).with_context(|| format!("run.protocol: {f}"))?.display().to_string()))
+                .collect();
+            cfg.run.protocol = files?.join("+");
+        }
         let stamp = chrono_stamp();
         let group = a.out.join(cfg.run.env.replace(':', "_")).join(&cfg.run.algo).join(stamp);
         let mut dirs = Vec::new();
@@ -439,18 +544,25 @@ fn train(a: TrainArgs) -> Result<i32> {
         (group, dirs)
     };
     eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
-    for d in &dirs {
+    train_dirs(&dirs, interrupted)?;
+    plot_runs(&group);
+    Ok(0)
+}
+
+/// Train each run directory (a resolved `config.toml` inside) in turn through the pipeline.
+fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
+    use lmac_trainer::train::TrainConfig;
+    for d in dirs {
         let cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(d.join("config.toml"))?)
             .map_err(|e| anyhow::anyhow!("{}: {}", d.join("config.toml").display(), e.message()))?;
         cfg.check()?;
-        let al = algo(&cfg.run.algo)?;
         eprintln!("lmac: {} {} seed {} -> {}", cfg.run.env, cfg.run.algo, cfg.learn.seed, d.display());
         let p = PipelineOpts {
             env: cfg.run.env.clone(),
             envs: cfg.run.envs,
             servers: cfg.run.servers,
             slots: 4,
-            protocol: al.protocol.into(),
+            protocol: cfg.protocol()?,
             steps: u64::MAX / 4,
             seed: cfg.learn.seed,
             startup_timeout: 60.0,
@@ -458,8 +570,7 @@ fn train(a: TrainArgs) -> Result<i32> {
         let extra = vec!["--train-dir".to_string(), std::fs::canonicalize(d)?.display().to_string(), "--progress".into(), "--warmup".into(), "1".into()];
         pipeline_report(&p, extra, interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
     }
-    plot_runs(&group);
-    Ok(0)
+    Ok(())
 }
 
 /// Plots and the multi-seed summary (matplotlib, in the project's Python).

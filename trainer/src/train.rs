@@ -3,6 +3,7 @@
 //! and learning overlap on our two cores. Greedy test episodes, metrics (CSV + JSON lines),
 //! atomic checkpoints and resume live here; the learning itself is `learn/`.
 
+use crate::design::dataset::{Dataset, DatasetHeader, Trajectory};
 use crate::episode::{Episode, EpisodeDims};
 use crate::learn::{Controller, LearnConfig, LearnRng, Learner, MixerKind};
 use crate::pipeline::Actor;
@@ -43,6 +44,16 @@ pub struct RunSection {
     pub checkpoint_interval: u64,
     /// Also store the replay buffer in checkpoints (exact resumption; large).
     pub save_buffer: bool,
+    /// Message protocol for the runner: empty = the algorithm's own (`none` for qmix, vdn,
+    /// qplex and qmix-state, `fullcomm` for fullcomm); else protocol files joined by '+'
+    /// (`phase0.json+phase1.json`), for the message-less algorithms only.
+    pub protocol: String,
+    /// After `steps`, keep acting epsilon-greedy without learning for this many episodes and
+    /// store them as the trajectory dataset B in `<run dir>/dataset` (protocol design).
+    pub dataset_episodes: usize,
+    /// Epsilon while collecting the dataset; absent = the schedule's value at the end of training.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dataset_epsilon: Option<f32>,
 }
 
 impl Default for RunSection {
@@ -59,6 +70,9 @@ impl Default for RunSection {
             log_interval: 5_000,
             checkpoint_interval: 100_000,
             save_buffer: false,
+            protocol: String::new(),
+            dataset_episodes: 0,
+            dataset_epsilon: None,
         }
     }
 }
@@ -138,8 +152,30 @@ impl TrainConfig {
         if !(r.updates_per_episode.is_finite() && r.updates_per_episode > 0.0) {
             bail!("run.updates_per_episode: must be positive, got {}", r.updates_per_episode);
         }
-        lmac_shm_schema::schema::load_env(&r.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
+        if let Some(e) = r.dataset_epsilon {
+            if !(0.0..=1.0).contains(&e) {
+                bail!("run.dataset_epsilon: must be in [0, 1], got {e}");
+            }
+        }
+        let schema = lmac_shm_schema::schema::load_env(&r.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
+        let protocol = self.protocol()?;
+        let plan = lmac_protocol_runner::plan_for(&protocol, &schema).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))?;
+        if plan.msg_dim() > schema.message_columns {
+            bail!("run.protocol: {protocol} writes {} message columns but {} allows {}", plan.msg_dim(), r.env, schema.message_columns);
+        }
         Ok(())
+    }
+
+    /// The protocol the runner applies: `run.protocol` if set, else the algorithm's.
+    pub fn protocol(&self) -> Result<String> {
+        let a = algo(&self.run.algo)?;
+        if self.run.protocol.is_empty() {
+            return Ok(a.protocol.to_string());
+        }
+        if a.protocol != "none" {
+            bail!("run.protocol: algorithm {} fixes its protocol ({}); use qmix, vdn, qplex or qmix-state with a protocol", self.run.algo, a.protocol);
+        }
+        Ok(self.run.protocol.clone())
     }
 
     /// The learner config with the algorithm's settings applied.
@@ -173,9 +209,11 @@ pub struct MetricsRow {
 
 const CSV_HEADER: &str = "t_env,episodes,updates,wall_s,env_steps_per_s,epsilon,train_return_mean,test_return_mean,test_win_rate,loss,grad_norm,q_taken_mean";
 
+/// The metrics of a run: CSV, JSON lines and TensorBoard scalars, side by side in its directory.
 pub struct Metrics {
     csv: std::fs::File,
     jsonl: std::fs::File,
+    tb: crate::tensorboard::EventWriter,
 }
 
 fn opt<T: std::fmt::Display>(v: &Option<T>) -> String {
@@ -191,7 +229,8 @@ impl Metrics {
             writeln!(csv, "{CSV_HEADER}")?;
         }
         let jsonl = std::fs::OpenOptions::new().create(true).append(true).open(dir.join("metrics.jsonl"))?;
-        Ok(Metrics { csv, jsonl })
+        let tb = crate::tensorboard::EventWriter::create(dir)?;
+        Ok(Metrics { csv, jsonl, tb })
     }
 
     pub fn write(&mut self, r: &MetricsRow) -> Result<()> {
@@ -203,6 +242,17 @@ impl Metrics {
             opt(&r.loss), opt(&r.grad_norm), opt(&r.q_taken_mean)
         )?;
         writeln!(self.jsonl, "{}", serde_json::to_string(r)?)?;
+        let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
+        self.tb.scalars(r.t_env, &[
+            ("env_steps_per_s", r.env_steps_per_s),
+            ("epsilon", r.epsilon as f64),
+            ("train_return_mean", f(r.train_return_mean)),
+            ("test_return_mean", f(r.test_return_mean)),
+            ("test_win_rate", f(r.test_win_rate)),
+            ("loss", f(r.loss.map(f64::from))),
+            ("grad_norm", f(r.grad_norm.map(f64::from))),
+            ("q_taken_mean", f(r.q_taken_mean.map(f64::from))),
+        ])?;
         self.csv.flush()?;
         self.jsonl.flush()?;
         Ok(())
@@ -253,11 +303,23 @@ pub struct TrainActor {
     scratch_first: Vec<bool>,
     bar: Option<indicatif::ProgressBar>,
     last_test_return: Option<f64>,
+    /// The trajectory dataset being collected once training is done (`run.dataset_episodes`).
+    dataset: Vec<Trajectory>,
+    /// Observation columns without messages (what the dataset keeps).
+    obs_dim: usize,
 }
 
 impl TrainActor {
+    /// Training is done and the dataset is being collected (no learning, no test phases).
+    fn collecting(&self) -> bool {
+        self.t_env >= self.cfg.run.steps && self.cfg.run.dataset_episodes > 0
+    }
+
     fn epsilon(&self) -> f32 {
-        self.learn.epsilon_at(self.t_env)
+        match self.cfg.run.dataset_epsilon {
+            Some(e) if self.collecting() => e,
+            _ => self.learn.epsilon_at(self.t_env),
+        }
     }
 
     fn wait_for_learner(&self) {
@@ -368,6 +430,15 @@ impl Actor for TrainActor {
             }
             return;
         }
+        if self.collecting() {
+            if self.dataset.len() < self.cfg.run.dataset_episodes {
+                self.dataset.push(Trajectory::from_episode(&ep, self.dims.n_agents, self.obs_dim));
+                if let Some(b) = &self.bar {
+                    b.set_message(format!("collecting the dataset: {}/{} episodes", self.dataset.len(), self.cfg.run.dataset_episodes));
+                }
+            }
+            return;
+        }
         self.t_env += ep.len as u64;
         self.episodes += 1;
         self.train_returns.push(ep.team_return());
@@ -399,8 +470,34 @@ impl Actor for TrainActor {
     }
 
     fn finished(&self) -> bool {
-        self.t_env >= self.cfg.run.steps || self.shared.lock().error.is_some()
+        (self.t_env >= self.cfg.run.steps && self.dataset.len() >= self.cfg.run.dataset_episodes) || self.shared.lock().error.is_some()
     }
+}
+
+/// Where a run stores its trajectory dataset (`run.dataset_episodes`).
+pub fn dataset_dir(run_dir: &Path) -> PathBuf {
+    run_dir.join("dataset")
+}
+
+fn save_dataset(run_dir: &Path, actor: &TrainActor, args: &crate::pipeline::TrainerArgs) -> Result<()> {
+    let s = &args.schema;
+    let eps = actor.epsilon();
+    let header = DatasetHeader {
+        env: actor.cfg.run.env.clone(),
+        n_agents: s.n_agents,
+        obs_dim: s.obs_dim,
+        state_dim: s.state_dim,
+        n_actions: s.n_actions,
+        episode_limit: s.episode_limit,
+        protocol: args.protocol.clone(),
+        policy: format!("{} ({} mixer) after {} env steps, epsilon-greedy with epsilon {eps:.3}", actor.cfg.run.algo, format!("{:?}", actor.learn.mixer).to_lowercase(), actor.t_env),
+        seed: actor.learn.seed,
+    };
+    let ds = Dataset { header, episodes: actor.dataset.clone() };
+    let dir = dataset_dir(run_dir);
+    ds.save(&dir).with_context(|| format!("saving the dataset to {}", dir.display()))?;
+    eprintln!("lmac: trainer: dataset of {} episodes saved in {}", ds.episodes.len(), dir.display());
+    Ok(())
 }
 
 /// Where the learner keeps its latest checkpoint inside a run directory.
@@ -473,6 +570,8 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         scratch_first: Vec::new(),
         bar,
         last_test_return: None,
+        dataset: Vec::new(),
+        obs_dim: schema.obs_dim,
         rng: LearnRng::seed_from(learn.seed ^ 0xAC70_0000 ^ counters.t_env),
         controllers,
         dims,
@@ -482,6 +581,9 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     let result = crate::pipeline::run(args, &mut actor);
     if let Some(b) = &actor.bar {
         b.finish_and_clear();
+    }
+    if actor.cfg.run.dataset_episodes > 0 && actor.dataset.len() >= actor.cfg.run.dataset_episodes {
+        save_dataset(run_dir, &actor, args)?;
     }
     // Final checkpoint, whatever happened to the pipeline: the learner thread saves on exit.
     let TrainActor { tx, shared: sh, .. } = actor;

@@ -4,7 +4,7 @@
 use burn::tensor::{Device, Distribution, Tensor};
 use lmac_trainer::learn::agent::RnnAgent;
 use lmac_trainer::learn::mixer::{Mixer, QplexInputs};
-use lmac_trainer::learn::{LearnConfig, MixerKind};
+use lmac_trainer::learn::{LearnConfig, LearnRng, MixerKind};
 
 const N: usize = 64;
 const AGENTS: usize = 5;
@@ -22,7 +22,7 @@ fn qmix_shapes_and_monotonicity() {
     let device = dev();
     let ad = device.clone().autodiff();
     let cfg = LearnConfig::default();
-    let mixer = Mixer::new(MixerKind::Qmix, AGENTS, STATE, ACTIONS, &cfg, &ad);
+    let mixer = Mixer::new(&mut LearnRng::seed_from(1), MixerKind::Qmix, AGENTS, STATE, ACTIONS, &cfg, &ad);
     assert_eq!(mixer.kind(), MixerKind::Qmix);
     for trial in 0..3 {
         let qs: Tensor<2> =
@@ -38,7 +38,7 @@ fn qmix_shapes_and_monotonicity() {
         assert!(g.iter().any(|&x| x > 0.0));
     }
     // Finite differences on the plain device too: raising any Q_i never lowers Q_tot.
-    let mixer = Mixer::new(MixerKind::Qmix, AGENTS, STATE, ACTIONS, &cfg, &device);
+    let mixer = Mixer::new(&mut LearnRng::seed_from(1), MixerKind::Qmix, AGENTS, STATE, ACTIONS, &cfg, &device);
     let qs: Tensor<2> = Tensor::random([N, AGENTS], Distribution::Uniform(-5.0, 5.0), &device);
     let states: Tensor<2> = Tensor::random([N, STATE], Distribution::Normal(0.0, 1.0), &device);
     let base: Vec<f32> = mixer.forward(qs.clone(), states.clone(), None).into_data().try_into_vec().unwrap();
@@ -58,7 +58,7 @@ fn qmix_shapes_and_monotonicity() {
 #[test]
 fn vdn_is_the_sum() {
     let device = dev();
-    let mixer = Mixer::new(MixerKind::Vdn, AGENTS, STATE, ACTIONS, &LearnConfig::default(), &device);
+    let mixer = Mixer::new(&mut LearnRng::seed_from(1), MixerKind::Vdn, AGENTS, STATE, ACTIONS, &LearnConfig::default(), &device);
     let qs: Tensor<2> = Tensor::random([N, AGENTS], Distribution::Uniform(-1.0, 1.0), &device);
     let states: Tensor<2> = Tensor::zeros([N, STATE], &device);
     let got: Vec<f32> = mixer.forward(qs.clone(), states, None).into_data().try_into_vec().unwrap();
@@ -75,7 +75,7 @@ fn qplex_shapes_and_gradients() {
     let ad = device.clone().autodiff();
     for layers in 1..=3 {
         let cfg = LearnConfig { qplex_adv_hypernet_layers: layers, qplex_num_kernel: 4, ..LearnConfig::default() };
-        let mixer = Mixer::new(MixerKind::Qplex, AGENTS, STATE, ACTIONS, &cfg, &ad);
+        let mixer = Mixer::new(&mut LearnRng::seed_from(1), MixerKind::Qplex, AGENTS, STATE, ACTIONS, &cfg, &ad);
         assert_eq!(mixer.kind(), MixerKind::Qplex);
         let qs: Tensor<2> = Tensor::random([N, AGENTS], Distribution::Uniform(-1.0, 1.0), &ad).require_grad();
         let max_q = qs.clone().detach() + 0.5;
@@ -93,7 +93,7 @@ fn qplex_shapes_and_gradients() {
 #[test]
 fn agent_unroll_and_step_agree() {
     let device = dev();
-    let agent = RnnAgent::new(10, 16, ACTIONS, &device);
+    let agent = RnnAgent::new(&mut LearnRng::seed_from(2), 10, 16, ACTIONS, &device);
     let xs: Vec<Tensor<2>> =
         (0..4).map(|_| Tensor::random([6, 10], Distribution::Normal(0.0, 1.0), &device)).collect();
     let q_seq = agent.unroll(xs.clone());

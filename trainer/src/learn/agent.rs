@@ -3,9 +3,12 @@
 //! with fused gates: one input and one hidden matmul of width 3H per step.
 
 use burn::module::Module;
-use burn::nn::{Linear, LinearConfig};
+use burn::nn::Linear;
 use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::{Device, Tensor};
+
+use super::init::linear;
+use super::LearnRng;
 
 /// GRU cell, torch conventions (gate order r, z, n; `n = tanh(W_in x + b_in + r * (W_hn h + b_hn))`,
 /// `h' = (1 - z) * n + z * h`).
@@ -17,13 +20,12 @@ pub struct FusedGru {
 }
 
 impl FusedGru {
-    pub fn new(input_dim: usize, hidden_dim: usize, device: &Device) -> Self {
-        // burn's Linear default is torch's U(-1/sqrt(fan_in), 1/sqrt(fan_in)); torch's GRUCell
-        // uses U(-1/sqrt(H), 1/sqrt(H)) for both, identical here since the GRU reads fc1's
-        // H-wide output.
+    pub fn new(rng: &mut LearnRng, input_dim: usize, hidden_dim: usize, device: &Device) -> Self {
+        // Linear init is torch's U(-1/sqrt(fan_in), 1/sqrt(fan_in)); torch's GRUCell uses
+        // U(-1/sqrt(H), 1/sqrt(H)) for both, identical here since the GRU reads fc1's H-wide output.
         FusedGru {
-            input: LinearConfig::new(input_dim, 3 * hidden_dim).init(device),
-            hidden: LinearConfig::new(hidden_dim, 3 * hidden_dim).init(device),
+            input: linear(rng, input_dim, 3 * hidden_dim, device),
+            hidden: linear(rng, hidden_dim, 3 * hidden_dim, device),
             hidden_dim,
         }
     }
@@ -54,11 +56,11 @@ pub struct RnnAgent {
 }
 
 impl RnnAgent {
-    pub fn new(input_dim: usize, hidden_dim: usize, n_actions: usize, device: &Device) -> Self {
+    pub fn new(rng: &mut LearnRng, input_dim: usize, hidden_dim: usize, n_actions: usize, device: &Device) -> Self {
         RnnAgent {
-            fc1: LinearConfig::new(input_dim, hidden_dim).init(device),
-            gru: FusedGru::new(hidden_dim, hidden_dim, device),
-            fc2: LinearConfig::new(hidden_dim, n_actions).init(device),
+            fc1: linear(rng, input_dim, hidden_dim, device),
+            gru: FusedGru::new(rng, hidden_dim, hidden_dim, device),
+            fc2: linear(rng, hidden_dim, n_actions, device),
             input_dim,
             hidden_dim,
             n_actions,

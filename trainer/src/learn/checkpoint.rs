@@ -133,10 +133,11 @@ impl Learner {
         };
         let mut l = Learner::new(dims, st.config, device)?;
         let ad = l.device.clone().autodiff();
+        let mut scratch = LearnRng::seed_from(0); // initial values are overwritten by the load
         let p = dir.join("net.bpk");
-        l.net = QNet::new(&l.dims, &l.cfg, &ad).try_load_file(&p).map_err(|e| ck(e, "load", &p))?;
+        l.net = QNet::new(&mut scratch, &l.dims, &l.cfg, &ad).try_load_file(&p).map_err(|e| ck(e, "load", &p))?;
         let p = dir.join("target.bpk");
-        l.target = QNet::new(&l.dims, &l.cfg, &l.device).try_load_file(&p).map_err(|e| ck(e, "load", &p))?.valid();
+        l.target = QNet::new(&mut scratch, &l.dims, &l.cfg, &l.device).try_load_file(&p).map_err(|e| ck(e, "load", &p))?.valid();
         let p = dir.join("optim.bpk");
         l.optim = make_optimizer(&l.cfg).load(&p).map_err(|e| ck(e, "load", &p))?;
         l.counters = st.counters;

@@ -22,11 +22,12 @@ pub struct QNet {
 }
 
 impl QNet {
-    pub fn new(dims: &EpisodeDims, cfg: &LearnConfig, device: &Device) -> Self {
+    /// Build with weights drawn from `rng` (deterministic for a given RNG state).
+    pub fn new(rng: &mut LearnRng, dims: &EpisodeDims, cfg: &LearnConfig, device: &Device) -> Self {
         let layout = InputLayout::new(*dims, cfg);
         QNet {
-            agent: RnnAgent::new(layout.width(), cfg.rnn_hidden_dim, dims.n_actions, device),
-            mixer: Mixer::new(cfg.mixer, dims.n_agents, dims.state_dim, dims.n_actions, cfg, device),
+            agent: RnnAgent::new(rng, layout.width(), cfg.rnn_hidden_dim, dims.n_actions, device),
+            mixer: Mixer::new(rng, cfg.mixer, dims.n_agents, dims.state_dim, dims.n_actions, cfg, device),
         }
     }
 }
@@ -93,15 +94,15 @@ pub(crate) fn make_optimizer(cfg: &LearnConfig) -> ModuleOptimizer {
 }
 
 impl Learner {
-    /// Validate `cfg`, seed the device and build online + target networks.
+    /// Validate `cfg` and build online + target networks, initialized from `cfg.seed`.
     pub fn new(dims: EpisodeDims, cfg: LearnConfig, device: Device) -> Result<Self, LearnError> {
         cfg.validate()?;
         if dims.n_agents == 0 || dims.n_actions == 0 || dims.obs_width == 0 {
             return Err(LearnError::BadEpisode(format!("dims must be non-zero: {dims:?}")));
         }
         let device = device.inner();
-        device.seed(cfg.seed);
-        let net = QNet::new(&dims, &cfg, &device.clone().autodiff());
+        let mut init_rng = LearnRng::seed_from(cfg.seed ^ 0x1417_0000_0000_0001);
+        let net = QNet::new(&mut init_rng, &dims, &cfg, &device.clone().autodiff());
         let target = net.valid();
         Ok(Learner {
             layout: InputLayout::new(dims, &cfg),

@@ -2,11 +2,13 @@
 //! multi-head attention weights), following pymarl / the QPLEX reference code.
 
 use burn::module::{Module, Param};
-use burn::nn::{Initializer, Linear, LinearConfig};
+use burn::nn::Linear;
 use burn::tensor::activation::{elu, relu, sigmoid};
 use burn::tensor::{Device, Tensor};
 
 use super::config::{LearnConfig, MixerKind};
+use super::init::{linear, uniform};
+use super::LearnRng;
 
 /// A hypernetwork of 1 or 2 layers (pymarl `hypernet_layers`), ReLU between.
 #[derive(Module, Debug)]
@@ -16,14 +18,14 @@ pub struct HyperNet {
 }
 
 impl HyperNet {
-    pub fn new(input: usize, output: usize, layers: usize, embed: usize, device: &Device) -> Self {
+    pub fn new(rng: &mut LearnRng, input: usize, output: usize, layers: usize, embed: usize, device: &Device) -> Self {
         if layers >= 2 {
             HyperNet {
-                l1: LinearConfig::new(input, embed).init(device),
-                l2: Some(LinearConfig::new(embed, output).init(device)),
+                l1: linear(rng, input, embed, device),
+                l2: Some(linear(rng, embed, output, device)),
             }
         } else {
-            HyperNet { l1: LinearConfig::new(input, output).init(device), l2: None }
+            HyperNet { l1: linear(rng, input, output, device), l2: None }
         }
     }
 
@@ -49,14 +51,14 @@ pub struct QmixMixer {
 }
 
 impl QmixMixer {
-    pub fn new(n_agents: usize, state_dim: usize, cfg: &LearnConfig, device: &Device) -> Self {
+    pub fn new(rng: &mut LearnRng, n_agents: usize, state_dim: usize, cfg: &LearnConfig, device: &Device) -> Self {
         let e = cfg.mixing_embed_dim;
         QmixMixer {
-            hyper_w1: HyperNet::new(state_dim, e * n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
-            hyper_w_final: HyperNet::new(state_dim, e, cfg.hypernet_layers, cfg.hypernet_embed, device),
-            hyper_b1: LinearConfig::new(state_dim, e).init(device),
-            v1: LinearConfig::new(state_dim, e).init(device),
-            v2: LinearConfig::new(e, 1).init(device),
+            hyper_w1: HyperNet::new(rng, state_dim, e * n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
+            hyper_w_final: HyperNet::new(rng, state_dim, e, cfg.hypernet_layers, cfg.hypernet_embed, device),
+            hyper_b1: linear(rng, state_dim, e, device),
+            v1: linear(rng, state_dim, e, device),
+            v2: linear(rng, e, 1, device),
             n_agents,
             embed: e,
         }
@@ -85,10 +87,12 @@ pub struct StackedLinear {
 }
 
 impl StackedLinear {
-    pub fn new(k: usize, input: usize, output: usize, device: &Device) -> Self {
-        let bound = 1.0 / (input as f64).sqrt();
-        let init = Initializer::Uniform { min: -bound, max: bound };
-        StackedLinear { weight: init.init([k, input, output], device), bias: init.init([k, 1, output], device) }
+    pub fn new(rng: &mut LearnRng, k: usize, input: usize, output: usize, device: &Device) -> Self {
+        let bound = 1.0 / (input as f32).sqrt();
+        StackedLinear {
+            weight: uniform(rng, [k, input, output], bound, device),
+            bias: uniform(rng, [k, 1, output], bound, device),
+        }
     }
 
     pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
@@ -108,12 +112,12 @@ pub struct KernelMlp {
 }
 
 impl KernelMlp {
-    pub fn new(k: usize, input: usize, output: usize, layers: usize, embed: usize, device: &Device) -> Self {
+    pub fn new(rng: &mut LearnRng, k: usize, input: usize, output: usize, layers: usize, embed: usize, device: &Device) -> Self {
         let first_out = if layers >= 2 { embed } else { output };
         KernelMlp {
-            first: LinearConfig::new(input, k * first_out).init(device),
-            mid: (layers >= 3).then(|| StackedLinear::new(k, embed, embed, device)),
-            last: (layers >= 2).then(|| StackedLinear::new(k, embed, output, device)),
+            first: linear(rng, input, k * first_out, device),
+            mid: (layers >= 3).then(|| StackedLinear::new(rng, k, embed, embed, device)),
+            last: (layers >= 2).then(|| StackedLinear::new(rng, k, embed, output, device)),
             k,
             first_out,
         }
@@ -147,15 +151,15 @@ pub struct QplexMixer {
 }
 
 impl QplexMixer {
-    pub fn new(n_agents: usize, state_dim: usize, n_actions: usize, cfg: &LearnConfig, device: &Device) -> Self {
+    pub fn new(rng: &mut LearnRng, n_agents: usize, state_dim: usize, n_actions: usize, cfg: &LearnConfig, device: &Device) -> Self {
         let k = cfg.qplex_num_kernel;
         let (l, e) = (cfg.qplex_adv_hypernet_layers, cfg.qplex_adv_hypernet_embed);
         QplexMixer {
-            hyper_w_final: HyperNet::new(state_dim, n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
-            v: HyperNet::new(state_dim, n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
-            key: KernelMlp::new(k, state_dim, 1, l, e, device),
-            agents: KernelMlp::new(k, state_dim, n_agents, l, e, device),
-            action: KernelMlp::new(k, state_dim + n_agents * n_actions, n_agents, l, e, device),
+            hyper_w_final: HyperNet::new(rng, state_dim, n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
+            v: HyperNet::new(rng, state_dim, n_agents, cfg.hypernet_layers, cfg.hypernet_embed, device),
+            key: KernelMlp::new(rng, k, state_dim, 1, l, e, device),
+            agents: KernelMlp::new(rng, k, state_dim, n_agents, l, e, device),
+            action: KernelMlp::new(rng, k, state_dim + n_agents * n_actions, n_agents, l, e, device),
             n_agents,
         }
     }
@@ -196,12 +200,12 @@ pub struct QplexInputs {
 }
 
 impl Mixer {
-    pub fn new(kind: MixerKind, n_agents: usize, state_dim: usize, n_actions: usize, cfg: &LearnConfig, device: &Device) -> Self {
+    pub fn new(rng: &mut LearnRng, kind: MixerKind, n_agents: usize, state_dim: usize, n_actions: usize, cfg: &LearnConfig, device: &Device) -> Self {
         match kind {
             MixerKind::Vdn => Mixer { qmix: None, qplex: None },
-            MixerKind::Qmix => Mixer { qmix: Some(QmixMixer::new(n_agents, state_dim, cfg, device)), qplex: None },
+            MixerKind::Qmix => Mixer { qmix: Some(QmixMixer::new(rng, n_agents, state_dim, cfg, device)), qplex: None },
             MixerKind::Qplex => {
-                Mixer { qmix: None, qplex: Some(QplexMixer::new(n_agents, state_dim, n_actions, cfg, device)) }
+                Mixer { qmix: None, qplex: Some(QplexMixer::new(rng, n_agents, state_dim, n_actions, cfg, device)) }
             }
         }
     }

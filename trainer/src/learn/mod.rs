@@ -94,6 +94,29 @@ impl rand::RngCore for LearnRng {
     }
 }
 
+/// Parameter initialization from a [`LearnRng`] on the host, so a seed fixes the initial
+/// weights exactly (burn's device RNG is process-global and initializes lazily, so it depends on
+/// whatever else drew from it). Bounds follow torch's `nn.Linear`: U(-1/sqrt(fan_in), +).
+pub mod init {
+    use burn::module::Param;
+    use burn::nn::Linear;
+    use burn::tensor::{Device, Tensor, TensorData};
+
+    use super::LearnRng;
+
+    pub fn uniform<const D: usize>(rng: &mut LearnRng, shape: [usize; D], bound: f32, device: &Device) -> Param<Tensor<D>> {
+        let n: usize = shape.iter().product();
+        let v: Vec<f32> = (0..n).map(|_| (rng.uniform() * 2.0 - 1.0) * bound).collect();
+        Param::from_tensor(Tensor::from_data(TensorData::new(v, shape), device))
+    }
+
+    /// A `Linear` (row layout, weight [d_in, d_out]) with bias, torch's default init.
+    pub fn linear(rng: &mut LearnRng, d_in: usize, d_out: usize, device: &Device) -> Linear {
+        let bound = 1.0 / (d_in as f32).sqrt();
+        Linear { weight: uniform(rng, [d_in, d_out], bound, device), bias: Some(uniform(rng, [d_out], bound, device)) }
+    }
+}
+
 /// Layout of one agent's network input: obs (+ message columns) | state (qmix-state only) |
 /// last action one-hot | agent id one-hot (pymarl order, with the state after the observation).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

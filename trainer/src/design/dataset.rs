@@ -1,0 +1,232 @@
+//! The trajectory dataset B of protocol design: episodes collected through the real pipeline
+//! (a short QMIX run's epsilon-greedy policy with phase 0's protocol fixed), holding per step
+//! every agent's raw observation, its action, the global state and the team reward.
+//!
+//! Messages are not stored: a protocol's messages are a pure function of the observation
+//! history, the last actions and the episode starts, so [`Dataset::messages`] recomputes them
+//! for any phase with the runner's own compiled plan, exactly as the runner would have written
+//! them. One dataset therefore serves every phase.
+//!
+//! # On-disk format (a directory)
+//! - `header.json`: `{"format": "lmac-trajectories", "version": 1, "env", "n_agents",
+//!   "obs_dim", "state_dim", "n_actions", "episode_limit", "protocol", "policy", "seed",
+//!   "episodes", "steps"}`.
+//! - `episodes.bin`: the 8 bytes `LMACTRJ1`, then per episode a record, all little-endian:
+//!   `u32 len`, `u8 terminated`, `u8 truncated`, `u16 0`, then `len*n_agents*obs_dim` f32
+//!   observations (step, agent, dim), `len*state_dim` f32 states, `len*n_agents` i32 actions,
+//!   `len` f32 rewards.
+//!
+//! Saving writes a sibling `<dir>.partial-<pid>` and renames it into place, so a crash never
+//! leaves a half-written dataset under the final name.
+
+use crate::episode::Episode;
+use anyhow::{bail, Context, Result};
+use lmac_protocol_runner::plan::{MessagePlan, StepView};
+use serde::{Deserialize, Serialize};
+use std::io::{BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+
+const MAGIC: &[u8; 8] = b"LMACTRJ1";
+const FORMAT: &str = "lmac-trajectories";
+const VERSION: u32 = 1;
+
+/// What the dataset holds and how it was collected.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DatasetHeader {
+    pub env: String,
+    pub n_agents: usize,
+    pub obs_dim: usize,
+    pub state_dim: usize,
+    pub n_actions: usize,
+    pub episode_limit: usize,
+    /// The protocol the runner applied while collecting (its messages shaped the policy).
+    pub protocol: String,
+    /// The policy that acted (algorithm, training steps, epsilon).
+    pub policy: String,
+    pub seed: u64,
+}
+
+/// One episode: `len` steps of raw observations (no message columns), states, actions, rewards.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Trajectory {
+    pub len: usize,
+    /// len * n_agents * obs_dim
+    pub obs: Vec<f32>,
+    /// len * state_dim
+    pub state: Vec<f32>,
+    /// len * n_agents
+    pub actions: Vec<i32>,
+    /// len
+    pub reward: Vec<f32>,
+    pub terminated: bool,
+    pub truncated: bool,
+}
+
+impl Trajectory {
+    /// Copy an assembled episode, dropping its message columns (its rows are
+    /// `ep.obs.len() / (len * n_agents)` wide, the observation first).
+    pub fn from_episode(ep: &Episode, n_agents: usize, obs_dim: usize) -> Self {
+        let rows = ep.len * n_agents;
+        let width = if rows == 0 { obs_dim } else { ep.obs.len() / rows };
+        let mut obs = Vec::with_capacity(rows * obs_dim);
+        for r in 0..rows {
+            obs.extend_from_slice(&ep.obs[r * width..r * width + obs_dim]);
+        }
+        Trajectory {
+            len: ep.len,
+            obs,
+            state: ep.state.clone(),
+            actions: ep.actions.clone(),
+            reward: ep.reward.clone(),
+            terminated: ep.terminated,
+            truncated: ep.truncated,
+        }
+    }
+}
+
+/// The dataset B.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Dataset {
+    pub header: DatasetHeader,
+    pub episodes: Vec<Trajectory>,
+}
+
+fn put_f32(w: &mut impl Write, v: &[f32]) -> std::io::Result<()> {
+    let mut b = Vec::with_capacity(v.len() * 4);
+    v.iter().for_each(|x| b.extend_from_slice(&x.to_le_bytes()));
+    w.write_all(&b)
+}
+
+impl Dataset {
+    /// Total steps over all episodes.
+    pub fn steps(&self) -> usize {
+        self.episodes.iter().map(|e| e.len).sum()
+    }
+
+    fn check_shapes(&self) -> Result<()> {
+        let h = &self.header;
+        for (k, e) in self.episodes.iter().enumerate() {
+            let want = [(e.obs.len(), e.len * h.n_agents * h.obs_dim, "obs"), (e.state.len(), e.len * h.state_dim, "state"),
+                (e.actions.len(), e.len * h.n_agents, "actions"), (e.reward.len(), e.len, "reward")];
+            for (got, exp, what) in want {
+                if got != exp {
+                    bail!("episode {k}: {what} has {got} values, expected {exp} for {} steps", e.len);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Write the dataset to `dir` atomically (replacing an existing one).
+    pub fn save(&self, dir: &Path) -> Result<()> {
+        self.check_shapes()?;
+        let name = dir.file_name().context("dataset directory needs a name")?.to_string_lossy().to_string();
+        let tmp: PathBuf = dir.with_file_name(format!("{name}.partial-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&tmp);
+        std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+        let mut header = serde_json::to_value(&self.header)?;
+        header["format"] = FORMAT.into();
+        header["version"] = VERSION.into();
+        header["episodes"] = self.episodes.len().into();
+        header["steps"] = self.steps().into();
+        std::fs::write(tmp.join("header.json"), serde_json::to_string_pretty(&header)?)?;
+        let f = std::fs::File::create(tmp.join("episodes.bin"))?;
+        let mut w = BufWriter::new(f);
+        w.write_all(MAGIC)?;
+        for e in &self.episodes {
+            w.write_all(&(e.len as u32).to_le_bytes())?;
+            w.write_all(&[e.terminated as u8, e.truncated as u8, 0, 0])?;
+            put_f32(&mut w, &e.obs)?;
+            put_f32(&mut w, &e.state)?;
+            let mut b = Vec::with_capacity(e.actions.len() * 4);
+            e.actions.iter().for_each(|x| b.extend_from_slice(&x.to_le_bytes()));
+            w.write_all(&b)?;
+            put_f32(&mut w, &e.reward)?;
+        }
+        w.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        if dir.exists() {
+            std::fs::remove_dir_all(dir).with_context(|| format!("replacing {}", dir.display()))?;
+        }
+        std::fs::rename(&tmp, dir).with_context(|| format!("moving {} to {}", tmp.display(), dir.display()))?;
+        Ok(())
+    }
+
+    /// Read a dataset written by [`Dataset::save`]; errors name the file and the problem.
+    pub fn load(dir: &Path) -> Result<Self> {
+        let hp = dir.join("header.json");
+        let text = std::fs::read_to_string(&hp).with_context(|| format!("{}: cannot read", hp.display()))?;
+        let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", hp.display()))?;
+        if v["format"] != FORMAT {
+            bail!("{}: not an lmac trajectory dataset (format {:?})", hp.display(), v["format"]);
+        }
+        if v["version"] != VERSION {
+            bail!("{}: dataset format version {} (this lmac reads {VERSION})", hp.display(), v["version"]);
+        }
+        let header: DatasetHeader = serde_json::from_value(v.clone()).with_context(|| format!("{}: bad header", hp.display()))?;
+        let n_eps = v["episodes"].as_u64().with_context(|| format!("{}: no episode count", hp.display()))? as usize;
+        let bp = dir.join("episodes.bin");
+        let mut data = Vec::new();
+        std::fs::File::open(&bp).and_then(|mut f| f.read_to_end(&mut data)).with_context(|| format!("{}: cannot read", bp.display()))?;
+        if data.len() < 8 || &data[..8] != MAGIC {
+            bail!("{}: does not start with the dataset magic {:?}", bp.display(), std::str::from_utf8(MAGIC).unwrap_or_default());
+        }
+        let mut at = 8usize;
+        let mut take = |n: usize, k: usize| -> Result<&[u8]> {
+            if at + n > data.len() {
+                bail!("{}: truncated in episode {k} (needs {} bytes at offset {at}, file has {})", bp.display(), n, data.len());
+            }
+            at += n;
+            Ok(&data[at - n..at])
+        };
+        let f32s = |b: &[u8]| b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>();
+        let h = &header;
+        let mut episodes = Vec::with_capacity(n_eps);
+        for k in 0..n_eps {
+            let rec = take(8, k)?;
+            let len = u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]]) as usize;
+            let (terminated, truncated) = (rec[4] != 0, rec[5] != 0);
+            if len == 0 || len > h.episode_limit {
+                bail!("{}: episode {k} has {len} steps (limit {})", bp.display(), h.episode_limit);
+            }
+            let obs = f32s(take(4 * len * h.n_agents * h.obs_dim, k)?);
+            let state = f32s(take(4 * len * h.state_dim, k)?);
+            let actions = take(4 * len * h.n_agents, k)?.chunks_exact(4).map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+            let reward = f32s(take(4 * len, k)?);
+            episodes.push(Trajectory { len, obs, state, actions, reward, terminated, truncated });
+        }
+        if at != data.len() {
+            bail!("{}: {} bytes after the {n_eps} episodes the header announces", bp.display(), data.len() - at);
+        }
+        Ok(Dataset { header, episodes })
+    }
+
+    /// Each episode's received messages (`len * n_agents * plan.msg_dim()`, by step then agent)
+    /// as the runner would have written them: the plan runs over the stored observations step by
+    /// step with the episode-start flag and the previous step's actions (-1 on the first step).
+    pub fn messages(&self, plan: &mut dyn MessagePlan) -> Vec<Vec<f32>> {
+        let (n, od, md) = (self.header.n_agents, self.header.obs_dim, plan.msg_dim());
+        let row = od + md;
+        let mut rows = vec![0f32; n * row];
+        let mut last = vec![-1i32; n];
+        self.episodes
+            .iter()
+            .map(|e| {
+                let mut out = Vec::with_capacity(e.len * n * md);
+                for t in 0..e.len {
+                    for a in 0..n {
+                        rows[a * row..a * row + od].copy_from_slice(&e.obs[(t * n + a) * od..(t * n + a + 1) * od]);
+                        rows[a * row + od..(a + 1) * row].fill(0.0);
+                        last[a] = if t == 0 { -1 } else { e.actions[(t - 1) * n + a] };
+                    }
+                    let first = [t == 0];
+                    let mut view = StepView { num_envs: 1, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut rows, first: &first, last_actions: &last };
+                    plan.apply(&mut view);
+                    for a in 0..n {
+                        out.extend_from_slice(&rows[a * row + od..(a + 1) * row]);
+                    }
+                }
+                out
+            })
+            .collect()
+    }
+}

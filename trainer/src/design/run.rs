@@ -1,0 +1,215 @@
+//! `lmac design`: runs the three phases end to end and writes the design directory.
+//!
+//! ```text
+//! <out>/<env>/<time>-<designer>/
+//!   options.json            what was asked (env, designer, seeds, budgets)
+//!   collect/                the short QMIX run that collects the dataset B (config, metrics,
+//!                           checkpoint) and collect/dataset/ (see `dataset`)
+//!   phase<k>/protocol.json  the phase's protocol (validated), protocol.txt its explanation,
+//!                           reasoning.md the designer's reasoning, feedback.json (k >= 1) the
+//!                           feedback that led to it, meta.json the meta-information of
+//!                           phases 0..=k on B
+//!   final.txt               the final protocol (all phases) explained; final_protocol.txt the
+//!                           `--protocol` / `run.protocol` value that trains with it
+//!   transcript.json         every prompt and reply (or the offline designer's account)
+//!   summary.json            per phase: mean recovery and variance across agents, with and
+//!                           without messages; recovery.png plots it (the paper's Figure 3)
+//! ```
+
+use super::dataset::Dataset;
+use super::{DesignContext, Designer, PhaseProtocol};
+use anyhow::{bail, Context, Result};
+use lmac_protocol_runner::protocol::{self, ValidatedProtocol};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// What to design and with how much data.
+#[derive(Clone, Debug, Serialize)]
+pub struct DesignOptions {
+    pub env: String,
+    /// Parent of the design directory.
+    pub out: PathBuf,
+    pub seed: u64,
+    /// Env steps of the QMIX run whose epsilon-greedy policy collects B (the paper: 200k).
+    pub pretrain_steps: u64,
+    /// Episodes in B (the paper: 5000).
+    pub dataset_episodes: usize,
+    /// Epsilon while collecting (None: the schedule's value at the end of the QMIX run).
+    pub dataset_epsilon: Option<f32>,
+    /// Environments per env server and env servers of the collection run.
+    pub envs: usize,
+    pub servers: usize,
+    /// Use this dataset directory instead of collecting one.
+    pub dataset: Option<PathBuf>,
+    /// Number of phases: 3 in the paper (initialization, recognition, sharing).
+    pub phases: usize,
+}
+
+/// How the design runs the pipeline: train the run directory (a `config.toml` inside) through
+/// the real processes. Given by the CLI, which owns the process supervision.
+pub type TrainRun<'a> = &'a dyn Fn(&Path) -> Result<()>;
+
+/// How a phase's protocol is evaluated on B: returns the meta-information JSON (see `meta`).
+pub type Evaluate<'a> = &'a dyn Fn(&DesignContext, &[ValidatedProtocol]) -> Result<serde_json::Value>;
+
+fn write(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
+}
+
+fn stamp() -> String {
+    let s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+    let (days, rem) = (s / 86_400, s % 86_400);
+    // Civil date from days since 1970-01-01 (the days-from-civil inverse).
+    let z = days as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + if m <= 2 { 1 } else { 0 };
+    format!("{y:04}{m:02}{d:02}-{:02}{:02}{:02}", rem / 3600, rem % 3600 / 60, rem % 60)
+}
+
+fn save_phase(dir: &Path, k: usize, p: &PhaseProtocol, ctx: &DesignContext) -> Result<PathBuf> {
+    let pd = dir.join(format!("phase{k}"));
+    std::fs::create_dir_all(&pd)?;
+    let file = pd.join("protocol.json");
+    write(&file, &serde_json::to_string_pretty(&p.protocol)?)?;
+    write(&pd.join("protocol.txt"), &protocol::explain(&p.protocol, Some(ctx.env)))?;
+    write(&pd.join("reasoning.md"), &p.reasoning)?;
+    Ok(file)
+}
+
+/// Mean over the target dims of a meta JSON's per-agent rates: (mean recovery, mean variance
+/// across agents), with or without messages.
+fn summarize(meta: &serde_json::Value, with: bool) -> serde_json::Value {
+    let key = if with { "with_communication" } else { "without_communication" };
+    let s = &meta["summary"][key];
+    serde_json::json!({
+        "mean_recovery": s["mean_recovery"],
+        "mean_variance_across_agents": s["mean_variance_across_agents"],
+    })
+}
+
+/// Run the design: phases, dataset, discriminators, feedback. Returns the design directory.
+pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: TrainRun, evaluate: Evaluate) -> Result<PathBuf> {
+    if opts.phases == 0 {
+        bail!("--phases: at least 1");
+    }
+    let schema = lmac_shm_schema::schema::load_env(&opts.env).map_err(anyhow::Error::msg)?;
+    let penv = lmac_protocol_runner::protocol_env(&schema);
+    let dir = opts.out.join(opts.env.replace(':', "_")).join(format!("{}-{}", stamp(), designer.name().replace([':', '/'], "_")));
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    write(&dir.join("options.json"), &serde_json::to_string_pretty(opts)?)?;
+    eprintln!("lmac: design of {} with the {} designer in {}", opts.env, designer.name(), dir.display());
+    let ctx0 = DesignContext { env_name: &opts.env, schema: &schema, env: &penv, dataset: None, seed: opts.seed };
+
+    let mut phases: Vec<PhaseProtocol> = Vec::new();
+    let mut files: Vec<PathBuf> = Vec::new();
+    let persist_transcript = |d: &dyn Designer| -> Result<()> {
+        write(&dir.join("transcript.json"), &serde_json::to_string_pretty(&d.transcript())?)
+    };
+    // Phase 0 before the data when the designer works from the task prompt alone (an LLM).
+    if !designer.needs_data_for_initial() {
+        let p0 = designer.initial(&ctx0).inspect_err(|_| {
+            let _ = persist_transcript(designer);
+        })?;
+        files.push(save_phase(&dir, 0, &p0, &ctx0)?);
+        eprintln!("lmac: phase 0: {}", protocol::check_summary(&p0.validated));
+        phases.push(p0);
+    }
+
+    // The dataset B: collected by a short QMIX run with phase 0's protocol fixed (no messages
+    // when the designer needs data for phase 0), or reused.
+    let data_dir = match &opts.dataset {
+        Some(d) => d.clone(),
+        None => {
+            let run_dir = dir.join("collect");
+            std::fs::create_dir_all(&run_dir)?;
+            let protocol = files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join("+");
+            let cfg = crate::train::TrainConfig::resolve(None, &[
+                format!("run.env={:?}", opts.env),
+                "run.algo=\"qmix\"".into(),
+                format!("run.protocol={protocol:?}"),
+                format!("run.steps={}", opts.pretrain_steps.max(1)),
+                format!("run.envs={}", opts.envs),
+                format!("run.servers={}", opts.servers),
+                format!("run.dataset_episodes={}", opts.dataset_episodes),
+                format!("learn.seed={}", opts.seed),
+            ])?;
+            let mut cfg = cfg;
+            cfg.run.dataset_epsilon = opts.dataset_epsilon;
+            cfg.check()?;
+            write(&run_dir.join("config.toml"), &toml::to_string_pretty(&cfg)?)?;
+            eprintln!("lmac: collecting the dataset: QMIX for {} env steps, then {} episodes", opts.pretrain_steps, opts.dataset_episodes);
+            train(&run_dir).context("collecting the dataset")?;
+            crate::train::dataset_dir(&run_dir)
+        }
+    };
+    let data = Dataset::load(&data_dir).with_context(|| format!("loading the dataset {}", data_dir.display()))?;
+    if data.header.env != opts.env {
+        bail!("dataset {} was collected on {}, not {}", data_dir.display(), data.header.env, opts.env);
+    }
+    eprintln!("lmac: dataset: {} episodes, {} steps ({})", data.episodes.len(), data.episodes.iter().map(|e| e.len).sum::<usize>(), data.header.policy);
+    let ctx = DesignContext { dataset: Some(&data), ..ctx0 };
+
+    if phases.is_empty() {
+        let p0 = designer.initial(&ctx).inspect_err(|_| {
+            let _ = persist_transcript(designer);
+        })?;
+        files.push(save_phase(&dir, 0, &p0, &ctx)?);
+        eprintln!("lmac: phase 0: {}", protocol::check_summary(&p0.validated));
+        phases.push(p0);
+    }
+
+    let mut evaluations = Vec::new();
+    for k in 0..opts.phases {
+        let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
+        let meta = evaluate(&ctx, &validated).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
+        write(&dir.join(format!("phase{k}")).join("meta.json"), &serde_json::to_string_pretty(&meta)?)?;
+        eprintln!("lmac: phase {k}: {}", super::meta::summary_line(&meta));
+        evaluations.push(serde_json::json!({
+            "phase": k,
+            "message_columns": validated.iter().map(|v| v.width).sum::<usize>(),
+            "with_messages": summarize(&meta, true),
+            "without_messages": summarize(&meta, false),
+            "target_dims": meta["summary"]["target_dims"],
+        }));
+        persist_transcript(designer)?;
+        if k + 1 == opts.phases {
+            break;
+        }
+        let fb = designer.feedback(&ctx, k + 1, &phases, &meta).inspect_err(|_| {
+            let _ = persist_transcript(designer);
+        })?;
+        let pd = dir.join(format!("phase{}", k + 1));
+        std::fs::create_dir_all(&pd)?;
+        write(&pd.join("feedback.json"), &serde_json::to_string_pretty(&fb)?)?;
+        let next = designer.refine(&ctx, k + 1, &phases, &fb, &meta).inspect_err(|_| {
+            let _ = persist_transcript(designer);
+        })?;
+        files.push(save_phase(&dir, k + 1, &next, &ctx)?);
+        eprintln!("lmac: phase {}: {}", k + 1, protocol::check_summary(&next.validated));
+        phases.push(next);
+    }
+    persist_transcript(designer)?;
+
+    let all: Vec<_> = phases.iter().map(|p| p.protocol.clone()).collect();
+    write(&dir.join("final.txt"), &protocol::explain_phases(&all, Some(ctx.env)))?;
+    let spec = files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join("+");
+    write(&dir.join("final_protocol.txt"), &format!("{spec}\n"))?;
+    let summary = serde_json::json!({
+        "env": opts.env,
+        "designer": designer.name(),
+        "alpha": schema.alpha,
+        "dataset": data_dir.display().to_string(),
+        "dataset_episodes": data.episodes.len(),
+        "target_dims": evaluations.last().map(|e| e["target_dims"].clone()).unwrap_or_default(),
+        "evaluations": evaluations,
+        "final_protocol": spec,
+    });
+    write(&dir.join("summary.json"), &serde_json::to_string_pretty(&summary)?)?;
+    Ok(dir)
+}
