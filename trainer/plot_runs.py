@@ -2,6 +2,12 @@
 a group of seeds the mean with a standard-deviation band plus a table of final figures.
 
     python trainer/plot_runs.py RUN_GROUP_DIR   (called by `lmac train` at the end)
+    python trainer/plot_runs.py --compare OUT.png GROUP_DIR...   (several algorithms in one plot)
+
+Seeds test at nearly the same env steps (each test phase starts when its run crosses a multiple
+of run.test_interval), so the common grid is the test points of the seed with the fewest. The
+"final" figures average the last FINAL_TESTS test phases of each seed (one phase is only
+run.test_episodes episodes), then report mean and standard deviation across seeds.
 """
 import csv
 import json
@@ -35,6 +41,41 @@ def plot_seed(run: pathlib.Path, test: np.ndarray) -> None:
     plt.close(fig)
 
 
+FINAL_TESTS = 5
+
+
+def group_curves(group: pathlib.Path):
+    """(grid, returns [seeds x grid], win rates [seeds x grid]) of a group's seeds."""
+    curves = [c for c in (read(r) for r in sorted(p.parent for p in group.glob("**/metrics.csv"))) if len(c)]
+    if not curves:
+        return None
+    grid = min(curves, key=len)[:, 0]
+    ys = np.stack([np.interp(grid, c[:, 0], c[:, 1]) for c in curves])
+    wins = np.stack([np.interp(grid, c[:, 0], c[:, 2]) for c in curves])
+    return grid, ys, wins
+
+
+def compare(out: pathlib.Path, groups: list[pathlib.Path]) -> None:
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    env = None
+    for g in groups:
+        gc = group_curves(g)
+        if gc is None:
+            continue
+        grid, ys, _ = gc
+        env = g.parents[1].name
+        m, s = ys.mean(0), ys.std(0)
+        ax.plot(grid, m, label=f"{g.parent.name} ({len(ys)} seeds)")
+        ax.fill_between(grid, m - s, m + s, alpha=0.2)
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("test return")
+    ax.set_title(f"{env}: mean and std over seeds")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    print(f"wrote {out}")
+
+
 def main(group: pathlib.Path) -> None:
     runs = sorted(p.parent for p in group.glob("**/metrics.csv"))
     curves = {}
@@ -47,10 +88,7 @@ def main(group: pathlib.Path) -> None:
         print(f"no test results under {group} yet")
         return
     # Mean and std across seeds on a common grid of env steps.
-    grid = np.unique(np.concatenate([c[:, 0] for c in curves.values()]))
-    grid = grid[grid <= min(c[-1, 0] for c in curves.values())]
-    ys = np.stack([np.interp(grid, c[:, 0], c[:, 1]) for c in curves.values()])
-    wins = np.stack([np.interp(grid, c[:, 0], c[:, 2]) for c in curves.values()])
+    grid, ys, wins = group_curves(group)
     fig, ax = plt.subplots(figsize=(6, 3.5))
     m, s = ys.mean(0), ys.std(0)
     ax.plot(grid, m, label=f"test return (mean of {len(curves)} seeds)")
@@ -61,10 +99,11 @@ def main(group: pathlib.Path) -> None:
     fig.tight_layout()
     fig.savefig(group / "summary.png", dpi=120)
     plt.close(fig)
-    finals = [c[-1] for c in curves.values()]
+    finals = [c[-FINAL_TESTS:].mean(0) for c in curves.values()]
     summary = {
         "seeds": len(curves),
-        "final_t_env": [int(f[0]) for f in finals],
+        "final_tests_averaged": FINAL_TESTS,
+        "final_t_env": [int(c[-1, 0]) for c in curves.values()],
         "final_test_return_mean": float(np.mean([f[1] for f in finals])),
         "final_test_return_std": float(np.std([f[1] for f in finals])),
         "final_test_win_rate_mean": float(np.mean([f[2] for f in finals])),
@@ -81,4 +120,7 @@ def main(group: pathlib.Path) -> None:
 
 
 if __name__ == "__main__":
-    main(pathlib.Path(sys.argv[1]))
+    if sys.argv[1] == "--compare":
+        compare(pathlib.Path(sys.argv[2]), [pathlib.Path(a) for a in sys.argv[3:]])
+    else:
+        main(pathlib.Path(sys.argv[1]))

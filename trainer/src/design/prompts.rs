@@ -364,7 +364,9 @@ fn previous_phases_text(previous: &[ValidatedProtocol], none: &str, intro: &str)
 /// JSON if the layout would not read back as the same protocol (e.g. a key added to the language
 /// and not listed here).
 pub fn protocol_json(p: &protocol::Protocol) -> String {
-    let line = |v: &dyn erased::Ser| v.compact();
+    fn line<T: serde::Serialize>(v: &T) -> String {
+        serde_json::to_string(v).expect("a protocol part serializes")
+    }
     let mut parts: Vec<String> = Vec::new();
     if let Some(n) = &p.name {
         parts.push(format!("  \"name\": {}", line(n)));
@@ -387,18 +389,6 @@ pub fn protocol_json(p: &protocol::Protocol) -> String {
         text
     } else {
         serde_json::to_string_pretty(p).expect("a protocol serializes")
-    }
-}
-
-/// Object-safe "serialize to one line" for the parts of a protocol.
-mod erased {
-    pub trait Ser {
-        fn compact(&self) -> String;
-    }
-    impl<T: serde::Serialize> Ser for T {
-        fn compact(&self) -> String {
-            serde_json::to_string(self).expect("a protocol part serializes")
-        }
     }
 }
 
@@ -500,7 +490,14 @@ mod tests {
     #[test]
     fn embedded_templates_are_consistent() {
         Templates::embedded().check().unwrap();
-        assert_eq!(template_names().len(), SPECS.len());
+        // The README documents every template and its placeholders.
+        let readme = include_str!("../../../prompts/README.md");
+        for s in SPECS {
+            let row = readme.lines().find(|l| l.starts_with(&format!("| `{}`", s.name))).unwrap_or_else(|| panic!("prompts/README.md lacks {}", s.name));
+            for p in s.placeholders {
+                assert!(row.contains(&format!("`{p}`")), "prompts/README.md: {} lacks {p}", s.name);
+            }
+        }
     }
 
     #[test]
@@ -522,6 +519,15 @@ mod tests {
         broken.texts.insert("feedback.md", "no placeholders here".into());
         let e = broken.check().unwrap_err().to_string();
         assert!(e.contains("feedback.md") && e.contains("meta_information"), "{e}");
+    }
+
+    #[test]
+    fn protocol_json_is_compact_and_exact() {
+        let text = include_str!("../../../prompts/examples/lbf_8x8_phase2.json");
+        let p = protocol::parse_str(text).unwrap();
+        let j = protocol_json(&p);
+        assert_eq!(protocol::parse_str(&j).unwrap(), p);
+        assert_eq!(j.lines().count(), 8 + 2 + p.fields.len(), "{j}");
     }
 
     #[test]
