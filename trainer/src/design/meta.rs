@@ -1,6 +1,418 @@
-//! (being written: the meta-information; placeholder so the crate builds meanwhile)
+//! The meta-information (paper eq. 3, appendix B.2, Figure B.2): how often each agent recovers
+//! each state dim with and without the protocol's messages.
+//!
+//! chi[l,d,t,i] = 1[(s_hat[l,d,t,i] - s[d,t])^2 <= alpha], where s_hat[1] comes from the
+//! discriminator trained with agent i's received messages and s_hat[0] from the one trained with
+//! the message columns zeroed, both measured on held-out episodes of B, in the state's own units.
+//!
+//! # The JSON ([`evaluate`], [`meta_json`])
+//! ```text
+//! { "env", "alpha", "phases", "message_columns", "evaluation": {held-out episodes, rows, note},
+//!   "discriminators": {"with_communication": TrainReport, "without_communication": TrainReport, "config"},
+//!   "target_dims_selection": "how the dims below were chosen",
+//!   "dimensions": [ { "dimension": "s[62] - <meaning>", "constant_guess_rate": E[chi] of guessing the median,
+//!       "with_communication": { "agent_success_rates": [E_t chi per agent],
+//!           "variance_across_agents": Var_i,
+//!           "early": [per agent], "variance_in_early": Var_i, "mid": .., "late": .. },
+//!       "without_communication": { same } }, ... ],
+//!   "summary": { "target_dims": [..], "with_communication": {"mean_recovery",
+//!       "mean_variance_across_agents"}, "without_communication": {..} } }
+//! ```
+//! Early/mid/late are the thirds of each episode's own length (step t of an episode of length
+//! L falls in third floor(3t/L)), so short episodes (food collected early) contribute to all
+//! three. Variances are population variances across agents.
+//!
+//! Target dims: the union of the critical state dims of the phases so far (all dims when none
+//! are listed). More than [`MetaConfig::max_target_dims`] (prompt size) are cut to the worst
+//! recovered with messages relative to a constant guess ([`skill`]; ties: worst without
+//! messages, then lower index); the JSON says so.
 
-/// One line for logs.
-pub fn summary_line(meta: &serde_json::Value) -> String {
-    meta["summary"].to_string()
+use super::dataset::Dataset;
+use super::discriminator::{split_episodes, DiscInput, Discriminator, DiscriminatorConfig, TrainReport};
+use super::DesignContext;
+use anyhow::{bail, Result};
+use burn::tensor::Device;
+use lmac_protocol_runner::protocol::{self, ValidatedProtocol};
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+/// How the meta-information is measured.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MetaConfig {
+    pub discriminator: DiscriminatorConfig,
+    /// Most target dims in the JSON (each costs a few hundred characters of prompt).
+    pub max_target_dims: usize,
+}
+
+impl Default for MetaConfig {
+    fn default() -> Self {
+        MetaConfig { discriminator: DiscriminatorConfig::default(), max_target_dims: 32 }
+    }
+}
+
+/// Names of the thirds of an episode.
+pub const THIRDS: [&str; 3] = ["early", "mid", "late"];
+
+/// Which third of an episode of `len` steps step `t` falls in.
+pub fn third(t: usize, len: usize) -> usize {
+    (3 * t / len.max(1)).min(2)
+}
+
+/// The indicator chi: is the reconstruction within alpha (squared error) of the state?
+pub fn chi(s_hat: f32, s: f32, alpha: f64) -> bool {
+    let d = (s_hat - s) as f64;
+    d * d <= alpha
+}
+
+/// chi counted per state dim, agent and third of the episode, over held-out rows.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Recovery {
+    /// The state dims measured.
+    pub dims: Vec<usize>,
+    pub n_agents: usize,
+    /// Successes, indexed [dim position][agent][third].
+    hits: Vec<u32>,
+    /// Rows, indexed [agent][third] (the same for every dim).
+    totals: Vec<u32>,
+}
+
+impl Recovery {
+    /// Measure `disc` on the rows of `episodes` for `dims`, in chunks (predictions are not kept).
+    pub fn measure(disc: &Discriminator, input: &DiscInput, episodes: &[usize], dims: &[usize], alpha: f64) -> Result<Recovery> {
+        let data = input.data;
+        let (n, sd) = (data.header.n_agents, data.header.state_dim);
+        if let Some(&d) = dims.iter().find(|&&d| d >= sd) {
+            bail!("state dim {d} is out of range (state_dim {sd})");
+        }
+        let mut r = Recovery { dims: dims.to_vec(), n_agents: n, hits: vec![0; dims.len() * n * 3], totals: vec![0; n * 3] };
+        for chunk in episodes.chunks(64) {
+            let pred = disc.predict(input, chunk)?;
+            let mut row = 0;
+            for &e in chunk {
+                let ep = &data.episodes[e];
+                for t in 0..ep.len {
+                    let th = third(t, ep.len);
+                    let s = &ep.state[t * sd..(t + 1) * sd];
+                    for i in 0..n {
+                        let p = &pred[row * sd..(row + 1) * sd];
+                        r.totals[i * 3 + th] += 1;
+                        for (k, &d) in dims.iter().enumerate() {
+                            if chi(p[d], s[d], alpha) {
+                                r.hits[(k * n + i) * 3 + th] += 1;
+                            }
+                        }
+                        row += 1;
+                    }
+                }
+            }
+        }
+        Ok(r)
+    }
+
+    /// E_t[chi] of agent i for the k-th measured dim (0 when the agent has no rows).
+    pub fn rate(&self, k: usize, i: usize) -> f64 {
+        let hits: u32 = (0..3).map(|th| self.hits[(k * self.n_agents + i) * 3 + th]).sum();
+        let total: u32 = (0..3).map(|th| self.totals[i * 3 + th]).sum();
+        hits as f64 / total.max(1) as f64
+    }
+
+    /// E_t[chi] of agent i for the k-th dim over the steps in one third of the episodes.
+    pub fn third_rate(&self, k: usize, i: usize, th: usize) -> f64 {
+        self.hits[(k * self.n_agents + i) * 3 + th] as f64 / self.totals[i * 3 + th].max(1) as f64
+    }
+
+    /// Per-agent rates of the k-th dim.
+    pub fn rates(&self, k: usize) -> Vec<f64> {
+        (0..self.n_agents).map(|i| self.rate(k, i)).collect()
+    }
+
+    /// Mean over agents of the k-th dim's rates.
+    pub fn mean_rate(&self, k: usize) -> f64 {
+        mean(&self.rates(k))
+    }
+
+    /// Variance across agents of the k-th dim's rates.
+    pub fn variance_across_agents(&self, k: usize) -> f64 {
+        variance(&self.rates(k))
+    }
+
+    /// Position of state dim `d` among the measured dims.
+    pub fn position(&self, d: usize) -> Option<usize> {
+        self.dims.iter().position(|&x| x == d)
+    }
+}
+
+pub fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Population variance.
+pub fn variance(v: &[f64]) -> f64 {
+    let m = mean(v);
+    v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Recovery relative to a constant guess: (rate - guess) / (1 - guess), 1 for a dim the guess
+/// always gets right (a constant dim). 0 means no better than guessing; negative, worse.
+/// Sparse dims (an LBF cell is empty most of the time) reach high raw rates by guessing 0,
+/// so rankings of "worst recovered" use this instead of the raw rate.
+pub fn skill(rate: f64, guess: f64) -> f64 {
+    if guess >= 1.0 - 1e-9 {
+        1.0
+    } else {
+        (rate - guess) / (1.0 - guess)
+    }
+}
+
+/// Per dim of `dims`: E_t[chi] of the best-known constant guess, the median of the dim over
+/// (at most 20 000 evenly spread steps of) the training episodes, on the held-out episodes.
+pub fn constant_guess(data: &Dataset, train: &[usize], test: &[usize], dims: &[usize], alpha: f64) -> Vec<f64> {
+    let sd = data.header.state_dim;
+    let steps: usize = train.iter().map(|&e| data.episodes[e].len).sum();
+    let stride = steps.div_ceil(20_000).max(1);
+    let mut cols: Vec<Vec<f32>> = vec![Vec::new(); dims.len()];
+    let mut k = 0usize;
+    for &e in train {
+        let ep = &data.episodes[e];
+        for t in 0..ep.len {
+            if k % stride == 0 {
+                for (c, &d) in cols.iter_mut().zip(dims) {
+                    c.push(ep.state[t * sd + d]);
+                }
+            }
+            k += 1;
+        }
+    }
+    let guess: Vec<f32> = cols
+        .iter_mut()
+        .map(|c| {
+            c.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
+            c.get(c.len() / 2).copied().unwrap_or(0.0)
+        })
+        .collect();
+    let mut hits = vec![0u64; dims.len()];
+    let mut total = 0u64;
+    for &e in test {
+        let ep = &data.episodes[e];
+        for t in 0..ep.len {
+            total += 1;
+            for (h, (&d, &g)) in hits.iter_mut().zip(dims.iter().zip(&guess)) {
+                if chi(g, ep.state[t * sd + d], alpha) {
+                    *h += 1;
+                }
+            }
+        }
+    }
+    hits.iter().map(|&h| h as f64 / total.max(1) as f64).collect()
+}
+
+fn r3(x: f64) -> Value {
+    json!((x * 1000.0).round() / 1000.0)
+}
+
+fn r5(x: f64) -> Value {
+    json!((x * 100_000.0).round() / 100_000.0)
+}
+
+/// One side (with or without communication) of one dim's entry.
+fn side(r: &Recovery, k: usize) -> Value {
+    let mut o = serde_json::Map::new();
+    let rates = r.rates(k);
+    o.insert("agent_success_rates".into(), Value::Array(rates.iter().map(|&x| r3(x)).collect()));
+    o.insert("variance_across_agents".into(), r5(variance(&rates)));
+    for (th, name) in THIRDS.iter().enumerate() {
+        let v: Vec<f64> = (0..r.n_agents).map(|i| r.third_rate(k, i, th)).collect();
+        o.insert((*name).into(), Value::Array(v.iter().map(|&x| r3(x)).collect()));
+        o.insert(format!("variance_in_{name}"), r5(variance(&v)));
+    }
+    Value::Object(o)
+}
+
+/// The label of a state dim: `s[62] - <meaning>` (or `s[62]` when the meaning is unknown).
+pub fn dim_label(d: usize, names: &[String]) -> String {
+    match names.get(d).filter(|s| !s.is_empty()) {
+        Some(m) => format!("s[{d}] - {m}"),
+        None => format!("s[{d}]"),
+    }
+}
+
+/// Choose the target dims from the measured ones: `wanted` (all measured when empty), capped
+/// to `max` worst recovered with messages relative to the constant guess ([`skill`]; `guess`
+/// is aligned with `with.dims`; ties: worst without messages, then lower index). Returns (dims
+/// sorted by index, explanation).
+pub fn select_targets(with: &Recovery, without: &Recovery, guess: &[f64], wanted: &[usize], max: usize) -> (Vec<usize>, String) {
+    let pool: Vec<usize> = if wanted.is_empty() { with.dims.clone() } else { wanted.iter().copied().filter(|d| with.position(*d).is_some()).collect() };
+    let source = if wanted.is_empty() { "all state dims (the protocol lists no critical dims)".to_string() } else { format!("the {} critical state dims of the protocol phases so far", pool.len()) };
+    if pool.len() <= max {
+        return (pool, format!("{source}, all of them"));
+    }
+    let key = |d: usize| {
+        let g = with.position(d).and_then(|k| guess.get(k).copied()).unwrap_or(0.0);
+        let kw = with.position(d).map(|k| skill(with.mean_rate(k), g)).unwrap_or(1.0);
+        let ko = without.position(d).map(|k| skill(without.mean_rate(k), g)).unwrap_or(1.0);
+        (kw, ko, d)
+    };
+    let mut sorted = pool.clone();
+    sorted.sort_by(|&a, &b| key(a).partial_cmp(&key(b)).unwrap_or(std::cmp::Ordering::Equal));
+    let mut chosen: Vec<usize> = sorted[..max].to_vec();
+    chosen.sort_unstable();
+    let note = format!(
+        "{source}, cut to the {max} worst recovered with communication to keep the prompt short: lowest mean success rate over agents relative to a constant guess ((rate - constant_guess_rate) / (1 - constant_guess_rate), so sparse dims that are usually 0 do not look well recovered just because 0 is a good guess); the other {} are recovered at least as well",
+        pool.len() - max
+    );
+    (chosen, note)
+}
+
+/// What [`meta_json`] needs besides the two recoveries.
+pub struct MetaFacts<'a> {
+    pub env: &'a str,
+    pub alpha: f64,
+    pub phases: usize,
+    pub message_columns: usize,
+    pub state_names: &'a [String],
+    pub held_out_episodes: usize,
+    pub with_report: &'a TrainReport,
+    pub without_report: &'a TrainReport,
+    pub config: &'a MetaConfig,
+}
+
+/// The meta-information JSON for `targets` (each must be among the measured dims).
+/// `guess` is the constant-guess rate of each of `with.dims` ([`constant_guess`]).
+pub fn meta_json(facts: &MetaFacts, with: &Recovery, without: &Recovery, guess: &[f64], targets: &[usize], selection: &str) -> Value {
+    let mut dims = Vec::new();
+    let (mut mw, mut mo, mut vw, mut vo) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for &d in targets {
+        let (Some(kw), Some(ko)) = (with.position(d), without.position(d)) else { continue };
+        dims.push(json!({
+            "dimension": dim_label(d, facts.state_names),
+            "constant_guess_rate": r3(guess.get(kw).copied().unwrap_or(0.0)),
+            "with_communication": side(with, kw),
+            "without_communication": side(without, ko),
+        }));
+        mw.push(with.mean_rate(kw));
+        mo.push(without.mean_rate(ko));
+        vw.push(with.variance_across_agents(kw));
+        vo.push(without.variance_across_agents(ko));
+    }
+    let rows: u32 = with.totals.iter().sum();
+    json!({
+        "env": facts.env,
+        "alpha": facts.alpha,
+        "phases": facts.phases,
+        "message_columns": facts.message_columns,
+        "evaluation": {
+            "held_out_episodes": facts.held_out_episodes,
+            "held_out_rows": rows,
+            "note": "chi = 1[(s_hat - s)^2 <= alpha] in the state's own units, measured on episodes of the dataset that neither discriminator trained on; with_communication: the discriminator given the agent's received messages; without_communication: the same architecture trained and evaluated with the message columns zeroed; constant_guess_rate: the success rate of always guessing the dim's median, the level a rate must beat to show any recovery",
+        },
+        "discriminators": {
+            "with_communication": facts.with_report,
+            "without_communication": facts.without_report,
+            "config": facts.config.discriminator,
+        },
+        "target_dims_selection": selection,
+        "dimensions": dims,
+        "summary": {
+            "target_dims": targets,
+            "with_communication": {"mean_recovery": r3(mean(&mw)), "mean_variance_across_agents": r5(mean(&vw))},
+            "without_communication": {"mean_recovery": r3(mean(&mo)), "mean_variance_across_agents": r5(mean(&vo))},
+        },
+    })
+}
+
+/// Check that the dataset was collected on the environment the design is for.
+pub fn check_dataset(data: &Dataset, ctx: &DesignContext) -> Result<()> {
+    let (h, s) = (&data.header, ctx.schema);
+    if (h.n_agents, h.obs_dim, h.state_dim, h.n_actions) != (s.n_agents, s.obs_dim, s.state_dim, s.n_actions) {
+        bail!(
+            "dataset of {} has {} agents, obs {}, state {}, {} actions; the environment {} has {}, {}, {}, {}",
+            h.env, h.n_agents, h.obs_dim, h.state_dim, h.n_actions, ctx.env_name, s.n_agents, s.obs_dim, s.state_dim, s.n_actions
+        );
+    }
+    Ok(())
+}
+
+/// Both discriminators of one protocol and their recoveries on the held-out episodes.
+pub struct Measured {
+    pub with: Recovery,
+    pub without: Recovery,
+    pub with_report: TrainReport,
+    pub without_report: TrainReport,
+    pub held_out: Vec<usize>,
+    pub message_columns: usize,
+    /// Constant-guess rate of each measured dim ([`constant_guess`]), aligned with `with.dims`.
+    pub guess: Vec<f64>,
+}
+
+/// Recompute the messages of `phases` on B with the runner's compiled plan, train D^(k) with
+/// and without them on the training episodes, and count chi on the held-out ones for `dims`
+/// (all state dims when empty). With no phases there are no messages and only the
+/// no-communication discriminator is trained (`with` is then a copy of `without`).
+pub fn measure(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &DiscriminatorConfig, dims: &[usize]) -> Result<Measured> {
+    let Some(data) = ctx.dataset else { bail!("measuring recovery needs the dataset B, which has not been collected yet") };
+    check_dataset(data, ctx)?;
+    cfg.validate()?;
+    let (train, test) = split_episodes(data.episodes.len(), cfg.holdout_fraction, ctx.seed)?;
+    let (messages, msg_dim) = if phases.is_empty() {
+        (Vec::new(), 0)
+    } else {
+        let mut plan = protocol::compile(phases, ctx.env).map_err(|e| anyhow::anyhow!("compiling the protocol: {}", protocol::errors_to_text(&e)))?;
+        (data.messages(plan.as_mut()), plan.msg_dim())
+    };
+    let all: Vec<usize> = if dims.is_empty() { (0..data.header.state_dim).collect() } else { dims.to_vec() };
+    let device = Device::default();
+    let alpha = ctx.schema.alpha;
+    let run = |input: &DiscInput, seed: u64| -> Result<(Recovery, TrainReport)> {
+        let (d, report) = Discriminator::train(input, &train, cfg, seed, &device)?;
+        Ok((Recovery::measure(&d, input, &test, &all, alpha)?, report))
+    };
+    let (without, without_report) = run(&DiscInput::without_messages(data, msg_dim), ctx.seed ^ 0x2)?;
+    let (with, with_report) = if phases.is_empty() {
+        (without.clone(), without_report.clone())
+    } else {
+        run(&DiscInput::with_messages(data, &messages, msg_dim), ctx.seed ^ 0x1)?
+    };
+    let guess = constant_guess(data, &train, &test, &all, alpha);
+    Ok(Measured { with, without, with_report, without_report, held_out: test, message_columns: msg_dim, guess })
+}
+
+/// The design loop's evaluation of phases 0..=k on B: the meta-information JSON.
+pub fn evaluate(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &MetaConfig) -> Result<Value> {
+    if cfg.max_target_dims == 0 {
+        bail!("meta.max_target_dims must be at least 1");
+    }
+    let m = measure(ctx, phases, &cfg.discriminator, &[])?;
+    let mut critical: Vec<usize> = phases.iter().flat_map(|p| p.critical_dims.iter().copied()).collect();
+    critical.sort_unstable();
+    critical.dedup();
+    let (targets, selection) = select_targets(&m.with, &m.without, &m.guess, &critical, cfg.max_target_dims);
+    let names = ctx.schema.state_meanings();
+    let facts = MetaFacts {
+        env: ctx.env_name,
+        alpha: ctx.schema.alpha,
+        phases: phases.len(),
+        message_columns: m.message_columns,
+        state_names: &names,
+        held_out_episodes: m.held_out.len(),
+        with_report: &m.with_report,
+        without_report: &m.without_report,
+        config: cfg,
+    };
+    Ok(meta_json(&facts, &m.with, &m.without, &m.guess, &targets, &selection))
+}
+
+/// One line for logs: mean recovery and variance across agents over the target dims.
+pub fn summary_line(meta: &Value) -> String {
+    let s = &meta["summary"];
+    let num = |v: &Value| v.as_f64().map(|x| format!("{x:.3}")).unwrap_or_else(|| "?".into());
+    let n = s["target_dims"].as_array().map(|a| a.len()).unwrap_or(0);
+    format!(
+        "recovery {} with messages, {} without; variance across agents {} with, {} without ({n} target dims, {} message columns)",
+        num(&s["with_communication"]["mean_recovery"]),
+        num(&s["without_communication"]["mean_recovery"]),
+        num(&s["with_communication"]["mean_variance_across_agents"]),
+        num(&s["without_communication"]["mean_variance_across_agents"]),
+        meta["message_columns"],
+    )
 }
