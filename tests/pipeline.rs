@@ -144,10 +144,8 @@ fn a_killed_env_server_is_reported_by_name_and_nothing_hangs() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let slab = wait_for(Duration::from_secs(30), || {
-        lmac_shm_files().difference(&before).find(|f| f.ends_with("-s1")).cloned()
-    })
-    .expect("env server 1's slab appears");
+    let slab = wait_for(Duration::from_secs(30), || lmac_shm_files().difference(&before).find(|f| f.ends_with("-s1")).cloned())
+        .expect("env server 1's slab appears");
     std::thread::sleep(Duration::from_millis(1500)); // let the ring run
     let pid = slab_owner_pid(&slab);
     unsafe { libc::kill(pid as i32, libc::SIGKILL) };
@@ -187,9 +185,8 @@ fn all_smaclite_maps_run_through_the_pipeline() {
 fn a_three_phase_protocol_runs_in_the_runner_and_matches_an_independent_recomputation() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let ex = root().join("prompts/examples");
-    let protocol = ["lbf_8x8_phase0.json", "lbf_8x8_phase1.json", "lbf_8x8_phase2.json"]
-        .map(|f| ex.join(f).display().to_string())
-        .join("+");
+    let protocol =
+        ["lbf_8x8_phase0.json", "lbf_8x8_phase1.json", "lbf_8x8_phase2.json"].map(|f| ex.join(f).display().to_string()).join("+");
     let out = lmac()
         .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "8", "--servers", "2", "--protocol", &protocol])
         .args(["--steps", "4000", "--verify", "--json"])

@@ -97,9 +97,8 @@ fn fullcomm(c: &mut Criterion) {
                 let mut sample = sample.write_from_slice(bytes);
                 // Apply the same messages to the copy.
                 let data = sample.payload_mut();
-                let rows: &mut [f32] = unsafe {
-                    std::slice::from_raw_parts_mut(data.as_mut_ptr().add(layout.obs.offset) as *mut f32, layout.obs.bytes / 4)
-                };
+                let rows: &mut [f32] =
+                    unsafe { std::slice::from_raw_parts_mut(data.as_mut_ptr().add(layout.obs.offset) as *mut f32, layout.obs.bytes / 4) };
                 let first = vec![false; layout.num_envs];
                 let la = vec![0i32; layout.num_envs * layout.n_agents];
                 let mut view = lmac_protocol_runner::plan::StepView {

@@ -3,9 +3,9 @@
 //! Needs in benches/Cargo.toml: `lmac-trainer.workspace = true` under [dependencies] and
 //! `[[bench]] name = "learner" harness = false`.
 
-use lmac_trainer::learn::Device;
 use criterion::{criterion_group, criterion_main, Criterion};
 use lmac_trainer::episode::{Episode, EpisodeDims};
+use lmac_trainer::learn::Device;
 use lmac_trainer::learn::{Controller, LearnConfig, LearnRng, Learner, MixerKind};
 
 const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 30, state_dim: 48, n_actions: 9 };
@@ -49,9 +49,7 @@ fn bench_act(c: &mut Criterion) {
     let last = vec![0i32; envs * d.n_agents];
     let avail = vec![1u8; envs * d.n_agents * d.n_actions];
     let first = vec![false; envs];
-    c.bench_function("act_step_8_envs", |b| {
-        b.iter(|| ctl.select_actions(&obs, None, &last, &avail, &first, 0.1, learner.rng_mut()))
-    });
+    c.bench_function("act_step_8_envs", |b| b.iter(|| ctl.select_actions(&obs, None, &last, &avail, &first, 0.1, learner.rng_mut())));
 }
 
 criterion_group!(benches, bench_update, bench_act);

@@ -50,7 +50,8 @@ fn run(plan: &mut dyn MessagePlan, b: &mut Batch, num_envs: usize, n: usize, od:
     // A new episode every 50 steps in env 0, so history restarts are exercised too.
     b.first[0] = *step % 50 == 0;
     *step += 1;
-    let mut view = StepView { num_envs, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut b.rows, first: &b.first, last_actions: &b.last_actions };
+    let mut view =
+        StepView { num_envs, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut b.rows, first: &b.first, last_actions: &b.last_actions };
     plan.apply(&mut view);
     black_box(&b.rows);
 }
@@ -68,7 +69,9 @@ fn bench(c: &mut Criterion) {
 
         let mut b = batch(num_envs, n, od, md, na);
         let mut step = 0;
-        g.bench_function(BenchmarkId::new("protocol30_w10", label), |bch| bch.iter(|| run(plan.as_mut(), &mut b, num_envs, n, od, md, &mut step)));
+        g.bench_function(BenchmarkId::new("protocol30_w10", label), |bch| {
+            bch.iter(|| run(plan.as_mut(), &mut b, num_envs, n, od, md, &mut step))
+        });
 
         let mut fc = FullComm { n_agents: n, obs_dim: od };
         let mut b = batch(num_envs, n, od, md, na);

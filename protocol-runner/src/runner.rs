@@ -40,15 +40,8 @@ pub fn apply_to_slot(plan: &mut dyn MessagePlan, slab: &Slab, slot: usize) -> Re
     let mut s = slab.slot(slot, Stage::Runner)?;
     let l = s.layout().clone();
     let (rows, first, last_actions) = s.runner_parts();
-    let mut view = StepView {
-        num_envs: l.num_envs,
-        n_agents: l.n_agents,
-        obs_dim: l.obs_dim,
-        msg_dim: l.msg_dim,
-        rows,
-        first: &first,
-        last_actions,
-    };
+    let mut view =
+        StepView { num_envs: l.num_envs, n_agents: l.n_agents, obs_dim: l.obs_dim, msg_dim: l.msg_dim, rows, first: &first, last_actions };
     plan.apply(&mut view);
     Ok(())
 }
@@ -65,13 +58,8 @@ pub fn run(args: &RunnerArgs, plans: &mut [Box<dyn MessagePlan>]) -> Result<Runn
         }
         slabs.push(slab);
     }
-    let mut port = Port::new(RingSpec {
-        run: args.run.clone(),
-        n_servers: args.n_servers,
-        n_slots: args.n_slots,
-        role: Stage::Runner,
-        server: 0,
-    })?;
+    let mut port =
+        Port::new(RingSpec { run: args.run.clone(), n_servers: args.n_servers, n_slots: args.n_slots, role: Stage::Runner, server: 0 })?;
     port.set_startup_timeout(args.startup_timeout);
     let mut stats = RunnerStats::default();
     let mut byes = 0;

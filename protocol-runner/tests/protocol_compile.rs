@@ -277,7 +277,10 @@ fn phases_over_budget_do_not_compile() {
     let p0 = check_file(dir.join("lbf_8x8_phase0.json"), &env).unwrap();
     let p2 = check_file(dir.join("lbf_8x8_phase2.json"), &env).unwrap();
     let e = compile(&[p0, p2], &env).err().unwrap();
-    assert_eq!(e[0].to_string(), "the phases together need 39 message columns per receiving agent (phase 0: 21, phase 2: 18) but the budget is 30");
+    assert_eq!(
+        e[0].to_string(),
+        "the phases together need 39 message columns per receiving agent (phase 0: 21, phase 2: 18) but the budget is 30"
+    );
 }
 
 #[test]

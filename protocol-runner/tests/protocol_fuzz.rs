@@ -28,10 +28,60 @@ impl Rng {
 }
 
 const WORDS: &[&str] = &[
-    "name", "phase", "message_design_instruction", "critical_state_dims", "critical_state_reasoning", "sender_one_hot", "history_padding", "fields",
-    "description", "senders", "receivers", "value", "all", "broadcast", "agents", "peer", "from", "to", "obs", "obs_slice", "start", "end", "last_action",
-    "one_hot", "index", "const", "window", "op", "k", "of", "add", "sub", "mul", "div", "min", "max", "gt", "lt", "eq", "neg", "abs", "clip", "reduce",
-    "concat", "mean", "sum", "last", "delta", "minus_one", "zero", "repeat", "", "x", "\u{1F600}",
+    "name",
+    "phase",
+    "message_design_instruction",
+    "critical_state_dims",
+    "critical_state_reasoning",
+    "sender_one_hot",
+    "history_padding",
+    "fields",
+    "description",
+    "senders",
+    "receivers",
+    "value",
+    "all",
+    "broadcast",
+    "agents",
+    "peer",
+    "from",
+    "to",
+    "obs",
+    "obs_slice",
+    "start",
+    "end",
+    "last_action",
+    "one_hot",
+    "index",
+    "const",
+    "window",
+    "op",
+    "k",
+    "of",
+    "add",
+    "sub",
+    "mul",
+    "div",
+    "min",
+    "max",
+    "gt",
+    "lt",
+    "eq",
+    "neg",
+    "abs",
+    "clip",
+    "reduce",
+    "concat",
+    "mean",
+    "sum",
+    "last",
+    "delta",
+    "minus_one",
+    "zero",
+    "repeat",
+    "",
+    "x",
+    "\u{1F600}",
 ];
 
 fn number(r: &mut Rng) -> Value {
@@ -188,7 +238,15 @@ fn run_plan(r: &mut Rng, plan: &mut dyn MessagePlan, env: &ProtocolEnv) {
         }
         let first: Vec<bool> = (0..ne).map(|_| r.chance(0.3)).collect();
         let la: Vec<i32> = (0..ne * n).map(|_| r.below(env.n_actions as u64 + 2) as i32 - 1).collect();
-        plan.apply(&mut StepView { num_envs: ne, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut rows, first: &first, last_actions: &la });
+        plan.apply(&mut StepView {
+            num_envs: ne,
+            n_agents: n,
+            obs_dim: od,
+            msg_dim: md,
+            rows: &mut rows,
+            first: &first,
+            last_actions: &la,
+        });
     }
 }
 
@@ -226,7 +284,12 @@ fn exercise(r: &mut Rng, v: &Value, env: &ProtocolEnv) -> bool {
 }
 
 fn envs() -> Vec<ProtocolEnv> {
-    vec![ProtocolEnv::new(2, 27, 6, 300, 200), ProtocolEnv::new(3, 5, 4, 10, 120), ProtocolEnv::new(1, 4, 2, 3, 50), ProtocolEnv::new(4, 3, 0, 0, 400)]
+    vec![
+        ProtocolEnv::new(2, 27, 6, 300, 200),
+        ProtocolEnv::new(3, 5, 4, 10, 120),
+        ProtocolEnv::new(1, 4, 2, 3, 50),
+        ProtocolEnv::new(4, 3, 0, 0, 400),
+    ]
 }
 
 #[test]
@@ -289,7 +352,8 @@ fn deep_nesting_is_an_error_not_a_crash() {
     for _ in 0..40 {
         e = json!({"neg": e});
     }
-    let v = json!({"message_design_instruction": "x", "critical_state_dims": [0], "fields": [{"name": "a", "description": "d", "value": e}]});
+    let v =
+        json!({"message_design_instruction": "x", "critical_state_dims": [0], "fields": [{"name": "a", "description": "d", "value": e}]});
     let errs = validate(&parse_value(&v).unwrap(), &env).unwrap_err();
     assert_eq!(errs[0].kind, ErrorKind::Size);
     // Far deeper than serde_json's recursion limit: a parse error.

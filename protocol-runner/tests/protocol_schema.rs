@@ -12,14 +12,29 @@ fn checked_in_schema_is_up_to_date() {
         std::fs::write(&path, &fresh).unwrap();
     }
     let on_disk = std::fs::read_to_string(&path).unwrap_or_default();
-    assert!(on_disk == fresh, "{} is stale: regenerate it with LMAC_UPDATE_SCHEMA=1 cargo test -p lmac-protocol-runner --test protocol_schema", path.display());
+    assert!(
+        on_disk == fresh,
+        "{} is stale: regenerate it with LMAC_UPDATE_SCHEMA=1 cargo test -p lmac-protocol-runner --test protocol_schema",
+        path.display()
+    );
 }
 
 #[test]
 fn schema_describes_the_language() {
     let s = schema_value();
     let text = s.to_string();
-    for needle in ["message_design_instruction", "critical_state_dims", "obs_slice", "last_action", "sender_one_hot", "window", "broadcast", "peer", "clip", "delta"] {
+    for needle in [
+        "message_design_instruction",
+        "critical_state_dims",
+        "obs_slice",
+        "last_action",
+        "sender_one_hot",
+        "window",
+        "broadcast",
+        "peer",
+        "clip",
+        "delta",
+    ] {
         assert!(text.contains(needle), "schema lacks {needle}");
     }
     assert_eq!(s["title"], "Protocol");
@@ -55,9 +70,15 @@ fn explain_says_who_sends_what_to_whom_and_why() {
 fn explain_phases_shows_where_each_phase_sits() {
     let env = ProtocolEnv::new(2, 27, 6, 300, 64);
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../prompts/examples");
-    let ps: Vec<Protocol> = ["lbf_8x8_phase0.json", "lbf_8x8_phase2.json"].iter().map(|f| parse_str(&std::fs::read_to_string(dir.join(f)).unwrap()).unwrap()).collect();
+    let ps: Vec<Protocol> = ["lbf_8x8_phase0.json", "lbf_8x8_phase2.json"]
+        .iter()
+        .map(|f| parse_str(&std::fs::read_to_string(dir.join(f)).unwrap()).unwrap())
+        .collect();
     let text = explain_phases(&ps, Some(&env));
-    assert!(text.contains("  columns 0..21: lbf_8x8_phase0 (21 columns)\n  columns 21..39: lbf_8x8_phase2 (18 columns)\n  total: 39 columns"), "{text}");
+    assert!(
+        text.contains("  columns 0..21: lbf_8x8_phase0 (21 columns)\n  columns 21..39: lbf_8x8_phase2 (18 columns)\n  total: 39 columns"),
+        "{text}"
+    );
     assert!(text.contains("Protocol lbf_8x8_phase0 (phase 0: initialization)"));
     assert!(text.lines().filter(|l| !l.trim_start().starts_with("value:")).all(|l| l.chars().count() <= 100), "{text}");
 }

@@ -44,7 +44,12 @@ fn examples_validate_with_expected_widths() {
     assert_eq!(p0.field_widths, vec![9, 4, 6]);
     assert_eq!(p0.width, 2 + 9 + 4 + 6);
     assert_eq!(p0.critical_dims.len(), 200);
-    let p2 = validate_phase(&parse_str(&std::fs::read_to_string(examples_dir().join("lbf_8x8_phase2.json")).unwrap()).unwrap(), &lbf(), std::slice::from_ref(&p0)).unwrap();
+    let p2 = validate_phase(
+        &parse_str(&std::fs::read_to_string(examples_dir().join("lbf_8x8_phase2.json")).unwrap()).unwrap(),
+        &lbf(),
+        std::slice::from_ref(&p0),
+    )
+    .unwrap();
     assert_eq!(p2.field_widths, vec![9, 6, 1]);
     assert_eq!(p2.width, 2 + 16);
     assert_eq!(check_phases(&[p0.clone(), p2.clone()], &lbf()).unwrap(), 39);
@@ -64,7 +69,10 @@ fn examples_validate_with_expected_widths() {
 fn obs_dim_out_of_range_names_path_field_and_range() {
     let mut v = base();
     v["fields"][1]["value"] = json!({"obs": [19, 25, 30]});
-    assert_eq!(one_error(v, &lbf()), "fields[1].value.obs[2] (field \"moves\"): observation dim 30 is out of range: obs_dim is 27, valid dims are 0..=26");
+    assert_eq!(
+        one_error(v, &lbf()),
+        "fields[1].value.obs[2] (field \"moves\"): observation dim 30 is out of range: obs_dim is 27, valid dims are 0..=26"
+    );
     let mut v = base();
     v["fields"][0]["value"] = json!({"mul": [{"const": 2}, {"obs_slice": {"start": 20, "end": 28}}]});
     assert_eq!(
@@ -86,7 +94,8 @@ fn width_mismatch_reports_both_widths() {
     );
     // Width 1 broadcasts.
     let mut v = base();
-    v["fields"][0]["value"] = json!({"sub": [{"obs_slice": {"start": 9, "end": 18}}, {"reduce": {"op": "mean", "of": {"obs_slice": {"start": 9, "end": 18}}}}]});
+    v["fields"][0]["value"] =
+        json!({"sub": [{"obs_slice": {"start": 9, "end": 18}}, {"reduce": {"op": "mean", "of": {"obs_slice": {"start": 9, "end": 18}}}}]});
     let p = validate(&parse_value(&v).unwrap(), &lbf()).unwrap();
     assert_eq!(p.field_widths[0], 9);
 }
@@ -120,7 +129,10 @@ fn receivers_never_only_the_sender() {
     );
     let mut v = base();
     v["fields"][0]["receivers"] = json!({"peer": [{"from": 0, "to": [0]}, {"from": 1, "to": [0]}]});
-    assert_eq!(one_error(v, &lbf()), "fields[0].receivers.peer[0].to[0] (field \"food\"): agent 0 cannot send to itself: messages go to other agents");
+    assert_eq!(
+        one_error(v, &lbf()),
+        "fields[0].receivers.peer[0].to[0] (field \"food\"): agent 0 cannot send to itself: messages go to other agents"
+    );
     let mut v = base();
     v["fields"][0]["receivers"] = json!({"peer": [{"from": 0, "to": [1]}]});
     assert_eq!(
@@ -129,7 +141,10 @@ fn receivers_never_only_the_sender() {
     );
     let mut v = base();
     v["fields"][0]["senders"] = json!([0, 2]);
-    assert_eq!(one_error(v, &lbf()), "fields[0].senders[1] (field \"food\"): sender agent 2 is out of range: n_agents is 2, so agents are 0..=1");
+    assert_eq!(
+        one_error(v, &lbf()),
+        "fields[0].senders[1] (field \"food\"): sender agent 2 is out of range: n_agents is 2, so agents are 0..=1"
+    );
     // The sender listed among the receivers is simply left out.
     let mut v = base();
     v["fields"][0]["receivers"] = json!({"agents": [0, 1]});
@@ -143,8 +158,12 @@ fn windows_are_checked() {
     v["fields"][0]["value"] = json!({"window": {"op": "mean", "k": 0, "of": {"obs": [1]}}});
     assert_eq!(one_error(v, &lbf()), "fields[0].value.window.k (field \"food\"): window length k = 0 is out of range: k must be in 1..=64");
     let mut v = base();
-    v["fields"][0]["value"] = json!({"window": {"op": "mean", "k": 3, "of": {"neg": {"window": {"op": "max", "k": 2, "of": {"obs": [1]}}}}}});
-    assert_eq!(one_error(v, &lbf()), "fields[0].value.window.of.neg.window (field \"food\"): a window cannot contain another window: aggregate a per-step expression");
+    v["fields"][0]["value"] =
+        json!({"window": {"op": "mean", "k": 3, "of": {"neg": {"window": {"op": "max", "k": 2, "of": {"obs": [1]}}}}}});
+    assert_eq!(
+        one_error(v, &lbf()),
+        "fields[0].value.window.of.neg.window (field \"food\"): a window cannot contain another window: aggregate a per-step expression"
+    );
 }
 
 #[test]
@@ -158,7 +177,13 @@ fn numbers_names_and_state_dims_are_checked() {
     let mut v = base();
     v["critical_state_dims"] = json!([3, 300, 3]);
     let es = errors(v, &lbf());
-    assert_eq!(es, vec!["critical_state_dims[1]: state dim 300 is out of range: state_dim is 300, valid dims are 0..=299", "critical_state_dims[2]: state dim 3 is listed twice"]);
+    assert_eq!(
+        es,
+        vec![
+            "critical_state_dims[1]: state dim 300 is out of range: state_dim is 300, valid dims are 0..=299",
+            "critical_state_dims[2]: state dim 3 is listed twice"
+        ]
+    );
     let mut v = base();
     v["message_design_instruction"] = json!("  ");
     assert!(one_error(v, &lbf()).starts_with("message_design_instruction: the design description is empty"));

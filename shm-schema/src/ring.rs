@@ -116,7 +116,11 @@ pub struct Port {
     dead_notified: bool,
 }
 
-fn pubsub(node: &Node<ipc::Service>, name: &str, n_slots: usize) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, SlotMsg, ()>, RingError> {
+fn pubsub(
+    node: &Node<ipc::Service>,
+    name: &str,
+    n_slots: usize,
+) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, SlotMsg, ()>, RingError> {
     let sname = ServiceName::new(name).map_err(ipc("service name"))?;
     node.service_builder(&sname)
         .publish_subscribe::<SlotMsg>()
@@ -134,11 +138,7 @@ fn event(node: &Node<ipc::Service>, name: &str) -> Result<iceoryx2::service::por
     let sname = ServiceName::new(name).map_err(ipc("service name"))?;
     // When a notifier's process dies and its resources are cleaned up, iceoryx2 wakes the
     // listener with NOTIFIER_DEAD, so a sleeping process looks at its peers at once.
-    node.service_builder(&sname)
-        .event()
-        .notifier_dead_event(EventId::new(NOTIFIER_DEAD))
-        .open_or_create()
-        .map_err(ipc(name))
+    node.service_builder(&sname).event().notifier_dead_event(EventId::new(NOTIFIER_DEAD)).open_or_create().map_err(ipc(name))
 }
 
 impl Port {
@@ -233,7 +233,11 @@ impl Port {
     }
 
     fn out_index(&self, server: usize) -> usize {
-        if self.spec.role == Stage::Env { 0 } else { server }
+        if self.spec.role == Stage::Env {
+            0
+        } else {
+            server
+        }
     }
 
     fn post(&self, msg: SlotMsg) -> Result<(), RingError> {
@@ -335,9 +339,7 @@ impl Port {
             }
             let wait = (deadline - now).min(LIVENESS_PERIOD);
             let mut dead = false;
-            self.listener
-                .timed_wait(|ev| dead |= ev.id == EventId::new(NOTIFIER_DEAD), wait)
-                .map_err(ipc("wait"))?;
+            self.listener.timed_wait(|ev| dead |= ev.id == EventId::new(NOTIFIER_DEAD), wait).map_err(ipc("wait"))?;
             self.dead_notified |= dead;
         }
     }

@@ -80,9 +80,7 @@ impl std::error::Error for SchemaErrors {}
 impl EnvSchema {
     /// Read and validate a schema file.
     pub fn load(path: &Path) -> Result<EnvSchema, SchemaErrors> {
-        let err = |field: &str, problem: String| {
-            SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field: field.into(), problem }])
-        };
+        let err = |field: &str, problem: String| SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field: field.into(), problem }]);
         let text = std::fs::read_to_string(path).map_err(|e| err("", format!("cannot read the file: {e}")))?;
         Self::parse(&text, path)
     }
@@ -92,16 +90,8 @@ impl EnvSchema {
         let schema: EnvSchema = toml::from_str(text).map_err(|e| {
             // toml's message names the key ("missing field `n_agents`") and the line.
             let msg = e.message().to_string();
-            let field = msg
-                .split('`')
-                .nth(1)
-                .filter(|_| msg.contains("field"))
-                .unwrap_or("")
-                .to_string();
-            let at = e
-                .span()
-                .map(|s| format!(" (line {})", text[..s.start.min(text.len())].lines().count().max(1)))
-                .unwrap_or_default();
+            let field = msg.split('`').nth(1).filter(|_| msg.contains("field")).unwrap_or("").to_string();
+            let at = e.span().map(|s| format!(" (line {})", text[..s.start.min(text.len())].lines().count().max(1))).unwrap_or_default();
             SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field, problem: format!("{msg}{at}") }])
         })?;
         schema.validate(path)?;
@@ -111,9 +101,7 @@ impl EnvSchema {
     /// Every semantic check; all problems are reported together.
     pub fn validate(&self, path: &Path) -> Result<(), SchemaErrors> {
         let mut errs = Vec::new();
-        let mut bad = |field: &str, problem: String| {
-            errs.push(SchemaError { file: path.to_path_buf(), field: field.into(), problem })
-        };
+        let mut bad = |field: &str, problem: String| errs.push(SchemaError { file: path.to_path_buf(), field: field.into(), problem });
         if self.name.split_once(':').map_or(true, |(f, v)| f.is_empty() || v.is_empty()) {
             bad("name", format!("{:?} must look like FAMILY:VARIANT (e.g. lbf:8x8-2p-2f-s1-coop)", self.name));
         }
@@ -140,9 +128,7 @@ impl EnvSchema {
         if self.actions.len() != self.n_actions {
             bad("actions", format!("lists {} action names but n_actions = {}", self.actions.len(), self.n_actions));
         }
-        for (field, groups, dim) in
-            [("obs_dims", &self.obs_dims, self.obs_dim), ("state_dims", &self.state_dims, self.state_dim)]
-        {
+        for (field, groups, dim) in [("obs_dims", &self.obs_dims, self.obs_dim), ("state_dims", &self.state_dims, self.state_dim)] {
             let mut total = 0usize;
             for (i, g) in groups.iter().enumerate() {
                 let at = format!("{field}[{i}]");
@@ -279,8 +265,11 @@ pub fn all_envs() -> Result<Vec<(PathBuf, Result<EnvSchema, SchemaErrors>)>, Str
         }
     }
     files.sort();
-    Ok(files.into_iter().map(|p| {
-        let r = EnvSchema::load(&p);
-        (p, r)
-    }).collect())
+    Ok(files
+        .into_iter()
+        .map(|p| {
+            let r = EnvSchema::load(&p);
+            (p, r)
+        })
+        .collect())
 }

@@ -78,7 +78,9 @@ pub enum SlabError {
     Os { name: String, op: &'static str, err: std::io::Error },
     #[error("shared memory {name} is not an lmac slab (bad magic number)")]
     BadMagic { name: String },
-    #[error("shared memory {name} has layout version {found}, this build speaks version {ours}; rebuild both sides from the same lmac version")]
+    #[error(
+        "shared memory {name} has layout version {found}, this build speaks version {ours}; rebuild both sides from the same lmac version"
+    )]
     Version { name: String, found: u32, ours: u32 },
     #[error("shared memory {name} was created for {theirs_env:?} with schema hash {theirs}, but this process loaded {ours_env:?} with hash {ours}: the peers disagree on the schema (or on num_envs / msg_dim / slots)")]
     SchemaMismatch { name: String, theirs_env: String, theirs: String, ours_env: String, ours: String },
@@ -215,11 +217,7 @@ impl Slab {
                 let h = &*(hdr as *const SlabHeader);
                 let ready = h.state.load(Ordering::Acquire) == STATE_READY;
                 let (magic, version) = (h.magic, h.layout_version);
-                let params = LayoutParams {
-                    num_envs: h.num_envs as usize,
-                    msg_dim: h.msg_dim as usize,
-                    n_slots: h.n_slots as usize,
-                };
+                let params = LayoutParams { num_envs: h.num_envs as usize, msg_dim: h.msg_dim as usize, n_slots: h.n_slots as usize };
                 let hash = h.hash;
                 let env_name = String::from_utf8_lossy(&h.env_name).trim_end_matches('\0').to_string();
                 libc::munmap(hdr as *mut _, SLAB_HEADER_BYTES);
@@ -357,11 +355,7 @@ impl<'a> Slot<'a> {
         assert!(env < self.layout.num_envs);
         unsafe {
             let p = self.base.add(self.layout.env_meta.offset + env * 16);
-            (
-                (p as *const u64).read(),
-                (p.add(8) as *const u32).read(),
-                (p.add(12) as *const u32).read(),
-            )
+            ((p as *const u64).read(), (p.add(8) as *const u32).read(), (p.add(12) as *const u32).read())
         }
     }
     pub fn set_env_meta(&mut self, env: usize, episode: u64, step: u32, flags: u32) {
@@ -376,8 +370,7 @@ impl<'a> Slot<'a> {
     /// Mutable observation rows together with read access to the per-env metadata and the
     /// last actions: what the protocol runner needs at once.
     pub fn runner_parts(&mut self) -> (&mut [f32], Vec<bool>, &[i32]) {
-        let first: Vec<bool> =
-            (0..self.layout.num_envs).map(|e| self.env_meta(e).2 & crate::layout::FLAG_FIRST != 0).collect();
+        let first: Vec<bool> = (0..self.layout.num_envs).map(|e| self.env_meta(e).2 & crate::layout::FLAG_FIRST != 0).collect();
         let l = self.layout;
         unsafe {
             let obs = std::slice::from_raw_parts_mut(self.base.add(l.obs.offset) as *mut f32, l.obs.bytes / 4);

@@ -11,8 +11,12 @@ use std::sync::Arc;
 use std::time::Duration;
 
 #[derive(Parser)]
-#[command(name = "lmac", version, about = "LLM-guided communication for cooperative multi-agent RL: a zero-copy shared-memory pipeline",
-    long_about = "lmac runs batched environments in Python env servers that write straight into shared memory, a protocol runner that appends each agent's messages in place, and a trainer that consumes the batches with no serialization.")]
+#[command(
+    name = "lmac",
+    version,
+    about = "LLM-guided communication for cooperative multi-agent RL: a zero-copy shared-memory pipeline",
+    long_about = "lmac runs batched environments in Python env servers that write straight into shared memory, a protocol runner that appends each agent's messages in place, and a trainer that consumes the batches with no serialization."
+)]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
@@ -360,15 +364,26 @@ fn envs(check: bool, json: bool) -> Result<i32> {
         }
     }
     if json {
-        let v: Vec<_> = rows.iter().map(|s| serde_json::json!({
-            "name": s.name, "n_agents": s.n_agents, "obs_dim": s.obs_dim, "state_dim": s.state_dim,
-            "n_actions": s.n_actions, "episode_limit": s.episode_limit, "message_columns": s.message_columns, "alpha": s.alpha,
-        })).collect();
+        let v: Vec<_> = rows
+            .iter()
+            .map(|s| {
+                serde_json::json!({
+                    "name": s.name, "n_agents": s.n_agents, "obs_dim": s.obs_dim, "state_dim": s.state_dim,
+                    "n_actions": s.n_actions, "episode_limit": s.episode_limit, "message_columns": s.message_columns, "alpha": s.alpha,
+                })
+            })
+            .collect();
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
-        println!("{:<42} {:>6} {:>5} {:>6} {:>7} {:>6} {:>5} {:>6}", "environment", "agents", "obs", "state", "actions", "limit", "msg", "alpha");
+        println!(
+            "{:<42} {:>6} {:>5} {:>6} {:>7} {:>6} {:>5} {:>6}",
+            "environment", "agents", "obs", "state", "actions", "limit", "msg", "alpha"
+        );
         for s in &rows {
-            println!("{:<42} {:>6} {:>5} {:>6} {:>7} {:>6} {:>5} {:>6}", s.name, s.n_agents, s.obs_dim, s.state_dim, s.n_actions, s.episode_limit, s.message_columns, s.alpha);
+            println!(
+                "{:<42} {:>6} {:>5} {:>6} {:>7} {:>6} {:>5} {:>6}",
+                s.name, s.n_agents, s.obs_dim, s.state_dim, s.n_actions, s.episode_limit, s.message_columns, s.alpha
+            );
         }
     }
     Ok(if bad > 0 && check { 1 } else { 0 })
@@ -391,7 +406,13 @@ fn pipeline_report(p: &PipelineOpts, extra: Vec<String>, interrupted: Arc<Atomic
     let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
     let plan = lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?;
     if plan.msg_dim() > schema.message_columns {
-        bail!("protocol {} writes {} message columns but {} allows {} (its message_columns budget)", p.protocol, plan.msg_dim(), p.env, schema.message_columns);
+        bail!(
+            "protocol {} writes {} message columns but {} allows {} (its message_columns budget)",
+            p.protocol,
+            plan.msg_dim(),
+            p.env,
+            schema.message_columns
+        );
     }
     if p.envs == 0 || p.servers == 0 || p.slots == 0 {
         bail!("--envs, --servers and --slots must be at least 1");
@@ -420,7 +441,12 @@ fn run(a: RunArgs) -> Result<i32> {
     }
     if let Some(p) = &a.episodes_out {
         extra.push("--episodes-out".into());
-        extra.push(std::fs::canonicalize(p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new(".")))?.join(p.file_name().context("--episodes-out needs a file name")?).display().to_string());
+        extra.push(
+            std::fs::canonicalize(p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new(".")))?
+                .join(p.file_name().context("--episodes-out needs a file name")?)
+                .display()
+                .to_string(),
+        );
     }
     let report = pipeline_report(&a.p, extra, interrupt_flag())?;
     if a.json {
@@ -438,7 +464,11 @@ fn run(a: RunArgs) -> Result<i32> {
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
-    if v.is_empty() { 0.0 } else { v[v.len() / 2] }
+    if v.is_empty() {
+        0.0
+    } else {
+        v[v.len() / 2]
+    }
 }
 
 fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
@@ -475,8 +505,17 @@ fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
     if json {
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
-        println!("{} ({} envs): raw {:.0} env-steps/s, pipeline {:.0} env-steps/s ({} servers, protocol {}), ratio {:.3} (median of {})",
-            p.env, p.envs * p.servers, raw_rate, pipe_rate, p.servers, p.protocol, ratio, repeat);
+        println!(
+            "{} ({} envs): raw {:.0} env-steps/s, pipeline {:.0} env-steps/s ({} servers, protocol {}), ratio {:.3} (median of {})",
+            p.env,
+            p.envs * p.servers,
+            raw_rate,
+            pipe_rate,
+            p.servers,
+            p.protocol,
+            ratio,
+            repeat
+        );
     }
     Ok(0)
 }
@@ -489,7 +528,12 @@ fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: 
     let cfg = TrainConfig::resolve(None, &[format!("run.env={env:?}"), format!("run.algo={algo_name:?}")])?;
     let schema = load_env(env).map_err(anyhow::Error::msg)?;
     let msg = lmac_protocol_runner::plan_for(&cfg.protocol()?, &schema).map_err(anyhow::Error::msg)?.msg_dim();
-    let dims = EpisodeDims { n_agents: schema.n_agents, obs_width: schema.obs_dim + msg, state_dim: schema.state_dim, n_actions: schema.n_actions };
+    let dims = EpisodeDims {
+        n_agents: schema.n_agents,
+        obs_width: schema.obs_dim + msg,
+        state_dim: schema.state_dim,
+        n_actions: schema.n_actions,
+    };
     // 1. One update on full-length episodes of this environment's sizes (values do not change
     //    the cost of dense math).
     let learn = cfg.effective_learn()?;
@@ -524,11 +568,19 @@ fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: 
         let servers = if n >= 2 { 2 } else { 1 };
         let d = base.join(format!("envs{n}"));
         std::fs::create_dir_all(&d)?;
-        let c = TrainConfig::resolve(None, &[
-            format!("run.env={env:?}"), format!("run.algo={algo_name:?}"), format!("run.steps={steps}"),
-            format!("run.envs={}", n / servers), format!("run.servers={servers}"), "run.test_episodes=0".into(),
-            format!("run.log_interval={}", (steps / 10).max(1)), format!("run.checkpoint_interval={}", steps * 10),
-        ])?;
+        let c = TrainConfig::resolve(
+            None,
+            &[
+                format!("run.env={env:?}"),
+                format!("run.algo={algo_name:?}"),
+                format!("run.steps={steps}"),
+                format!("run.envs={}", n / servers),
+                format!("run.servers={servers}"),
+                "run.test_episodes=0".into(),
+                format!("run.log_interval={}", (steps / 10).max(1)),
+                format!("run.checkpoint_interval={}", steps * 10),
+            ],
+        )?;
         std::fs::write(d.join("config.toml"), toml::to_string_pretty(&c)?)?;
         train_dirs(std::slice::from_ref(&d), interrupted.clone())?;
         let csv = std::fs::read_to_string(d.join("metrics.csv"))?;
@@ -537,9 +589,20 @@ fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: 
         let (t_env, wall): (f64, f64) = (cols[0].parse()?, cols[3].parse()?);
         let updates_done: f64 = cols[2].parse()?;
         let train_rate = t_env / wall.max(1e-9);
-        let p = PipelineOpts { env: env.into(), envs: n / servers, servers, slots: 4, protocol: cfg.protocol()?, steps, seed: 0, startup_timeout: 60.0 };
+        let p = PipelineOpts {
+            env: env.into(),
+            envs: n / servers,
+            servers,
+            slots: 4,
+            protocol: cfg.protocol()?,
+            steps,
+            seed: 0,
+            startup_timeout: 60.0,
+        };
         let rand_rate = pipeline_report(&p, vec![], interrupted.clone())?["env_steps_per_s"].as_f64().unwrap_or(0.0);
-        eprintln!("lmac: {n} envs: training {train_rate:.0} env-steps/s ({updates_done} updates), random acting {rand_rate:.0} env-steps/s");
+        eprintln!(
+            "lmac: {n} envs: training {train_rate:.0} env-steps/s ({updates_done} updates), random acting {rand_rate:.0} env-steps/s"
+        );
         rows.push(serde_json::json!({"envs": n, "servers": servers, "train_env_steps_per_s": train_rate, "updates": updates_done,
             "random_env_steps_per_s": rand_rate, "ratio": if rand_rate > 0.0 { train_rate / rand_rate } else { 0.0 }}));
     }
@@ -551,8 +614,13 @@ fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: 
     } else {
         println!("{env} {algo_name} ({backend}): {ms_per_update:.1} ms per update");
         for r in &rows {
-            println!("  {} envs: {:.0} env-steps/s training, {:.0} random, ratio {:.2}", r["envs"], r["train_env_steps_per_s"].as_f64().unwrap_or(0.0),
-                r["random_env_steps_per_s"].as_f64().unwrap_or(0.0), r["ratio"].as_f64().unwrap_or(0.0));
+            println!(
+                "  {} envs: {:.0} env-steps/s training, {:.0} random, ratio {:.2}",
+                r["envs"],
+                r["train_env_steps_per_s"].as_f64().unwrap_or(0.0),
+                r["random_env_steps_per_s"].as_f64().unwrap_or(0.0),
+                r["ratio"].as_f64().unwrap_or(0.0)
+            );
         }
     }
     Ok(0)
@@ -566,8 +634,12 @@ fn train(a: TrainArgs) -> Result<i32> {
         if r.join("config.toml").exists() {
             (r.parent().unwrap_or(r).to_path_buf(), vec![r.clone()])
         } else {
-            let mut d: Vec<_> = std::fs::read_dir(r).with_context(|| format!("reading {}", r.display()))?
-                .flatten().map(|e| e.path()).filter(|p| p.join("config.toml").exists()).collect();
+            let mut d: Vec<_> = std::fs::read_dir(r)
+                .with_context(|| format!("reading {}", r.display()))?
+                .flatten()
+                .map(|e| e.path())
+                .filter(|p| p.join("config.toml").exists())
+                .collect();
             d.sort();
             if d.is_empty() {
                 bail!("{} holds no run (no config.toml in it or its subfolders)", r.display());
@@ -576,13 +648,22 @@ fn train(a: TrainArgs) -> Result<i32> {
         }
     } else {
         let mut overrides = a.set.clone();
-        if let Some(e) = &a.env { overrides.push(format!("run.env={e:?}")); }
-        if let Some(al) = &a.algo { overrides.push(format!("run.algo={al:?}")); }
-        if let Some(st) = a.steps { overrides.push(format!("run.steps={st}")); }
+        if let Some(e) = &a.env {
+            overrides.push(format!("run.env={e:?}"));
+        }
+        if let Some(al) = &a.algo {
+            overrides.push(format!("run.algo={al:?}"));
+        }
+        if let Some(st) = a.steps {
+            overrides.push(format!("run.steps={st}"));
+        }
         let mut cfg = TrainConfig::resolve(a.config.as_deref(), &overrides)?;
         // Protocol files by absolute path, so a resumed run finds them from anywhere.
         if !cfg.run.protocol.is_empty() {
-            let files: Result<Vec<String>> = cfg.run.protocol.split('+')
+            let files: Result<Vec<String>> = cfg
+                .run
+                .protocol
+                .split('+')
                 .map(|f| Ok(std::fs::canonicalize(f).with_context(|| format!("run.protocol: {f}"))?.display().to_string()))
                 .collect();
             cfg.run.protocol = files?.join("+");
@@ -624,7 +705,13 @@ fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Resu
             seed: cfg.learn.seed,
             startup_timeout: 60.0,
         };
-        let extra = vec!["--train-dir".to_string(), std::fs::canonicalize(d)?.display().to_string(), "--progress".into(), "--warmup".into(), "1".into()];
+        let extra = vec![
+            "--train-dir".to_string(),
+            std::fs::canonicalize(d)?.display().to_string(),
+            "--progress".into(),
+            "--warmup".into(),
+            "1".into(),
+        ];
         pipeline_report(&p, extra, interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
     }
     Ok(())
@@ -667,7 +754,13 @@ fn child(c: ChildCmd) -> Result<i32> {
                 .map(|_| lmac_protocol_runner::plan_for(&o.protocol, &schema))
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(anyhow::Error::msg)?;
-            let args = RunnerArgs { run: o.run, schema, n_servers: o.servers, n_slots: o.slots, startup_timeout: Duration::from_secs_f64(o.startup_timeout) };
+            let args = RunnerArgs {
+                run: o.run,
+                schema,
+                n_servers: o.servers,
+                n_slots: o.slots,
+                startup_timeout: Duration::from_secs_f64(o.startup_timeout),
+            };
             match prunner::run(&args, &mut plans) {
                 Ok(_) => 0,
                 Err(prunner::RunnerError::Ring(lmac_shm_schema::RingError::Stopped)) => 0,
@@ -715,7 +808,8 @@ fn child(c: ChildCmd) -> Result<i32> {
             match pipeline::run(&args, &mut actor) {
                 Ok(report) => {
                     if let Some(path) = episodes_out {
-                        let mut f = std::io::BufWriter::new(std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?);
+                        let mut f =
+                            std::io::BufWriter::new(std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?);
                         for e in &report.episode_log {
                             writeln!(f, "{}", serde_json::to_string(e)?)?;
                         }
@@ -762,9 +856,9 @@ fn design(a: DesignArgs) -> Result<i32> {
         Box::new(LlmDesigner::from_spec(&a.llm, a.base_url.as_deref(), mode, Some(rec), options)?)
     };
     let train = |dir: &std::path::Path| train_dirs(&[dir.to_path_buf()], interrupted.clone());
-    let evaluate = |_ctx: &lmac_trainer::design::DesignContext, _phases: &[lmac_protocol_runner::protocol::ValidatedProtocol]| -> Result<serde_json::Value> {
-        bail!("the evaluation is being written")
-    };
+    let evaluate = |_ctx: &lmac_trainer::design::DesignContext,
+                    _phases: &[lmac_protocol_runner::protocol::ValidatedProtocol]|
+     -> Result<serde_json::Value> { bail!("the evaluation is being written") };
     let dir = run_design(&opts, designer.as_mut(), &train, &evaluate)?;
     plot_design(&dir);
     println!("design written to {}", dir.display());

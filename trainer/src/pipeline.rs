@@ -167,7 +167,10 @@ impl Assembler {
         for e in 0..l.num_envs {
             let (eid, step, flags) = slot.env_meta(e);
             let first = flags & FLAG_FIRST != 0;
-            let mut t = std::mem::replace(&mut self.tracks[server][e], EnvTrack { ep: Episode::default(), episode_id: 0, expect_step: 0, started: false });
+            let mut t = std::mem::replace(
+                &mut self.tracks[server][e],
+                EnvTrack { ep: Episode::default(), episode_id: 0, expect_step: 0, started: false },
+            );
             if t.started {
                 // This row's reward/termination belong to the previous step of this env.
                 t.ep.reward.push(reward[e]);
@@ -177,10 +180,16 @@ impl Assembler {
                     self.violate(format!("server {server} env {e}: episode {} both terminated and truncated", t.episode_id));
                 }
                 if tr && t.ep.len != self.limit {
-                    self.violate(format!("server {server} env {e}: episode {} truncated after {} steps, limit is {}", t.episode_id, t.ep.len, self.limit));
+                    self.violate(format!(
+                        "server {server} env {e}: episode {} truncated after {} steps, limit is {}",
+                        t.episode_id, t.ep.len, self.limit
+                    ));
                 }
                 if t.ep.len > self.limit {
-                    self.violate(format!("server {server} env {e}: episode {} ran {} steps, limit is {}", t.episode_id, t.ep.len, self.limit));
+                    self.violate(format!(
+                        "server {server} env {e}: episode {} ran {} steps, limit is {}",
+                        t.episode_id, t.ep.len, self.limit
+                    ));
                 }
                 if (te || tr) != first {
                     self.violate(format!("server {server} env {e}: episode end flags (terminated {te}, truncated {tr}) disagree with the first-step flag {first}"));
@@ -249,7 +258,11 @@ impl Assembler {
         let got = slot.obs();
         for (k, (a, b)) in rows.chunks_exact(l.row_width).zip(got.chunks_exact(l.row_width)).enumerate() {
             if a[l.obs_dim..].iter().zip(&b[l.obs_dim..]).any(|(x, y)| x.to_bits() != y.to_bits()) {
-                self.violate(format!("server {server} env {} agent {}: message columns differ from the recomputed protocol", k / l.n_agents, k % l.n_agents));
+                self.violate(format!(
+                    "server {server} env {} agent {}: message columns differ from the recomputed protocol",
+                    k / l.n_agents,
+                    k % l.n_agents
+                ));
             }
         }
     }
@@ -291,13 +304,8 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
         state_dim: args.schema.state_dim,
         n_actions: args.schema.n_actions,
     };
-    let mut port = Port::new(RingSpec {
-        run: args.run.clone(),
-        n_servers: args.n_servers,
-        n_slots: args.n_slots,
-        role: Stage::Trainer,
-        server: 0,
-    })?;
+    let mut port =
+        Port::new(RingSpec { run: args.run.clone(), n_servers: args.n_servers, n_slots: args.n_slots, role: Stage::Trainer, server: 0 })?;
     port.set_startup_timeout(args.startup_timeout);
     let mut recheck = Vec::new();
     if args.verify == Some(MessageCheck::Recompute) {
@@ -307,17 +315,15 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
     }
     let mut asm = Assembler::new(dims, args.schema.episode_limit, args.n_servers, l0.num_envs);
     let mut actions = vec![0i32; l0.num_envs * l0.n_agents];
-    let mut report = TrainerReport {
-        env: args.schema.name.clone(),
-        servers: args.n_servers,
-        envs_per_server: l0.num_envs,
-        ..Default::default()
-    };
+    let mut report =
+        TrainerReport { env: args.schema.name.clone(), servers: args.n_servers, envs_per_server: l0.num_envs, ..Default::default() };
     let bar = if args.progress {
         let b = indicatif::ProgressBar::new(args.env_steps);
         b.set_style(
-            indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:32} {pos}/{len} env steps {per_sec} eta {eta} {msg}")
-                .expect("valid template"),
+            indicatif::ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {bar:32} {pos}/{len} env steps {per_sec} eta {eta} {msg}",
+            )
+            .expect("valid template"),
         );
         Some(b)
     } else {

@@ -75,7 +75,16 @@ fn describe(status: &ExitStatus) -> String {
     use std::os::unix::process::ExitStatusExt;
     match (status.code(), status.signal()) {
         (Some(c), _) => format!("exit code {c}"),
-        (None, Some(s)) => format!("killed by signal {s}{}", if s == libc::SIGKILL { " (SIGKILL)" } else if s == libc::SIGSEGV { " (SIGSEGV)" } else { "" }),
+        (None, Some(s)) => format!(
+            "killed by signal {s}{}",
+            if s == libc::SIGKILL {
+                " (SIGKILL)"
+            } else if s == libc::SIGSEGV {
+                " (SIGSEGV)"
+            } else {
+                ""
+            }
+        ),
         _ => "unknown status".into(),
     }
 }
@@ -165,7 +174,9 @@ fn supervise(procs: &mut [Proc], trainer_idx: usize, interrupted: &AtomicBool) -
             if st.success() {
                 // The trainer said goodbye; give the others a moment to finish cleanly.
                 let t0 = Instant::now();
-                while t0.elapsed() < Duration::from_secs(5) && procs.iter_mut().any(|p| p.status.is_none() && p.child.try_wait().ok().flatten().is_none()) {
+                while t0.elapsed() < Duration::from_secs(5)
+                    && procs.iter_mut().any(|p| p.status.is_none() && p.child.try_wait().ok().flatten().is_none())
+                {
                     std::thread::sleep(Duration::from_millis(20));
                 }
                 return Ok(());

@@ -141,7 +141,12 @@ impl TrainConfig {
         algo(&self.run.algo)?;
         self.learn.validate()?;
         let r = &self.run;
-        for (field, v) in [("run.steps", r.steps), ("run.test_interval", r.test_interval), ("run.log_interval", r.log_interval), ("run.checkpoint_interval", r.checkpoint_interval)] {
+        for (field, v) in [
+            ("run.steps", r.steps),
+            ("run.test_interval", r.test_interval),
+            ("run.log_interval", r.log_interval),
+            ("run.checkpoint_interval", r.checkpoint_interval),
+        ] {
             if v == 0 {
                 bail!("{field}: must be at least 1");
             }
@@ -173,7 +178,11 @@ impl TrainConfig {
             return Ok(a.protocol.to_string());
         }
         if a.protocol != "none" {
-            bail!("run.protocol: algorithm {} fixes its protocol ({}); use qmix, vdn, qplex or qmix-state with a protocol", self.run.algo, a.protocol);
+            bail!(
+                "run.protocol: algorithm {} fixes its protocol ({}); use qmix, vdn, qplex or qmix-state with a protocol",
+                self.run.algo,
+                a.protocol
+            );
         }
         Ok(self.run.protocol.clone())
     }
@@ -207,7 +216,8 @@ pub struct MetricsRow {
     pub q_taken_mean: Option<f32>,
 }
 
-const CSV_HEADER: &str = "t_env,episodes,updates,wall_s,env_steps_per_s,epsilon,train_return_mean,test_return_mean,test_win_rate,loss,grad_norm,q_taken_mean";
+const CSV_HEADER: &str =
+    "t_env,episodes,updates,wall_s,env_steps_per_s,epsilon,train_return_mean,test_return_mean,test_win_rate,loss,grad_norm,q_taken_mean";
 
 /// The metrics of a run: CSV, JSON lines and TensorBoard scalars, side by side in its directory.
 pub struct Metrics {
@@ -237,22 +247,34 @@ impl Metrics {
         writeln!(
             self.csv,
             "{},{},{},{:.2},{:.1},{:.4},{},{},{},{},{},{}",
-            r.t_env, r.episodes, r.updates, r.wall_s, r.env_steps_per_s, r.epsilon,
-            opt(&r.train_return_mean), opt(&r.test_return_mean), opt(&r.test_win_rate),
-            opt(&r.loss), opt(&r.grad_norm), opt(&r.q_taken_mean)
+            r.t_env,
+            r.episodes,
+            r.updates,
+            r.wall_s,
+            r.env_steps_per_s,
+            r.epsilon,
+            opt(&r.train_return_mean),
+            opt(&r.test_return_mean),
+            opt(&r.test_win_rate),
+            opt(&r.loss),
+            opt(&r.grad_norm),
+            opt(&r.q_taken_mean)
         )?;
         writeln!(self.jsonl, "{}", serde_json::to_string(r)?)?;
         let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
-        self.tb.scalars(r.t_env, &[
-            ("env_steps_per_s", r.env_steps_per_s),
-            ("epsilon", r.epsilon as f64),
-            ("train_return_mean", f(r.train_return_mean)),
-            ("test_return_mean", f(r.test_return_mean)),
-            ("test_win_rate", f(r.test_win_rate)),
-            ("loss", f(r.loss.map(f64::from))),
-            ("grad_norm", f(r.grad_norm.map(f64::from))),
-            ("q_taken_mean", f(r.q_taken_mean.map(f64::from))),
-        ])?;
+        self.tb.scalars(
+            r.t_env,
+            &[
+                ("env_steps_per_s", r.env_steps_per_s),
+                ("epsilon", r.epsilon as f64),
+                ("train_return_mean", f(r.train_return_mean)),
+                ("test_return_mean", f(r.test_return_mean)),
+                ("test_win_rate", f(r.test_win_rate)),
+                ("loss", f(r.loss.map(f64::from))),
+                ("grad_norm", f(r.grad_norm.map(f64::from))),
+                ("q_taken_mean", f(r.q_taken_mean.map(f64::from))),
+            ],
+        )?;
         self.csv.flush()?;
         self.jsonl.flush()?;
         Ok(())
@@ -490,7 +512,12 @@ fn save_dataset(run_dir: &Path, actor: &TrainActor, args: &crate::pipeline::Trai
         n_actions: s.n_actions,
         episode_limit: s.episode_limit,
         protocol: args.protocol.clone(),
-        policy: format!("{} ({} mixer) after {} env steps, epsilon-greedy with epsilon {eps:.3}", actor.cfg.run.algo, format!("{:?}", actor.learn.mixer).to_lowercase(), actor.t_env),
+        policy: format!(
+            "{} ({} mixer) after {} env steps, epsilon-greedy with epsilon {eps:.3}",
+            actor.cfg.run.algo,
+            format!("{:?}", actor.learn.mixer).to_lowercase(),
+            actor.t_env
+        ),
         seed: actor.learn.seed,
     };
     let ds = Dataset { header, episodes: actor.dataset.clone() };
@@ -538,9 +565,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         let shared = shared.clone();
         let ck = ck.clone();
         let (save_buffer, ratio) = (cfg.run.save_buffer, cfg.run.updates_per_episode);
-        std::thread::Builder::new()
-            .name("learner".into())
-            .spawn(move || learner_loop(learner, rx, shared, ck, save_buffer, ratio))?
+        std::thread::Builder::new().name("learner".into()).spawn(move || learner_loop(learner, rx, shared, ck, save_buffer, ratio))?
     };
     let bar = progress.then(|| {
         let b = indicatif::ProgressBar::new(cfg.run.steps);
@@ -603,7 +628,14 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     }
 }
 
-fn learner_loop(mut learner: Learner, rx: mpsc::Receiver<ToLearner>, shared: Arc<Mutex<Shared>>, ck: PathBuf, save_buffer: bool, ratio: f64) {
+fn learner_loop(
+    mut learner: Learner,
+    rx: mpsc::Receiver<ToLearner>,
+    shared: Arc<Mutex<Shared>>,
+    ck: PathBuf,
+    save_buffer: bool,
+    ratio: f64,
+) {
     let save = |learner: &Learner, shared: &Mutex<Shared>| match learner.save_checkpoint(&ck, save_buffer) {
         Ok(()) => shared.lock().last_checkpoint = Some(ck.clone()),
         Err(e) => eprintln!("lmac: trainer: checkpoint failed: {e}"),

@@ -24,7 +24,17 @@ fn tmp_dir(name: &str) -> PathBuf {
 }
 
 fn header(env: &str, n: usize, od: usize, sd: usize, na: usize, limit: usize) -> DatasetHeader {
-    DatasetHeader { env: env.into(), n_agents: n, obs_dim: od, state_dim: sd, n_actions: na, episode_limit: limit, protocol: "none".into(), policy: "synthetic".into(), seed: 7 }
+    DatasetHeader {
+        env: env.into(),
+        n_agents: n,
+        obs_dim: od,
+        state_dim: sd,
+        n_actions: na,
+        episode_limit: limit,
+        protocol: "none".into(),
+        policy: "synthetic".into(),
+        seed: 7,
+    }
 }
 
 /// Random LBF-8x8-shaped episodes (values 0..3, random lengths and actions).
@@ -109,8 +119,19 @@ fn synthetic_schema(message_columns: usize) -> EnvSchema {
         alpha: 0.1,
         reward: "none".into(),
         actions: vec!["a".into(), "b".into(), "c".into()],
-        obs_dims: vec![group(1, "private value (agent 0: hidden value A; agent 1: noise)"), group(1, "shared bit"), group(1, "private value B (agent 1 only)"), group(1, "flash of the episode constant (agent 0, every 4th step)")],
-        state_dims: vec![group(1, "hidden value A"), group(1, "shared bit"), group(1, "constant"), group(1, "hidden value B"), group(1, "episode constant")],
+        obs_dims: vec![
+            group(1, "private value (agent 0: hidden value A; agent 1: noise)"),
+            group(1, "shared bit"),
+            group(1, "private value B (agent 1 only)"),
+            group(1, "flash of the episode constant (agent 0, every 4th step)"),
+        ],
+        state_dims: vec![
+            group(1, "hidden value A"),
+            group(1, "shared bit"),
+            group(1, "constant"),
+            group(1, "hidden value B"),
+            group(1, "episode constant"),
+        ],
     }
 }
 
@@ -222,7 +243,8 @@ fn runner_reference(data: &Dataset, plan: &mut dyn MessagePlan, envs: usize) -> 
                 last[e * n + a] = if t == 0 { -1 } else { ep.actions[(t - 1) * n + a] };
             }
         }
-        let mut view = StepView { num_envs: envs, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut rows, first: &first, last_actions: &last };
+        let mut view =
+            StepView { num_envs: envs, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut rows, first: &first, last_actions: &last };
         plan.apply(&mut view);
         for e in 0..envs {
             let (k, t) = cur[e];
@@ -346,7 +368,10 @@ fn discriminator_cost() {
     for batch in [32usize, 128] {
         let cfg = DiscriminatorConfig { updates: 400, batch_size: batch, ..Default::default() };
         let (_, rep) = Discriminator::train(&input, &train, &cfg, 1, &Device::default()).unwrap();
-        eprintln!("discriminator cost, LBF 8x8 widths, batch {batch}: {:.3} ms per update ({} updates in {:.2} s)", rep.ms_per_update, rep.updates, rep.seconds);
+        eprintln!(
+            "discriminator cost, LBF 8x8 widths, batch {batch}: {:.3} ms per update ({} updates in {:.2} s)",
+            rep.ms_per_update, rep.updates, rep.seconds
+        );
         assert!(rep.ms_per_update.is_finite() && rep.ms_per_update > 0.0);
     }
 }
@@ -452,7 +477,10 @@ fn offline_designer_three_phases() {
         }
         let m = meta::evaluate(&c, &validated, &mcfg).unwrap();
         eprintln!("phase {k}: {}", meta::summary_line(&m));
-        means.push((m["summary"]["with_communication"]["mean_recovery"].as_f64().unwrap(), m["summary"]["without_communication"]["mean_recovery"].as_f64().unwrap()));
+        means.push((
+            m["summary"]["with_communication"]["mean_recovery"].as_f64().unwrap(),
+            m["summary"]["without_communication"]["mean_recovery"].as_f64().unwrap(),
+        ));
         if k == 2 {
             break;
         }
@@ -485,7 +513,10 @@ fn offline_designer_reports_an_exhausted_budget() {
     let schema = synthetic_schema(2);
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
-    let mut designer = OfflineDesigner::new(OfflineConfig { discriminator: DiscriminatorConfig { updates: 50, ..Default::default() }, ..Default::default() });
+    let mut designer = OfflineDesigner::new(OfflineConfig {
+        discriminator: DiscriminatorConfig { updates: 50, ..Default::default() },
+        ..Default::default()
+    });
     let e = format!("{:#}", designer.initial(&c).unwrap_err());
     assert!(e.contains("no message budget for phase 0"), "{e}");
 }

@@ -110,16 +110,26 @@ fn serve(stream: TcpStream, requests: Arc<Mutex<Vec<Captured>>>, script: Arc<Mut
     requests.lock().unwrap().push(Captured { path, headers, body });
     let reply = script.lock().unwrap().pop_front();
     let (status, extra, text) = match reply {
-        Some(Reply::Chat(t)) => (200, String::new(), serde_json::json!({
-            "id": "chatcmpl-test", "object": "chat.completion", "model": "scripted-model",
-            "choices": [{"index": 0, "message": {"role": "assistant", "content": t}, "finish_reason": "stop"}],
-            "usage": {"prompt_tokens": 10, "completion_tokens": 5, "total_tokens": 15}
-        }).to_string()),
-        Some(Reply::Anthropic(t)) => (200, String::new(), serde_json::json!({
-            "id": "msg_test", "type": "message", "role": "assistant", "model": "scripted-claude",
-            "content": [{"type": "text", "text": t}], "stop_reason": "end_turn",
-            "usage": {"input_tokens": 10, "output_tokens": 5}
-        }).to_string()),
+        Some(Reply::Chat(t)) => (
+            200,
+            String::new(),
+            serde_json::json!({
+                "id": "chatcmpl-test", "object": "chat.completion", "model": "scripted-model",
+                "choices": [{"index": 0, "message": {"role": "assistant", "content": t}, "finish_reason": "stop"}],
+                "usage": {"prompt_tokens": 10, "completion_tokens": 5, "total_tokens": 15}
+            })
+            .to_string(),
+        ),
+        Some(Reply::Anthropic(t)) => (
+            200,
+            String::new(),
+            serde_json::json!({
+                "id": "msg_test", "type": "message", "role": "assistant", "model": "scripted-claude",
+                "content": [{"type": "text", "text": t}], "stop_reason": "end_turn",
+                "usage": {"input_tokens": 10, "output_tokens": 5}
+            })
+            .to_string(),
+        ),
         Some(Reply::Status(code, retry, body)) => (code, retry.map_or(String::new(), |r| format!("Retry-After: {r}\r\n")), body),
         Some(Reply::Hang(d)) => {
             std::thread::sleep(d);
@@ -128,12 +138,20 @@ fn serve(stream: TcpStream, requests: Arc<Mutex<Vec<Captured>>>, script: Arc<Mut
         None => (400, String::new(), "{\"error\": \"the test script has no more replies\"}".to_string()),
     };
     let mut out = stream;
-    let _ = write!(out, "HTTP/1.1 {status} X\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n{extra}\r\n{text}", text.len());
+    let _ = write!(
+        out,
+        "HTTP/1.1 {status} X\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n{extra}\r\n{text}",
+        text.len()
+    );
     let _ = out.flush();
 }
 
 fn temp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("lmac-design-llm-{tag}-{}-{:?}", std::process::id(), std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()));
+    let d = std::env::temp_dir().join(format!(
+        "lmac-design-llm-{tag}-{}-{:?}",
+        std::process::id(),
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()
+    ));
     std::fs::create_dir_all(&d).unwrap();
     d
 }
@@ -239,7 +257,10 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
         assert_eq!(p.protocol, example(ex), "phase {k}");
         assert_eq!(p.protocol.phase, Some(k as u32));
     }
-    assert_eq!(phases.iter().map(|p| p.validated.width).sum::<usize>(), protocol::check_phases(&phases.iter().map(|p| p.validated.clone()).collect::<Vec<_>>(), &penv).unwrap());
+    assert_eq!(
+        phases.iter().map(|p| p.validated.width).sum::<usize>(),
+        protocol::check_phases(&phases.iter().map(|p| p.validated.clone()).collect::<Vec<_>>(), &penv).unwrap()
+    );
     assert!(phases[0].reasoning.contains("food positions"));
     assert!(phases[1].reasoning.contains("phase1: send an adjacency flag"));
 
@@ -269,14 +290,25 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
     assert_eq!(reqs[3].body, reqs[4].body);
     // Feedback prompt: phase instruction, protocol under analysis, meta-information, alpha.
     let fb1 = reqs[5].last_message();
-    assert!(fb1.contains("recognition enhancement") && fb1.contains("lbf_8x8_phase0") && fb1.contains("s[105] - food layer") && fb1.contains("most 0.1"), "{fb1}");
+    assert!(
+        fb1.contains("recognition enhancement")
+            && fb1.contains("lbf_8x8_phase0")
+            && fb1.contains("s[105] - food layer")
+            && fb1.contains("most 0.1"),
+        "{fb1}"
+    );
     assert!(fb1.contains("Missing_Information_Hypothesis"));
     // The feedback missing a key went back naming it.
     assert!(reqs[6].last_message().contains("Missing_Information_Hypothesis"), "{}", reqs[6].last_message());
     // Phase 1 generation: continues from the critical-dims reasoning, shows phase 0 and the
     // budget left, and appends the feedback as additional context.
     let g1 = reqs[7].last_message();
-    assert!(g1.contains("phase 1 (recognition enhancement)") && g1.contains("earlier phases use 21") && g1.contains("phase1: agents do not know"), "{g1}");
+    assert!(
+        g1.contains("phase 1 (recognition enhancement)")
+            && g1.contains("earlier phases use 21")
+            && g1.contains("phase1: agents do not know"),
+        "{g1}"
+    );
     assert!(g1.contains("Additional context"));
     assert_eq!(reqs[7].body["messages"][2]["role"], "assistant");
     let fb2 = reqs[8].last_message();
@@ -284,7 +316,21 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
     assert_eq!(reqs[9].body, reqs[10].body, "the 503 was retried");
 
     let kinds: Vec<String> = designer.transcript().iter().map(|e| format!("{}:{}", e.phase, e.kind)).collect();
-    assert_eq!(kinds, ["0:system", "0:critical_dims", "0:protocol", "0:correction", "0:correction", "1:feedback", "1:correction", "1:protocol", "2:feedback", "2:protocol"]);
+    assert_eq!(
+        kinds,
+        [
+            "0:system",
+            "0:critical_dims",
+            "0:protocol",
+            "0:correction",
+            "0:correction",
+            "1:feedback",
+            "1:correction",
+            "1:protocol",
+            "2:feedback",
+            "2:protocol"
+        ]
+    );
 
     // Recordings: one file per distinct request (the retried ones once), no key anywhere.
     let files = files_under(&rec_dir);
@@ -329,7 +375,8 @@ fn corrections_are_bounded_and_the_transcript_is_kept() {
     assert_ne!(too_wide, PHASE0);
     let server = Server::start(vec![Reply::Chat("reasoning".into()), Reply::Chat("no json at all".into()), Reply::Chat(too_wide)]);
     let client = HttpLlm::new(config("openai:m", &server.url)).unwrap();
-    let mut d = LlmDesigner::with_templates(Box::new(client), Templates::embedded(), LlmDesignerOptions { max_retries: 1, ..Default::default() });
+    let mut d =
+        LlmDesigner::with_templates(Box::new(client), Templates::embedded(), LlmDesignerOptions { max_retries: 1, ..Default::default() });
     let e = format!("{:#}", d.initial(&ctx).unwrap_err());
     assert!(e.contains("phase 0") && e.contains("after 1 correction(s)") && e.contains("columns per receiving agent"), "{e}");
     let reqs = server.requests();
@@ -356,7 +403,13 @@ fn timeout_ends_in_a_clear_error_with_the_transcript_kept() {
     let mut d = quiet_designer(Box::new(HttpLlm::with_api_key(cfg, ApiKey::new(KEY)).unwrap()));
     let e = format!("{:#}", d.initial(&ctx).unwrap_err());
     assert!(started.elapsed() < Duration::from_secs(3), "gave up within the timeouts");
-    assert!(e.contains("timed out") && e.contains(&format!("{}/v1/chat/completions", server.url)) && e.contains("2 attempt(s)") && e.contains("phase 0"), "{e}");
+    assert!(
+        e.contains("timed out")
+            && e.contains(&format!("{}/v1/chat/completions", server.url))
+            && e.contains("2 attempt(s)")
+            && e.contains("phase 0"),
+        "{e}"
+    );
     assert!(!e.contains(KEY));
     let t = d.transcript();
     assert_eq!(t.last().unwrap().kind, "critical_dims");
@@ -391,7 +444,10 @@ fn anthropic_wire_format_and_errors() {
     // when the server echoes it.
     let e = c.complete(&[ChatMessage::user("again")]).unwrap_err().to_string();
     assert_eq!(server.requests().len(), 2);
-    assert!(e.contains("HTTP 401") && e.contains(&format!("{}/v1/messages", server.url)) && e.contains("<redacted>") && !e.contains(KEY), "{e}");
+    assert!(
+        e.contains("HTTP 401") && e.contains(&format!("{}/v1/messages", server.url)) && e.contains("<redacted>") && !e.contains(KEY),
+        "{e}"
+    );
     for f in files_under(&rec_dir) {
         assert!(!std::fs::read_to_string(&f).unwrap().contains(KEY));
     }

@@ -25,8 +25,7 @@ fn qmix_shapes_and_monotonicity() {
     let mixer = Mixer::new(&mut LearnRng::seed_from(1), MixerKind::Qmix, AGENTS, STATE, ACTIONS, &cfg, &ad);
     assert_eq!(mixer.kind(), MixerKind::Qmix);
     for trial in 0..3 {
-        let qs: Tensor<2> =
-            Tensor::random([N, AGENTS], Distribution::Uniform(-10.0, 10.0), &ad).require_grad();
+        let qs: Tensor<2> = Tensor::random([N, AGENTS], Distribution::Uniform(-10.0, 10.0), &ad).require_grad();
         let states: Tensor<2> = Tensor::random([N, STATE], Distribution::Normal(0.0, 2.0), &ad);
         let q_tot = mixer.forward(qs.clone(), states, None);
         assert_eq!(q_tot.dims(), [N]);
@@ -94,8 +93,7 @@ fn qplex_shapes_and_gradients() {
 fn agent_unroll_and_step_agree() {
     let device = dev();
     let agent = RnnAgent::new(&mut LearnRng::seed_from(2), 10, 16, ACTIONS, &device);
-    let xs: Vec<Tensor<2>> =
-        (0..4).map(|_| Tensor::random([6, 10], Distribution::Normal(0.0, 1.0), &device)).collect();
+    let xs: Vec<Tensor<2>> = (0..4).map(|_| Tensor::random([6, 10], Distribution::Normal(0.0, 1.0), &device)).collect();
     let q_seq = agent.unroll(xs.clone());
     assert_eq!(q_seq.dims(), [4, 6, ACTIONS]);
     let mut h: Tensor<2> = Tensor::zeros([6, 16], &device);
@@ -119,8 +117,7 @@ fn time_one_update() {
     use lmac_trainer::episode::{Episode, EpisodeDims};
     use lmac_trainer::learn::{LearnRng, Learner};
     let dims = EpisodeDims { n_agents: 3, obs_width: 30, state_dim: 48, n_actions: 9 };
-    for (mixer, parallel_target) in
-        [(MixerKind::Qmix, false), (MixerKind::Qmix, true), (MixerKind::Vdn, false), (MixerKind::Qplex, false)]
+    for (mixer, parallel_target) in [(MixerKind::Qmix, false), (MixerKind::Qmix, true), (MixerKind::Vdn, false), (MixerKind::Qplex, false)]
     {
         let cfg = LearnConfig { mixer, parallel_target, ..LearnConfig::default() };
         let mut learner = Learner::new(dims, cfg, Device::default()).unwrap();

@@ -42,9 +42,7 @@ fn load_schema(path: &str) -> PyResult<EnvSchema> {
 fn ring_err(e: RingError) -> PyErr {
     match e {
         RingError::Stopped => StoppedError::new_err(e.to_string()),
-        RingError::PeerDied { .. } | RingError::PeerGone { .. } | RingError::PeerMissing { .. } => {
-            PeerError::new_err(e.to_string())
-        }
+        RingError::PeerDied { .. } | RingError::PeerGone { .. } | RingError::PeerMissing { .. } => PeerError::new_err(e.to_string()),
         _ => PyRuntimeError::new_err(e.to_string()),
     }
 }
@@ -73,8 +71,7 @@ impl Slab {
     #[pyo3(signature = (name, schema_path, timeout=10.0))]
     fn open(name: &str, schema_path: &str, timeout: f64) -> PyResult<Slab> {
         let schema = load_schema(schema_path)?;
-        let slab = RSlab::open(name, &schema, Duration::from_secs_f64(timeout))
-            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        let slab = RSlab::open(name, &schema, Duration::from_secs_f64(timeout)).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
         Ok(Slab { inner: Arc::new(slab) })
     }
 
@@ -106,11 +103,15 @@ impl Slab {
     /// The stage that owns slot `i` now.
     fn stage(&self, i: usize) -> PyResult<String> {
         self.check_index(i)?;
-        Ok(self.inner.stage(i).map_or("unknown", |s| match s {
-            Stage::Env => "env",
-            Stage::Runner => "runner",
-            Stage::Trainer => "trainer",
-        }).to_string())
+        Ok(self
+            .inner
+            .stage(i)
+            .map_or("unknown", |s| match s {
+                Stage::Env => "env",
+                Stage::Runner => "runner",
+                Stage::Trainer => "trainer",
+            })
+            .to_string())
     }
 
     /// Mark slot `i` as owned by `stage` (only at start-up, before the ring runs).
@@ -174,7 +175,13 @@ impl Lease {
     }
 
     /// A numpy view of `shape` (element strides `strides`) at byte `offset` inside the slot.
-    fn view<'py, T: Element>(&self, py: Python<'py>, offset: usize, shape: &[usize], strides: &[usize]) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+    fn view<'py, T: Element>(
+        &self,
+        py: Python<'py>,
+        offset: usize,
+        shape: &[usize],
+        strides: &[usize],
+    ) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
         self.live()?;
         let base = unsafe { self.slab.slot_ptr(self.slot).add(offset) } as *const T;
         let view = unsafe { ArrayView::from_shape_ptr(IxDyn(shape).strides(IxDyn(strides)), base) };
@@ -333,8 +340,8 @@ impl Port {
     #[new]
     #[pyo3(signature = (run, role, server, n_servers, n_slots, startup_timeout=60.0))]
     fn new(run: &str, role: &str, server: usize, n_servers: usize, n_slots: usize, startup_timeout: f64) -> PyResult<Port> {
-        let mut inner = RingPort::new(RingSpec { run: run.into(), n_servers, n_slots, role: parse_stage(role)?, server })
-            .map_err(ring_err)?;
+        let mut inner =
+            RingPort::new(RingSpec { run: run.into(), n_servers, n_slots, role: parse_stage(role)?, server }).map_err(ring_err)?;
         inner.set_startup_timeout(Duration::from_secs_f64(startup_timeout));
         Ok(Port { inner })
     }

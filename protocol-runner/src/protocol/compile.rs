@@ -37,22 +37,73 @@ enum Un {
 #[derive(Debug, Clone)]
 enum Inst {
     /// regs[dst + c] = obs[dims[c]]
-    Gather { dst: usize, dims: Vec<usize> },
+    Gather {
+        dst: usize,
+        dims: Vec<usize>,
+    },
     /// regs[dst .. dst+len] = obs[start .. start+len]
-    Slice { dst: usize, start: usize, len: usize },
-    ActOneHot { dst: usize },
-    ActIndex { dst: usize },
-    SenderOneHot { dst: usize },
-    Const { dst: usize, v: f32 },
-    Bin { op: Bin, dst: usize, a: usize, wa: usize, b: usize, wb: usize, w: usize },
-    Un { op: Un, dst: usize, a: usize, w: usize },
-    Clip { dst: usize, a: usize, w: usize, lo: f32, hi: f32 },
-    Reduce { op: ReduceOp, dst: usize, a: usize, w: usize },
-    Copy { dst: usize, src: usize, w: usize },
+    Slice {
+        dst: usize,
+        start: usize,
+        len: usize,
+    },
+    ActOneHot {
+        dst: usize,
+    },
+    ActIndex {
+        dst: usize,
+    },
+    SenderOneHot {
+        dst: usize,
+    },
+    Const {
+        dst: usize,
+        v: f32,
+    },
+    Bin {
+        op: Bin,
+        dst: usize,
+        a: usize,
+        wa: usize,
+        b: usize,
+        wb: usize,
+        w: usize,
+    },
+    Un {
+        op: Un,
+        dst: usize,
+        a: usize,
+        w: usize,
+    },
+    Clip {
+        dst: usize,
+        a: usize,
+        w: usize,
+        lo: f32,
+        hi: f32,
+    },
+    Reduce {
+        op: ReduceOp,
+        dst: usize,
+        a: usize,
+        w: usize,
+    },
+    Copy {
+        dst: usize,
+        src: usize,
+        w: usize,
+    },
     /// Record channel `ch`'s current value (its `src` registers) in its history ring.
-    Push { ch: usize },
+    Push {
+        ch: usize,
+    },
     /// regs[dst..dst+w] = aggregate over the last k values of channel `ch`.
-    Agg { op: WindowOp, ch: usize, k: usize, dst: usize },
+    Agg {
+        op: WindowOp,
+        ch: usize,
+        k: usize,
+        dst: usize,
+    },
 }
 
 #[derive(Debug, Clone)]
@@ -73,8 +124,16 @@ struct Channel {
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Seg {
     /// msg[dst .. dst+len] = regs[row(sender)][src .. src+len]
-    Copy { dst: usize, sender: usize, src: usize, len: usize },
-    Zero { dst: usize, len: usize },
+    Copy {
+        dst: usize,
+        sender: usize,
+        src: usize,
+        len: usize,
+    },
+    Zero {
+        dst: usize,
+        len: usize,
+    },
 }
 
 /// A compiled protocol (one or more phases), ready to run.
@@ -131,7 +190,15 @@ pub fn compile_plan(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<P
     let phases = &fresh[..];
     let msg_dim = check_phases(phases, env)?;
     let n = env.n_agents;
-    let mut c = Compiler { prog: Vec::new(), n_regs: 0, channels: Vec::new(), n_actions: env.n_actions, n_agents: n, padding: HistoryPadding::default(), into: None };
+    let mut c = Compiler {
+        prog: Vec::new(),
+        n_regs: 0,
+        channels: Vec::new(),
+        n_actions: env.n_actions,
+        n_agents: n,
+        padding: HistoryPadding::default(),
+        into: None,
+    };
     let mut segs = vec![Vec::new(); n];
     let mut labels = vec![Vec::new(); n];
     let mut base = 0usize;
@@ -320,7 +387,15 @@ impl Compiler {
                     None => {
                         let (src, w) = self.expr(&win.of);
                         let ch = self.channels.len();
-                        self.channels.push(Channel { expr: (*win.of).clone(), padding: pad, src, w, depth: win.k, pad: Vec::new(), ring: Vec::new() });
+                        self.channels.push(Channel {
+                            expr: (*win.of).clone(),
+                            padding: pad,
+                            src,
+                            w,
+                            depth: win.k,
+                            pad: Vec::new(),
+                            ring: Vec::new(),
+                        });
                         self.prog.push(Inst::Push { ch });
                         ch
                     }
@@ -330,7 +405,15 @@ impl Compiler {
                 self.prog.push(Inst::Agg { op: win.op, ch, k: win.k, dst });
                 (dst, w)
             }
-            Expr::Add(a, b) | Expr::Sub(a, b) | Expr::Mul(a, b) | Expr::Div(a, b) | Expr::Min(a, b) | Expr::Max(a, b) | Expr::Gt(a, b) | Expr::Lt(a, b) | Expr::Eq(a, b) => {
+            Expr::Add(a, b)
+            | Expr::Sub(a, b)
+            | Expr::Mul(a, b)
+            | Expr::Div(a, b)
+            | Expr::Min(a, b)
+            | Expr::Max(a, b)
+            | Expr::Gt(a, b)
+            | Expr::Lt(a, b)
+            | Expr::Eq(a, b) => {
                 let op = match e {
                     Expr::Add(..) => Bin::Add,
                     Expr::Sub(..) => Bin::Sub,
@@ -602,8 +685,18 @@ impl MessagePlan for ProtocolPlan {
     fn apply(&mut self, step: &mut StepView<'_>) {
         let n = self.n_agents;
         assert_eq!(step.n_agents, n, "protocol plan {} was compiled for {n} agents, the step has {}", self.name, step.n_agents);
-        assert_eq!(step.obs_dim, self.obs_dim, "protocol plan {} was compiled for obs_dim {}, the step has {}", self.name, self.obs_dim, step.obs_dim);
-        assert!(self.msg_dim <= step.msg_dim, "protocol plan {} writes {} message columns, the slab reserves {}", self.name, self.msg_dim, step.msg_dim);
+        assert_eq!(
+            step.obs_dim, self.obs_dim,
+            "protocol plan {} was compiled for obs_dim {}, the step has {}",
+            self.name, self.obs_dim, step.obs_dim
+        );
+        assert!(
+            self.msg_dim <= step.msg_dim,
+            "protocol plan {} writes {} message columns, the slab reserves {}",
+            self.name,
+            self.msg_dim,
+            step.msg_dim
+        );
         let ne = step.num_envs;
         self.ensure(ne);
         let rows_n = ne * n;

@@ -16,7 +16,12 @@ pub fn explain(p: &Protocol, env: Option<&ProtocolEnv>) -> String {
     }
     let validated = env.map(|e| validate(p, e));
     if let Some(e) = env {
-        writeln!(s, "Environment: {} agents, obs_dim {}, {} actions, state_dim {}, message budget {} columns", e.n_agents, e.obs_dim, e.n_actions, e.state_dim, e.message_budget).unwrap();
+        writeln!(
+            s,
+            "Environment: {} agents, obs_dim {}, {} actions, state_dim {}, message budget {} columns",
+            e.n_agents, e.obs_dim, e.n_actions, e.state_dim, e.message_budget
+        )
+        .unwrap();
     }
 
     s.push_str("\nDesign:\n");
@@ -92,7 +97,9 @@ pub fn explain(p: &Protocol, env: Option<&ProtocolEnv>) -> String {
 
     if let Some(k) = max_window(p) {
         let pad = match p.history_padding {
-            HistoryPadding::MinusOne => "steps before the episode start read as observation -1 and last action -1 (as the paper's reference code pads)",
+            HistoryPadding::MinusOne => {
+                "steps before the episode start read as observation -1 and last action -1 (as the paper's reference code pads)"
+            }
             HistoryPadding::Zero => "steps before the episode start read as observation 0 and no last action",
             HistoryPadding::Repeat => "steps before the episode start repeat the episode's first step",
         };
@@ -201,7 +208,8 @@ fn receivers_table(v: &ValidatedProtocol) -> String {
     for i in 0..n {
         let mut from = Vec::new();
         for j in (0..n).filter(|&j| j != i) {
-            let fields: Vec<&str> = v.protocol.fields.iter().enumerate().filter(|(f, _)| v.sends[*f][j][i]).map(|(_, f)| f.name.as_str()).collect();
+            let fields: Vec<&str> =
+                v.protocol.fields.iter().enumerate().filter(|(f, _)| v.sends[*f][j][i]).map(|(_, f)| f.name.as_str()).collect();
             if fields.is_empty() {
                 from.push(format!("nothing from agent {j}"));
             } else {
@@ -220,7 +228,15 @@ fn max_window(p: &Protocol) -> Option<usize> {
                 *m = Some(m.unwrap_or(0).max(w.k));
                 walk(&w.of, m)
             }
-            Expr::Add(a, b) | Expr::Sub(a, b) | Expr::Mul(a, b) | Expr::Div(a, b) | Expr::Min(a, b) | Expr::Max(a, b) | Expr::Gt(a, b) | Expr::Lt(a, b) | Expr::Eq(a, b) => {
+            Expr::Add(a, b)
+            | Expr::Sub(a, b)
+            | Expr::Mul(a, b)
+            | Expr::Div(a, b)
+            | Expr::Min(a, b)
+            | Expr::Max(a, b)
+            | Expr::Gt(a, b)
+            | Expr::Lt(a, b)
+            | Expr::Eq(a, b) => {
                 walk(a, m);
                 walk(b, m)
             }
@@ -245,9 +261,15 @@ fn width(e: &Expr, env: Option<&ProtocolEnv>) -> Option<usize> {
         Expr::LastAction(ActionEncoding::OneHot) => env?.n_actions,
         Expr::SenderOneHot => env?.n_agents,
         Expr::Window(w) => width(&w.of, env)?,
-        Expr::Add(a, b) | Expr::Sub(a, b) | Expr::Mul(a, b) | Expr::Div(a, b) | Expr::Min(a, b) | Expr::Max(a, b) | Expr::Gt(a, b) | Expr::Lt(a, b) | Expr::Eq(a, b) => {
-            width(a, env)?.max(width(b, env)?)
-        }
+        Expr::Add(a, b)
+        | Expr::Sub(a, b)
+        | Expr::Mul(a, b)
+        | Expr::Div(a, b)
+        | Expr::Min(a, b)
+        | Expr::Max(a, b)
+        | Expr::Gt(a, b)
+        | Expr::Lt(a, b)
+        | Expr::Eq(a, b) => width(a, env)?.max(width(b, env)?),
         Expr::Neg(a) | Expr::Abs(a) => width(a, env)?,
         Expr::Clip(c) => width(&c.of, env)?,
         Expr::Concat(v) => v.iter().map(|x| width(x, env)).sum::<Option<usize>>()?,
@@ -297,7 +319,12 @@ pub fn explain_expr(e: &Expr, env: Option<&ProtocolEnv>) -> String {
                 WindowOp::Max => format!("maximum over the last {k} steps of {}", x(&w.of)),
                 WindowOp::Last => format!("{} as it was {} step{} ago", x(&w.of), k.saturating_sub(1), if k == 2 { "" } else { "s" }),
                 WindowOp::LastNonzero => format!("most recent non-zero value within the last {k} steps of {}", x(&w.of)),
-                WindowOp::Delta => format!("change of {} over the last {k} steps (now minus {} step{} ago)", x(&w.of), k.saturating_sub(1), if k == 2 { "" } else { "s" }),
+                WindowOp::Delta => format!(
+                    "change of {} over the last {k} steps (now minus {} step{} ago)",
+                    x(&w.of),
+                    k.saturating_sub(1),
+                    if k == 2 { "" } else { "s" }
+                ),
             }
         }
         Expr::Add(a, b) => format!("({} + {})", x(a), x(b)),

@@ -197,7 +197,11 @@ pub fn parse_llm_text(text: &str) -> Result<Protocol, Vec<ValidationError>> {
     }
     match (t.find('{'), t.rfind('}')) {
         (Some(a), Some(b)) if a < b => parse_str(&t[a..=b]),
-        _ => Err(vec![ValidationError::new(ErrorKind::Parse, "", "no JSON object found in the answer: reply with the protocol as one JSON object")]),
+        _ => Err(vec![ValidationError::new(
+            ErrorKind::Parse,
+            "",
+            "no JSON object found in the answer: reply with the protocol as one JSON object",
+        )]),
     }
 }
 
@@ -227,7 +231,12 @@ pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProt
     let mut v = Validator { env, errors: Vec::new(), nodes: 0, nodes_reported: false };
     let n = env.n_agents;
     if n < 2 {
-        v.err(ErrorKind::Env, "", None, format!("the environment has {n} agent(s): messages need at least 2 agents (a sender never receives its own message)"));
+        v.err(
+            ErrorKind::Env,
+            "",
+            None,
+            format!("the environment has {n} agent(s): messages need at least 2 agents (a sender never receives its own message)"),
+        );
         return Err(v.errors);
     }
 
@@ -237,7 +246,12 @@ pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProt
         }
     }
     if p.message_design_instruction.trim().is_empty() {
-        v.err(ErrorKind::Empty, "message_design_instruction", None, "the design description is empty: explain what each agent shares, with whom, and why".to_string());
+        v.err(
+            ErrorKind::Empty,
+            "message_design_instruction",
+            None,
+            "the design description is empty: explain what each agent shares, with whom, and why".to_string(),
+        );
     }
     v.critical_dims(p);
 
@@ -256,9 +270,19 @@ pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProt
         let fp = format!("fields[{fi}]");
         let fname = Some(f.name.as_str());
         if !valid_ident(&f.name) {
-            v.err(ErrorKind::Name, &format!("{fp}.name"), None, format!("field name {:?} must be 1-64 characters of letters, digits, '_' or '-'", f.name));
+            v.err(
+                ErrorKind::Name,
+                &format!("{fp}.name"),
+                None,
+                format!("field name {:?} must be 1-64 characters of letters, digits, '_' or '-'", f.name),
+            );
         } else if !names.insert(f.name.as_str()) {
-            v.err(ErrorKind::Name, &format!("{fp}.name"), None, format!("field name {:?} is used by an earlier field: field names must be unique", f.name));
+            v.err(
+                ErrorKind::Name,
+                &format!("{fp}.name"),
+                None,
+                format!("field name {:?} is used by an earlier field: field names must be unique", f.name),
+            );
         }
         if f.description.trim().is_empty() {
             v.err(ErrorKind::Empty, &format!("{fp}.description"), fname, "the description is empty: say what the value means".to_string());
@@ -301,7 +325,14 @@ pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProt
         return Err(v.errors);
     }
     let critical_dims: BTreeSet<usize> = p.critical_state_dims.iter().flat_map(|s| s.dims()).collect();
-    Ok(ValidatedProtocol { protocol: p.clone(), env: env.clone(), field_widths: widths, sends, width, critical_dims: critical_dims.into_iter().collect() })
+    Ok(ValidatedProtocol {
+        protocol: p.clone(),
+        env: env.clone(),
+        field_widths: widths,
+        sends,
+        width,
+        critical_dims: critical_dims.into_iter().collect(),
+    })
 }
 
 fn valid_ident(s: &str) -> bool {
@@ -327,7 +358,12 @@ impl Validator<'_> {
     fn critical_dims(&mut self, p: &Protocol) {
         let sd = self.env.state_dim;
         if p.critical_state_dims.is_empty() && sd > 0 {
-            self.err(ErrorKind::Empty, "critical_state_dims", None, format!("list the task-critical state dims the protocol targets (indices in 0..{sd})"));
+            self.err(
+                ErrorKind::Empty,
+                "critical_state_dims",
+                None,
+                format!("list the task-critical state dims the protocol targets (indices in 0..{sd})"),
+            );
         }
         let mut seen = BTreeSet::new();
         for (k, spec) in p.critical_state_dims.iter().enumerate() {
@@ -335,16 +371,31 @@ impl Validator<'_> {
             match *spec {
                 DimSpec::Dim(d) => {
                     if d >= sd {
-                        self.err(ErrorKind::StateDim, &path, None, format!("state dim {d} is out of range: state_dim is {sd}, valid dims are 0..={}", sd.saturating_sub(1)));
+                        self.err(
+                            ErrorKind::StateDim,
+                            &path,
+                            None,
+                            format!("state dim {d} is out of range: state_dim is {sd}, valid dims are 0..={}", sd.saturating_sub(1)),
+                        );
                     } else if !seen.insert(d) {
                         self.err(ErrorKind::StateDim, &path, None, format!("state dim {d} is listed twice"));
                     }
                 }
                 DimSpec::Range(Slice { start, end }) => {
                     if start >= end {
-                        self.err(ErrorKind::StateDim, &path, None, format!("empty range: start {start} must be below end {end} (end is exclusive)"));
+                        self.err(
+                            ErrorKind::StateDim,
+                            &path,
+                            None,
+                            format!("empty range: start {start} must be below end {end} (end is exclusive)"),
+                        );
                     } else if end > sd {
-                        self.err(ErrorKind::StateDim, &path, None, format!("range {start}..{end} is out of range: end is exclusive and at most state_dim = {sd}"));
+                        self.err(
+                            ErrorKind::StateDim,
+                            &path,
+                            None,
+                            format!("range {start}..{end} is out of range: end is exclusive and at most state_dim = {sd}"),
+                        );
                     } else {
                         let dup = (start..end).filter(|d| !seen.insert(*d)).count();
                         if dup > 0 {
@@ -364,7 +415,12 @@ impl Validator<'_> {
             Senders::All => (0..n).collect(),
             Senders::List(list) => {
                 if list.is_empty() {
-                    self.err(ErrorKind::Empty, &format!("{fp}.senders"), fname, "the sender list is empty: use \"all\" or list agent indices".into());
+                    self.err(
+                        ErrorKind::Empty,
+                        &format!("{fp}.senders"),
+                        fname,
+                        "the sender list is empty: use \"all\" or list agent indices".into(),
+                    );
                 }
                 let mut out = BTreeSet::new();
                 for (k, &j) in list.iter().enumerate() {
@@ -423,7 +479,12 @@ impl Validator<'_> {
             Receivers::Peer(links) => {
                 let path = format!("{fp}.receivers.peer");
                 if links.is_empty() {
-                    self.err(ErrorKind::Empty, &path, fname, "the peer list is empty: give each sender its receivers, e.g. [{\"from\": 0, \"to\": [1]}]".into());
+                    self.err(
+                        ErrorKind::Empty,
+                        &path,
+                        fname,
+                        "the peer list is empty: give each sender its receivers, e.g. [{\"from\": 0, \"to\": [1]}]".into(),
+                    );
                 }
                 let mut froms = BTreeSet::new();
                 for (k, l) in links.iter().enumerate() {
@@ -434,15 +495,30 @@ impl Validator<'_> {
                         continue;
                     }
                     if !froms.insert(l.from) {
-                        self.err(ErrorKind::Agent, &format!("{lp}.from"), fname, format!("agent {} has more than one peer entry: merge them into one", l.from));
+                        self.err(
+                            ErrorKind::Agent,
+                            &format!("{lp}.from"),
+                            fname,
+                            format!("agent {} has more than one peer entry: merge them into one", l.from),
+                        );
                         continue;
                     }
                     if !senders.contains(&l.from) {
-                        self.err(ErrorKind::Agent, &format!("{lp}.from"), fname, format!("agent {} has a peer entry but is not a sender of this field (senders: {:?})", l.from, senders));
+                        self.err(
+                            ErrorKind::Agent,
+                            &format!("{lp}.from"),
+                            fname,
+                            format!("agent {} has a peer entry but is not a sender of this field (senders: {:?})", l.from, senders),
+                        );
                         continue;
                     }
                     if l.to.is_empty() {
-                        self.err(ErrorKind::Empty, &format!("{lp}.to"), fname, format!("agent {} sends to nobody: list at least one other agent", l.from));
+                        self.err(
+                            ErrorKind::Empty,
+                            &format!("{lp}.to"),
+                            fname,
+                            format!("agent {} sends to nobody: list at least one other agent", l.from),
+                        );
                     }
                     let mut tos = BTreeSet::new();
                     for (q, &i) in l.to.iter().enumerate() {
@@ -488,14 +564,24 @@ impl Validator<'_> {
         match e {
             Expr::Obs(dims) => {
                 if dims.is_empty() {
-                    self.err(ErrorKind::Empty, &format!("{path}.obs"), field, "the dim list is empty: list at least one observation dim".into());
+                    self.err(
+                        ErrorKind::Empty,
+                        &format!("{path}.obs"),
+                        field,
+                        "the dim list is empty: list at least one observation dim".into(),
+                    );
                     return None;
                 }
                 let mut ok = true;
                 for (k, &d) in dims.iter().enumerate() {
                     if d >= od {
                         ok = false;
-                        self.err(ErrorKind::ObsDim, &format!("{path}.obs[{k}]"), field, format!("observation dim {d} is out of range: obs_dim is {od}, valid dims are 0..={}", od.saturating_sub(1)));
+                        self.err(
+                            ErrorKind::ObsDim,
+                            &format!("{path}.obs[{k}]"),
+                            field,
+                            format!("observation dim {d} is out of range: obs_dim is {od}, valid dims are 0..={}", od.saturating_sub(1)),
+                        );
                     }
                 }
                 ok.then_some(dims.len())
@@ -503,10 +589,25 @@ impl Validator<'_> {
             Expr::ObsSlice(s) => {
                 let sp = format!("{path}.obs_slice");
                 if s.start >= s.end {
-                    self.err(ErrorKind::ObsDim, &sp, field, format!("empty slice: start {} must be below end {} (end is exclusive)", s.start, s.end));
+                    self.err(
+                        ErrorKind::ObsDim,
+                        &sp,
+                        field,
+                        format!("empty slice: start {} must be below end {} (end is exclusive)", s.start, s.end),
+                    );
                     None
                 } else if s.end > od {
-                    self.err(ErrorKind::ObsDim, &sp, field, format!("slice {}..{} is out of range: end is exclusive and at most obs_dim = {od} (valid dims are 0..={})", s.start, s.end, od.saturating_sub(1)));
+                    self.err(
+                        ErrorKind::ObsDim,
+                        &sp,
+                        field,
+                        format!(
+                            "slice {}..{} is out of range: end is exclusive and at most obs_dim = {od} (valid dims are 0..={})",
+                            s.start,
+                            s.end,
+                            od.saturating_sub(1)
+                        ),
+                    );
                     None
                 } else {
                     Some(s.end - s.start)
@@ -536,11 +637,21 @@ impl Validator<'_> {
                 let mut ok = true;
                 if in_window {
                     ok = false;
-                    self.err(ErrorKind::Window, &wp, field, "a window cannot contain another window: aggregate a per-step expression".into());
+                    self.err(
+                        ErrorKind::Window,
+                        &wp,
+                        field,
+                        "a window cannot contain another window: aggregate a per-step expression".into(),
+                    );
                 }
                 if w.k == 0 || w.k > MAX_WINDOW {
                     ok = false;
-                    self.err(ErrorKind::Window, &format!("{wp}.k"), field, format!("window length k = {} is out of range: k must be in 1..={MAX_WINDOW}", w.k));
+                    self.err(
+                        ErrorKind::Window,
+                        &format!("{wp}.k"),
+                        field,
+                        format!("window length k = {} is out of range: k must be in 1..={MAX_WINDOW}", w.k),
+                    );
                 }
                 let inner = self.expr(&w.of, &format!("{wp}.of"), field, depth + 1, true);
                 if ok {
@@ -549,7 +660,15 @@ impl Validator<'_> {
                     None
                 }
             }
-            Expr::Add(a, b) | Expr::Sub(a, b) | Expr::Mul(a, b) | Expr::Div(a, b) | Expr::Min(a, b) | Expr::Max(a, b) | Expr::Gt(a, b) | Expr::Lt(a, b) | Expr::Eq(a, b) => {
+            Expr::Add(a, b)
+            | Expr::Sub(a, b)
+            | Expr::Mul(a, b)
+            | Expr::Div(a, b)
+            | Expr::Min(a, b)
+            | Expr::Max(a, b)
+            | Expr::Gt(a, b)
+            | Expr::Lt(a, b)
+            | Expr::Eq(a, b) => {
                 let op = binop_name(e);
                 let wa = self.expr(a, &format!("{path}.{op}[0]"), field, depth + 1, in_window);
                 let wb = self.expr(b, &format!("{path}.{op}[1]"), field, depth + 1, in_window);
@@ -569,7 +688,12 @@ impl Validator<'_> {
                 for (name, x) in [("min", c.min), ("max", c.max)] {
                     if !x.is_finite() || x.abs() > f32::MAX as f64 {
                         ok = false;
-                        self.err(ErrorKind::Number, &format!("{cp}.{name}"), field, format!("clip {name} {x} is not a finite 32-bit float"));
+                        self.err(
+                            ErrorKind::Number,
+                            &format!("{cp}.{name}"),
+                            field,
+                            format!("clip {name} {x} is not a finite 32-bit float"),
+                        );
                     }
                 }
                 if ok && c.min > c.max {
@@ -637,11 +761,16 @@ pub fn check_phases(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<u
         total = total.saturating_add(p.width);
     }
     if total > env.message_budget {
-        let parts: Vec<String> = phases.iter().enumerate().map(|(k, p)| format!("phase {}: {}", p.protocol.phase.map_or(k, |x| x as usize), p.width)).collect();
+        let parts: Vec<String> =
+            phases.iter().enumerate().map(|(k, p)| format!("phase {}: {}", p.protocol.phase.map_or(k, |x| x as usize), p.width)).collect();
         errors.push(ValidationError::new(
             ErrorKind::Budget,
             "",
-            format!("the phases together need {total} message columns per receiving agent ({}) but the budget is {}", parts.join(", "), env.message_budget),
+            format!(
+                "the phases together need {total} message columns per receiving agent ({}) but the budget is {}",
+                parts.join(", "),
+                env.message_budget
+            ),
         ));
     }
     if errors.is_empty() {

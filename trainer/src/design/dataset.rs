@@ -106,8 +106,12 @@ impl Dataset {
     fn check_shapes(&self) -> Result<()> {
         let h = &self.header;
         for (k, e) in self.episodes.iter().enumerate() {
-            let want = [(e.obs.len(), e.len * h.n_agents * h.obs_dim, "obs"), (e.state.len(), e.len * h.state_dim, "state"),
-                (e.actions.len(), e.len * h.n_agents, "actions"), (e.reward.len(), e.len, "reward")];
+            let want = [
+                (e.obs.len(), e.len * h.n_agents * h.obs_dim, "obs"),
+                (e.state.len(), e.len * h.state_dim, "state"),
+                (e.actions.len(), e.len * h.n_agents, "actions"),
+                (e.reward.len(), e.len, "reward"),
+            ];
             for (got, exp, what) in want {
                 if got != exp {
                     bail!("episode {k}: {what} has {got} values, expected {exp} for {} steps", e.len);
@@ -219,7 +223,15 @@ impl Dataset {
                         last[a] = if t == 0 { -1 } else { e.actions[(t - 1) * n + a] };
                     }
                     let first = [t == 0];
-                    let mut view = StepView { num_envs: 1, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut rows, first: &first, last_actions: &last };
+                    let mut view = StepView {
+                        num_envs: 1,
+                        n_agents: n,
+                        obs_dim: od,
+                        msg_dim: md,
+                        rows: &mut rows,
+                        first: &first,
+                        last_actions: &last,
+                    };
                     plan.apply(&mut view);
                     for a in 0..n {
                         out.extend_from_slice(&rows[a * row + od..(a + 1) * row]);

@@ -73,7 +73,17 @@ pub struct DiscriminatorConfig {
 
 impl Default for DiscriminatorConfig {
     fn default() -> Self {
-        DiscriminatorConfig { hidden: 64, latent: 20, dropout: 0.1, lr: 5e-4, batch_size: 32, updates: 10_000, history: 2, holdout_fraction: 0.2, eval_batch: 4096 }
+        DiscriminatorConfig {
+            hidden: 64,
+            latent: 20,
+            dropout: 0.1,
+            lr: 5e-4,
+            batch_size: 32,
+            updates: 10_000,
+            history: 2,
+            holdout_fraction: 0.2,
+            eval_batch: 4096,
+        }
     }
 }
 
@@ -81,7 +91,13 @@ impl DiscriminatorConfig {
     /// Every problem at once, each naming the setting.
     pub fn validate(&self) -> Result<()> {
         let mut errs = Vec::new();
-        for (name, v) in [("hidden", self.hidden), ("latent", self.latent), ("batch_size", self.batch_size), ("updates", self.updates), ("eval_batch", self.eval_batch)] {
+        for (name, v) in [
+            ("hidden", self.hidden),
+            ("latent", self.latent),
+            ("batch_size", self.batch_size),
+            ("updates", self.updates),
+            ("eval_batch", self.eval_batch),
+        ] {
             if v == 0 {
                 errs.push(format!("discriminator.{name} must be at least 1"));
             }
@@ -149,7 +165,13 @@ impl<'a> DiscInput<'a> {
     fn check(&self) -> Result<()> {
         let h = &self.data.header;
         if h.n_agents == 0 || h.obs_dim == 0 || h.state_dim == 0 {
-            bail!("dataset {}: n_agents, obs_dim and state_dim must be non-zero (got {}, {}, {})", h.env, h.n_agents, h.obs_dim, h.state_dim);
+            bail!(
+                "dataset {}: n_agents, obs_dim and state_dim must be non-zero (got {}, {}, {})",
+                h.env,
+                h.n_agents,
+                h.obs_dim,
+                h.state_dim
+            );
         }
         if let Some(m) = self.messages {
             if m.len() != self.data.episodes.len() {
@@ -158,7 +180,13 @@ impl<'a> DiscInput<'a> {
             for (k, (e, msg)) in self.data.episodes.iter().zip(m).enumerate() {
                 let want = e.len * h.n_agents * self.msg_dim;
                 if msg.len() != want {
-                    bail!("episode {k}: {} message values, expected {want} ({} steps x {} agents x {} columns)", msg.len(), e.len, h.n_agents, self.msg_dim);
+                    bail!(
+                        "episode {k}: {} message values, expected {want} ({} steps x {} agents x {} columns)",
+                        msg.len(),
+                        e.len,
+                        h.n_agents,
+                        self.msg_dim
+                    );
                 }
             }
         }
@@ -341,7 +369,13 @@ fn rows_of(data: &Dataset, episodes: &[usize]) -> Vec<(u32, u32, u32)> {
 
 impl Discriminator {
     /// Train on the rows of `train_episodes` (indices into the dataset).
-    pub fn train(input: &DiscInput, train_episodes: &[usize], cfg: &DiscriminatorConfig, seed: u64, device: &Device) -> Result<(Self, TrainReport)> {
+    pub fn train(
+        input: &DiscInput,
+        train_episodes: &[usize],
+        cfg: &DiscriminatorConfig,
+        seed: u64,
+        device: &Device,
+    ) -> Result<(Self, TrainReport)> {
         cfg.validate()?;
         input.check()?;
         let data = input.data;
@@ -353,7 +387,8 @@ impl Discriminator {
         if rows.is_empty() {
             bail!("no training rows: the {} training episodes are empty", train_episodes.len());
         }
-        let enc = Encoding { n_agents: h.n_agents, obs_dim: h.obs_dim, n_actions: h.n_actions, msg_dim: input.msg_dim, history: cfg.history };
+        let enc =
+            Encoding { n_agents: h.n_agents, obs_dim: h.obs_dim, n_actions: h.n_actions, msg_dim: input.msg_dim, history: cfg.history };
         let (iw, sd) = (enc.width(), h.state_dim);
         let row_in = |&(e, t, i): &(u32, u32, u32)| {
             let mut r = vec![0f32; iw];
@@ -361,7 +396,8 @@ impl Discriminator {
             r
         };
         let inputs = Standardize::fit(iw, rows.iter().map(row_in));
-        let state_of = |&(e, t, _): &(u32, u32, u32)| -> &[f32] { &data.episodes[e as usize].state[t as usize * sd..(t as usize + 1) * sd] };
+        let state_of =
+            |&(e, t, _): &(u32, u32, u32)| -> &[f32] { &data.episodes[e as usize].state[t as usize * sd..(t as usize + 1) * sd] };
         let targets = Standardize::fit(sd, rows.iter().map(|r| state_of(r).to_vec()));
 
         let dev = device.clone().inner();
@@ -379,7 +415,9 @@ impl Discriminator {
         let mut yb = vec![0f32; b * sd];
         let tail = (cfg.updates / 10).clamp(1, 200);
         let (mut tail_sum, mut tail_n) = (0f64, 0usize);
-        let mask = |rng: &mut LearnRng, len: usize| -> Vec<f32> { (0..len).map(|_| if rng.uniform() < keep { 1.0 / keep } else { 0.0 }).collect() };
+        let mask = |rng: &mut LearnRng, len: usize| -> Vec<f32> {
+            (0..len).map(|_| if rng.uniform() < keep { 1.0 / keep } else { 0.0 }).collect()
+        };
         let start = std::time::Instant::now();
         for u in 0..cfg.updates {
             for k in 0..b {
@@ -411,7 +449,11 @@ impl Discriminator {
             if u + tail >= cfg.updates || u % 500 == 0 {
                 let v: f32 = loss.clone().detach().into_scalar();
                 if !v.is_finite() {
-                    bail!("discriminator training diverged: loss {v} at update {} of {} (try a lower discriminator.lr)", u + 1, cfg.updates);
+                    bail!(
+                        "discriminator training diverged: loss {v} at update {} of {} (try a lower discriminator.lr)",
+                        u + 1,
+                        cfg.updates
+                    );
                 }
                 if u + tail >= cfg.updates {
                     tail_sum += v as f64;
@@ -444,7 +486,9 @@ impl Discriminator {
     pub fn predict(&self, input: &DiscInput, episodes: &[usize]) -> Result<Vec<f32>> {
         input.check()?;
         let h = &input.data.header;
-        if (h.n_agents, h.obs_dim, h.n_actions, input.msg_dim, h.state_dim) != (self.enc.n_agents, self.enc.obs_dim, self.enc.n_actions, self.enc.msg_dim, self.state_dim) {
+        if (h.n_agents, h.obs_dim, h.n_actions, input.msg_dim, h.state_dim)
+            != (self.enc.n_agents, self.enc.obs_dim, self.enc.n_actions, self.enc.msg_dim, self.state_dim)
+        {
             bail!(
                 "the discriminator was trained for {} agents, obs {}, {} actions, {} message columns, state {}; this input has {}, {}, {}, {}, {}",
                 self.enc.n_agents, self.enc.obs_dim, self.enc.n_actions, self.enc.msg_dim, self.state_dim, h.n_agents, h.obs_dim, h.n_actions, input.msg_dim, h.state_dim

@@ -151,7 +151,8 @@ impl LlmConfig {
     /// model may itself contain ':' (`ollama:llama3:8b`). `base_url` overrides the provider's.
     pub fn from_spec(spec: &str, base_url: Option<&str>) -> Result<Self, LlmError> {
         let err = |problem: &str| LlmError::Spec { spec: spec.to_string(), problem: problem.to_string() };
-        let (prov, model) = spec.split_once(':').ok_or_else(|| err("expected PROVIDER:MODEL, e.g. openai:gpt-4.1 or anthropic:claude-opus-4-1"))?;
+        let (prov, model) =
+            spec.split_once(':').ok_or_else(|| err("expected PROVIDER:MODEL, e.g. openai:gpt-4.1 or anthropic:claude-opus-4-1"))?;
         if model.trim().is_empty() {
             return Err(err("the model name is empty"));
         }
@@ -309,7 +310,8 @@ impl Recorder {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(LlmError::Recording { path, problem: format!("cannot read: {e}") }),
         };
-        let rec: Recording = serde_json::from_str(&text).map_err(|e| LlmError::Recording { path: path.clone(), problem: format!("not a recording: {e}") })?;
+        let rec: Recording = serde_json::from_str(&text)
+            .map_err(|e| LlmError::Recording { path: path.clone(), problem: format!("not a recording: {e}") })?;
         if rec.key != key {
             return Err(LlmError::Recording { path, problem: format!("holds key {} instead of {key}", rec.key) });
         }
@@ -342,14 +344,16 @@ impl Recorder {
     pub fn append(&mut self, req: &CanonicalRequest, resp: RecordedResponse) -> Result<(), LlmError> {
         let key = req.key();
         let path = self.path(&key);
-        std::fs::create_dir_all(&self.dir).map_err(|e| LlmError::Recording { path: self.dir.clone(), problem: format!("cannot create the directory: {e}") })?;
+        std::fs::create_dir_all(&self.dir)
+            .map_err(|e| LlmError::Recording { path: self.dir.clone(), problem: format!("cannot create the directory: {e}") })?;
         let mut rec = self.load(&key)?.unwrap_or_else(|| Recording { key: key.clone(), request: req.clone(), responses: Vec::new() });
         rec.responses.push(resp);
         let n = rec.responses.len();
         let text = serde_json::to_string_pretty(&rec).expect("a recording serializes");
         let tmp = self.dir.join(format!(".{key}.json.tmp{}", std::process::id()));
         std::fs::write(&tmp, text).map_err(|e| LlmError::Recording { path: tmp.clone(), problem: format!("cannot write: {e}") })?;
-        std::fs::rename(&tmp, &path).map_err(|e| LlmError::Recording { path: path.clone(), problem: format!("cannot rename {} into place: {e}", tmp.display()) })?;
+        std::fs::rename(&tmp, &path)
+            .map_err(|e| LlmError::Recording { path: path.clone(), problem: format!("cannot rename {} into place: {e}", tmp.display()) })?;
         // This answer is the session's occurrence n-1 of the request.
         self.seen.insert(key, n);
         Ok(())
@@ -409,7 +413,12 @@ impl HttpLlm {
                 // A local server is reached directly even when a proxy is configured.
                 b = b.no_proxy();
             }
-            Some(b.build().map_err(|e| LlmError::Transport { endpoint: cfg.endpoint(), problem: format!("cannot build the HTTP client: {e}"), attempts: 0, timed_out: false })?)
+            Some(b.build().map_err(|e| LlmError::Transport {
+                endpoint: cfg.endpoint(),
+                problem: format!("cannot build the HTTP client: {e}"),
+                attempts: 0,
+                timed_out: false,
+            })?)
         };
         Ok(HttpLlm { cfg, key, http, recorder })
     }
@@ -420,7 +429,13 @@ impl HttpLlm {
 
     /// The canonical form of a request for these messages.
     pub fn canonical(&self, messages: &[ChatMessage]) -> CanonicalRequest {
-        CanonicalRequest { provider: self.cfg.provider, model: self.cfg.model.clone(), temperature: self.cfg.temperature, max_tokens: self.cfg.max_tokens, messages: messages.to_vec() }
+        CanonicalRequest {
+            provider: self.cfg.provider,
+            model: self.cfg.model.clone(),
+            temperature: self.cfg.temperature,
+            max_tokens: self.cfg.max_tokens,
+            messages: messages.to_vec(),
+        }
     }
 
     /// Remove the key from any text that might leave this struct (error bodies can echo it).
@@ -491,13 +506,22 @@ impl HttpLlm {
                         Ok(text) if status.is_success() => return Ok(text),
                         Ok(text) => {
                             let retryable = status.as_u16() == 429 || status.is_server_error();
-                            let e = LlmError::Status { endpoint: endpoint.clone(), status: status.as_u16(), attempts: attempt, body: self.redact(&excerpt(&text, 600)) };
+                            let e = LlmError::Status {
+                                endpoint: endpoint.clone(),
+                                status: status.as_u16(),
+                                attempts: attempt,
+                                body: self.redact(&excerpt(&text, 600)),
+                            };
                             (retryable, retry_after, e)
                         }
                         Err(e) => (true, None, self.transport_error(&endpoint, &e, attempt, "reading the response")),
                     }
                 }
-                Err(e) => (e.is_timeout() || e.is_connect() || e.is_request(), None, self.transport_error(&endpoint, &e, attempt, "sending the request")),
+                Err(e) => (
+                    e.is_timeout() || e.is_connect() || e.is_request(),
+                    None,
+                    self.transport_error(&endpoint, &e, attempt, "sending the request"),
+                ),
             };
             if !retryable || attempt >= max {
                 return Err(err);
@@ -540,10 +564,15 @@ impl HttpLlm {
                 let text = match content {
                     serde_json::Value::String(s) => s.clone(),
                     // Some servers answer with content parts.
-                    serde_json::Value::Array(parts) => parts.iter().filter_map(|p| p.get("text").and_then(|t| t.as_str())).collect::<Vec<_>>().join(""),
+                    serde_json::Value::Array(parts) => {
+                        parts.iter().filter_map(|p| p.get("text").and_then(|t| t.as_str())).collect::<Vec<_>>().join("")
+                    }
                     _ => {
                         let refusal = choice["message"]["refusal"].as_str().unwrap_or("");
-                        return Err(bad(format!("choices[0].message.content is missing{}", if refusal.is_empty() { String::new() } else { format!(" (refusal: {refusal})") })));
+                        return Err(bad(format!(
+                            "choices[0].message.content is missing{}",
+                            if refusal.is_empty() { String::new() } else { format!(" (refusal: {refusal})") }
+                        )));
                     }
                 };
                 (text, choice["finish_reason"].as_str().map(str::to_string))
@@ -669,7 +698,10 @@ mod tests {
     #[test]
     fn spec_parsing() {
         let c = LlmConfig::from_spec("openai:gpt-4.1", None).unwrap();
-        assert_eq!((c.provider, c.model.as_str(), c.endpoint().as_str()), (Provider::OpenAi, "gpt-4.1", "https://api.openai.com/v1/chat/completions"));
+        assert_eq!(
+            (c.provider, c.model.as_str(), c.endpoint().as_str()),
+            (Provider::OpenAi, "gpt-4.1", "https://api.openai.com/v1/chat/completions")
+        );
         assert!(!c.is_local());
         let c = LlmConfig::from_spec("anthropic:claude-opus-4-1", None).unwrap();
         assert_eq!(c.endpoint(), "https://api.anthropic.com/v1/messages");
@@ -700,7 +732,13 @@ mod tests {
 
     #[test]
     fn canonical_key_ignores_nothing_that_matters() {
-        let r = CanonicalRequest { provider: Provider::OpenAi, model: "m".into(), temperature: 0.6, max_tokens: None, messages: vec![ChatMessage::user("hi")] };
+        let r = CanonicalRequest {
+            provider: Provider::OpenAi,
+            model: "m".into(),
+            temperature: 0.6,
+            max_tokens: None,
+            messages: vec![ChatMessage::user("hi")],
+        };
         let mut r2 = r.clone();
         assert_eq!(r.key(), r2.key());
         r2.temperature = 0.7;

@@ -53,7 +53,13 @@ impl LlmDesigner {
 
     /// For the CLI: `openai:gpt-4.1` (optional base URL), live or replayed, recorded in
     /// `record_dir`.
-    pub fn from_spec(spec: &str, base_url: Option<&str>, mode: LlmMode, record_dir: Option<PathBuf>, options: LlmDesignerOptions) -> Result<Self> {
+    pub fn from_spec(
+        spec: &str,
+        base_url: Option<&str>,
+        mode: LlmMode,
+        record_dir: Option<PathBuf>,
+        options: LlmDesignerOptions,
+    ) -> Result<Self> {
         let client = super::llm::client_from_spec(spec, base_url, mode, record_dir)?;
         Ok(Self::with_templates(Box::new(client), Templates::from_env()?, options))
     }
@@ -123,7 +129,13 @@ impl LlmDesigner {
 
     /// Generate and validate phase `phase`'s protocol from a conversation ending in the
     /// generation prompt.
-    fn generate(&mut self, ctx: &DesignContext, phase: usize, msgs: Vec<ChatMessage>, previous: &[ValidatedProtocol]) -> Result<(protocol::Protocol, ValidatedProtocol)> {
+    fn generate(
+        &mut self,
+        ctx: &DesignContext,
+        phase: usize,
+        msgs: Vec<ChatMessage>,
+        previous: &[ValidatedProtocol],
+    ) -> Result<(protocol::Protocol, ValidatedProtocol)> {
         let env = ctx.env;
         let left = budget_left(env, previous);
         self.converse(
@@ -186,13 +198,16 @@ pub fn parse_feedback(reply: &str) -> Result<Feedback, String> {
             fb[slot] = Some(as_text(x));
         }
         const KEYS: [&str; 3] = ["Evaluation", "Missing_Information_Hypothesis", "Improvement_Suggestions"];
-        let missing: Vec<&str> = KEYS.iter().zip(&fb).filter(|(_, v)| v.as_deref().is_none_or(|s| s.trim().is_empty())).map(|(k, _)| *k).collect();
+        let missing: Vec<&str> =
+            KEYS.iter().zip(&fb).filter(|(_, v)| v.as_deref().is_none_or(|s| s.trim().is_empty())).map(|(k, _)| *k).collect();
         if missing.is_empty() {
             let [a, b, c] = fb.map(Option::unwrap_or_default);
             return Ok(Feedback { evaluation: a, missing_information_hypothesis: b, improvement_suggestions: c });
         }
         let found: Vec<&String> = obj.keys().collect();
-        best_missing.get_or_insert_with(|| format!("the JSON object lacks (or leaves empty) the key(s) {} (its keys: {found:?})", missing.join(", ")));
+        best_missing.get_or_insert_with(|| {
+            format!("the JSON object lacks (or leaves empty) the key(s) {} (its keys: {found:?})", missing.join(", "))
+        });
     }
     Err(best_missing.or(first_error).unwrap_or_else(|| "no JSON object found in the reply".to_string()))
 }
@@ -214,7 +229,9 @@ fn json_candidates(text: &str) -> Vec<&str> {
     let mut rest = text;
     while let Some(a) = rest.find("```") {
         let body = &rest[a + 3..];
-        let body = body.find('\n').map_or(body, |nl| if body[..nl].trim().chars().all(|c| c.is_ascii_alphanumeric()) { &body[nl + 1..] } else { body });
+        let body =
+            body.find('\n')
+                .map_or(body, |nl| if body[..nl].trim().chars().all(|c| c.is_ascii_alphanumeric()) { &body[nl + 1..] } else { body });
         match body.find("```") {
             Some(b) => {
                 out.push(&body[..b]);
@@ -294,10 +311,18 @@ impl Designer for LlmDesigner {
         self.converse(phase, "feedback", msgs, "writing the feedback", parse_feedback, |t, problem| t.feedback_correction(problem))
     }
 
-    fn refine(&mut self, ctx: &DesignContext, phase: usize, previous: &[PhaseProtocol], feedback: &Feedback, _meta: &serde_json::Value) -> Result<PhaseProtocol> {
+    fn refine(
+        &mut self,
+        ctx: &DesignContext,
+        phase: usize,
+        previous: &[PhaseProtocol],
+        feedback: &Feedback,
+        _meta: &serde_json::Value,
+    ) -> Result<PhaseProtocol> {
         let prev: Vec<ValidatedProtocol> = previous.iter().map(|p| p.validated.clone()).collect();
         Self::check_room(ctx, phase, &prev)?;
-        let generation = format!("{}\n{}", self.templates.protocol_generation(ctx.env, phase, &prev)?, self.templates.additional_context(feedback)?);
+        let generation =
+            format!("{}\n{}", self.templates.protocol_generation(ctx.env, phase, &prev)?, self.templates.additional_context(feedback)?);
         let mut msgs = vec![ChatMessage::system(self.templates.system()?)];
         match &self.critical {
             // Continue from the phase-0 reasoning about the critical dims (it holds I_T).

@@ -242,8 +242,13 @@ pub fn dim_label(d: usize, names: &[String]) -> String {
 /// is aligned with `with.dims`; ties: worst without messages, then lower index). Returns (dims
 /// sorted by index, explanation).
 pub fn select_targets(with: &Recovery, without: &Recovery, guess: &[f64], wanted: &[usize], max: usize) -> (Vec<usize>, String) {
-    let pool: Vec<usize> = if wanted.is_empty() { with.dims.clone() } else { wanted.iter().copied().filter(|d| with.position(*d).is_some()).collect() };
-    let source = if wanted.is_empty() { "all state dims (the protocol lists no critical dims)".to_string() } else { format!("the {} critical state dims of the protocol phases so far", pool.len()) };
+    let pool: Vec<usize> =
+        if wanted.is_empty() { with.dims.clone() } else { wanted.iter().copied().filter(|d| with.position(*d).is_some()).collect() };
+    let source = if wanted.is_empty() {
+        "all state dims (the protocol lists no critical dims)".to_string()
+    } else {
+        format!("the {} critical state dims of the protocol phases so far", pool.len())
+    };
     if pool.len() <= max {
         return (pool, format!("{source}, all of them"));
     }
@@ -327,7 +332,16 @@ pub fn check_dataset(data: &Dataset, ctx: &DesignContext) -> Result<()> {
     if (h.n_agents, h.obs_dim, h.state_dim, h.n_actions) != (s.n_agents, s.obs_dim, s.state_dim, s.n_actions) {
         bail!(
             "dataset of {} has {} agents, obs {}, state {}, {} actions; the environment {} has {}, {}, {}, {}",
-            h.env, h.n_agents, h.obs_dim, h.state_dim, h.n_actions, ctx.env_name, s.n_agents, s.obs_dim, s.state_dim, s.n_actions
+            h.env,
+            h.n_agents,
+            h.obs_dim,
+            h.state_dim,
+            h.n_actions,
+            ctx.env_name,
+            s.n_agents,
+            s.obs_dim,
+            s.state_dim,
+            s.n_actions
         );
     }
     Ok(())
@@ -357,7 +371,8 @@ pub fn measure(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &Discrimi
     let (messages, msg_dim) = if phases.is_empty() {
         (Vec::new(), 0)
     } else {
-        let mut plan = protocol::compile(phases, ctx.env).map_err(|e| anyhow::anyhow!("compiling the protocol: {}", protocol::errors_to_text(&e)))?;
+        let mut plan =
+            protocol::compile(phases, ctx.env).map_err(|e| anyhow::anyhow!("compiling the protocol: {}", protocol::errors_to_text(&e)))?;
         (data.messages(plan.as_mut()), plan.msg_dim())
     };
     let all: Vec<usize> = if dims.is_empty() { (0..data.header.state_dim).collect() } else { dims.to_vec() };

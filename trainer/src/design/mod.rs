@@ -85,10 +85,23 @@ pub trait Designer {
     fn initial(&mut self, ctx: &DesignContext) -> anyhow::Result<PhaseProtocol>;
     /// Feedback c^(k+1) on the protocol so far (`previous`, phases 0..k) from the
     /// meta-information of phase k (the JSON written by [`meta`]). `phase` is k + 1.
-    fn feedback(&mut self, ctx: &DesignContext, phase: usize, previous: &[PhaseProtocol], meta: &serde_json::Value) -> anyhow::Result<Feedback>;
+    fn feedback(
+        &mut self,
+        ctx: &DesignContext,
+        phase: usize,
+        previous: &[PhaseProtocol],
+        meta: &serde_json::Value,
+    ) -> anyhow::Result<Feedback>;
     /// Phase k + 1's protocol (recognition enhancement for 1, sharing enhancement for 2),
     /// using the feedback; it must fit the budget left by `previous`.
-    fn refine(&mut self, ctx: &DesignContext, phase: usize, previous: &[PhaseProtocol], feedback: &Feedback, meta: &serde_json::Value) -> anyhow::Result<PhaseProtocol>;
+    fn refine(
+        &mut self,
+        ctx: &DesignContext,
+        phase: usize,
+        previous: &[PhaseProtocol],
+        feedback: &Feedback,
+        meta: &serde_json::Value,
+    ) -> anyhow::Result<PhaseProtocol>;
     /// Everything said so far (prompts and replies), for the transcript file.
     fn transcript(&self) -> Vec<TranscriptEntry>;
 }

@@ -34,7 +34,10 @@ use super::discriminator::DiscriminatorConfig;
 use super::meta::{self, Recovery};
 use super::{DesignContext, Designer, Feedback, PhaseProtocol, TranscriptEntry};
 use anyhow::{anyhow, bail, Context, Result};
-use lmac_protocol_runner::protocol::{self, ActionEncoding, DimSpec, Expr, Field, HistoryPadding, PeerLink, Protocol, ProtocolEnv, Receivers, Senders, ValidatedProtocol, Window, WindowOp};
+use lmac_protocol_runner::protocol::{
+    self, ActionEncoding, DimSpec, Expr, Field, HistoryPadding, PeerLink, Protocol, ProtocolEnv, Receivers, Senders, ValidatedProtocol,
+    Window, WindowOp,
+};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -152,13 +155,19 @@ impl Kind {
     fn words(self) -> (String, String) {
         match self {
             Kind::Obs => ("obs".into(), "the sender's current observation".into()),
-            Kind::Win(WinOp::Max, k) => (format!("max{k}"), format!("the highest value over the sender's last {k} steps of its observation")),
+            Kind::Win(WinOp::Max, k) => {
+                (format!("max{k}"), format!("the highest value over the sender's last {k} steps of its observation"))
+            }
             Kind::Win(WinOp::Mean, k) => (format!("mean{k}"), format!("the mean over the sender's last {k} steps of its observation")),
-            Kind::Win(WinOp::LastNonzero, k) => (format!("recent{k}"), format!("the most recent non-zero value within the sender's last {k} steps of its observation")),
+            Kind::Win(WinOp::LastNonzero, k) => {
+                (format!("recent{k}"), format!("the most recent non-zero value within the sender's last {k} steps of its observation"))
+            }
             Kind::Win(WinOp::Last, k) => (format!("back{}", k - 1), format!("the sender's observation {} step(s) ago", k - 1)),
             Kind::Win(WinOp::Delta, k) => (format!("delta{k}"), format!("the change over the sender's last {k} steps of its observation")),
             Kind::LastAction => ("last_action".into(), "the sender's previous action (one-hot; zero on the first step)".into()),
-            Kind::ActionHistogram(k) => (format!("action_hist{k}"), format!("the fraction of the sender's last {k} steps in which it took each action")),
+            Kind::ActionHistogram(k) => {
+                (format!("action_hist{k}"), format!("the fraction of the sender's last {k} steps in which it took each action"))
+            }
         }
     }
 
@@ -168,7 +177,9 @@ impl Kind {
             Kind::Obs => Expr::Obs(dims.to_vec()),
             Kind::Win(op, k) => Expr::Window(Window { op: op.op(), k, of: Box::new(Expr::Obs(dims.to_vec())) }),
             Kind::LastAction => Expr::LastAction(ActionEncoding::OneHot),
-            Kind::ActionHistogram(k) => Expr::Window(Window { op: WindowOp::Mean, k, of: Box::new(Expr::LastAction(ActionEncoding::OneHot)) }),
+            Kind::ActionHistogram(k) => {
+                Expr::Window(Window { op: WindowOp::Mean, k, of: Box::new(Expr::LastAction(ActionEncoding::OneHot)) })
+            }
         }
     }
 
@@ -191,7 +202,14 @@ struct Candidate {
 fn kinds_for(phase: usize) -> Vec<Kind> {
     match phase {
         0 => vec![Kind::Obs, Kind::LastAction],
-        1 => vec![Kind::Obs, Kind::Win(WinOp::Max, 5), Kind::Win(WinOp::Mean, 5), Kind::Win(WinOp::LastNonzero, 5), Kind::Win(WinOp::Last, 2), Kind::Win(WinOp::Delta, 3)],
+        1 => vec![
+            Kind::Obs,
+            Kind::Win(WinOp::Max, 5),
+            Kind::Win(WinOp::Mean, 5),
+            Kind::Win(WinOp::LastNonzero, 5),
+            Kind::Win(WinOp::Last, 2),
+            Kind::Win(WinOp::Delta, 3),
+        ],
         _ => vec![Kind::Win(WinOp::Max, 10), Kind::Win(WinOp::Mean, 10), Kind::Win(WinOp::LastNonzero, 10), Kind::ActionHistogram(10)],
     }
 }
@@ -204,7 +222,13 @@ fn probe(kinds: &[Kind], env: &ProtocolEnv) -> Result<(ValidatedProtocol, Protoc
     let mut cands = Vec::new();
     let mut col = 0;
     for (f, &kind) in kinds.iter().enumerate() {
-        fields.push(Field { name: format!("probe{f}"), description: "candidate".into(), senders: Senders::All, receivers: Receivers::Broadcast, value: kind.expr(&all) });
+        fields.push(Field {
+            name: format!("probe{f}"),
+            description: "candidate".into(),
+            senders: Senders::All,
+            receivers: Receivers::Broadcast,
+            value: kind.expr(&all),
+        });
         if kind.per_dim() {
             for d in 0..env.obs_dim {
                 cands.push(Candidate { kind, dim: Some(d), width: 1, col: col + d });
@@ -227,7 +251,8 @@ fn probe(kinds: &[Kind], env: &ProtocolEnv) -> Result<(ValidatedProtocol, Protoc
     };
     let mut penv = env.clone();
     penv.message_budget = usize::MAX / 4;
-    let v = protocol::validate(&p, &penv).map_err(|e| anyhow!("offline designer: its probe protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
+    let v = protocol::validate(&p, &penv)
+        .map_err(|e| anyhow!("offline designer: its probe protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
     Ok((v, penv, cands))
 }
 
@@ -319,7 +344,15 @@ struct Sampled {
 }
 
 /// Compute the sampled rows: episodes spread evenly over B until `max_samples` steps.
-fn sample(ctx: &DesignContext, previous: &[ValidatedProtocol], probe_v: &ValidatedProtocol, probe_env: &ProtocolEnv, width: usize, targets: &[usize], max_samples: usize) -> Result<Sampled> {
+fn sample(
+    ctx: &DesignContext,
+    previous: &[ValidatedProtocol],
+    probe_v: &ValidatedProtocol,
+    probe_env: &ProtocolEnv,
+    width: usize,
+    targets: &[usize],
+    max_samples: usize,
+) -> Result<Sampled> {
     let data = ctx.dataset.ok_or_else(|| anyhow!("the offline designer needs the dataset B"))?;
     let h = &data.header;
     let (n, od, sd) = (h.n_agents, h.obs_dim, h.state_dim);
@@ -328,10 +361,15 @@ fn sample(ctx: &DesignContext, previous: &[ValidatedProtocol], probe_v: &Validat
     // Whole episodes (message history needs them), every stride-th one.
     let chosen: Vec<usize> = (0..data.episodes.len()).step_by(stride).collect();
     let sub = super::dataset::Dataset { header: h.clone(), episodes: chosen.iter().map(|&e| data.episodes[e].clone()).collect() };
-    let mut prev_plan = if previous.is_empty() { None } else { Some(protocol::compile(previous, ctx.env).map_err(|e| anyhow!("compiling the earlier phases: {}", protocol::errors_to_text(&e)))?) };
+    let mut prev_plan = if previous.is_empty() {
+        None
+    } else {
+        Some(protocol::compile(previous, ctx.env).map_err(|e| anyhow!("compiling the earlier phases: {}", protocol::errors_to_text(&e)))?)
+    };
     let prev_md = prev_plan.as_ref().map(|p| p.msg_dim()).unwrap_or(0);
     let prev_msgs = prev_plan.as_mut().map(|p| sub.messages(p.as_mut()));
-    let mut probe_plan = protocol::compile(std::slice::from_ref(probe_v), probe_env).map_err(|e| anyhow!("offline designer: compiling its probe: {}", protocol::errors_to_text(&e)))?;
+    let mut probe_plan = protocol::compile(std::slice::from_ref(probe_v), probe_env)
+        .map_err(|e| anyhow!("offline designer: compiling its probe: {}", protocol::errors_to_text(&e)))?;
     let pmd = probe_plan.msg_dim();
     let probe_msgs = sub.messages(probe_plan.as_mut());
     let base_w = od + prev_md;
@@ -500,7 +538,14 @@ struct Pick {
 }
 
 /// Greedy selection (see the module doc). `w[i][d]`: weight of receiver i and target d.
-fn select(stats: &Stats, cands: &[Candidate], kept: &[usize], w: &[Vec<f64>], columns: usize, cfg: &OfflineConfig) -> (Vec<Pick>, Vec<String>) {
+fn select(
+    stats: &Stats,
+    cands: &[Candidate],
+    kept: &[usize],
+    w: &[Vec<f64>],
+    columns: usize,
+    cfg: &OfflineConfig,
+) -> (Vec<Pick>, Vec<String>) {
     let (n, p, t) = (stats.n, stats.p, stats.t);
     let orig_var: Vec<f64> = (0..p).map(|k| stats.cov[k * p + k]).collect();
     let targets: Vec<usize> = (0..t).map(|d| stats.target(d)).collect();
@@ -541,7 +586,8 @@ fn select(stats: &Stats, cands: &[Candidate], kept: &[usize], w: &[Vec<f64>], co
                 }
             }
             let top = pair.iter().flatten().cloned().fold(0f64, f64::max);
-            let links: Vec<Vec<bool>> = (0..n).map(|j| (0..n).map(|i| i != j && top > 0.0 && pair[j][i] >= cfg.link_fraction * top).collect()).collect();
+            let links: Vec<Vec<bool>> =
+                (0..n).map(|j| (0..n).map(|i| i != j && top > 0.0 && pair[j][i] >= cfg.link_fraction * top).collect()).collect();
             let gain: f64 = (0..n)
                 .map(|i| {
                     let g: Vec<usize> = (0..n).filter(|&j| links[j][i]).flat_map(|j| vars(c, j)).collect();
@@ -636,7 +682,10 @@ fn fields_from(picks: &[Pick], cands: &[Candidate], env: &ProtocolEnv) -> Vec<Fi
             (Senders::List(senders_list), Receivers::Peer(peers))
         };
         let description = if kind.per_dim() {
-            let names: Vec<String> = dims.iter().map(|&d| format!("o[{d}] ({})", env.obs_names.get(d).map(|s| short(s)).unwrap_or_else(|| "unnamed".into()))).collect();
+            let names: Vec<String> = dims
+                .iter()
+                .map(|&d| format!("o[{d}] ({})", env.obs_names.get(d).map(|s| short(s)).unwrap_or_else(|| "unnamed".into())))
+                .collect();
             format!("{what}, dims {}; {}", names.join(", "), links_text(&links))
         } else {
             format!("{what}; {}", links_text(&links))
@@ -676,7 +725,8 @@ fn meta_dims(meta: &Value) -> Result<Vec<MetaDim>> {
         .enumerate()
         .map(|(k, d)| {
             let label = d["dimension"].as_str().unwrap_or_default();
-            let dim = parse_dim(label).ok_or_else(|| anyhow!("meta-information dimensions[{k}]: \"dimension\" {label:?} does not start with s[<index>]"))?;
+            let dim = parse_dim(label)
+                .ok_or_else(|| anyhow!("meta-information dimensions[{k}]: \"dimension\" {label:?} does not start with s[<index>]"))?;
             let w = &d["with_communication"];
             let rates = floats(&w["agent_success_rates"]);
             if rates.is_empty() {
@@ -686,7 +736,14 @@ fn meta_dims(meta: &Value) -> Result<Vec<MetaDim>> {
                 .iter()
                 .map(|th| (w[format!("variance_in_{th}")].as_f64().unwrap_or(0.0), *th))
                 .fold((f64::MIN, "early"), |a, b| if b.0 > a.0 { b } else { a });
-            Ok(MetaDim { dim, guess: d["constant_guess_rate"].as_f64().unwrap_or(0.0), variance: meta::variance(&rates), rates, rates_without: floats(&d["without_communication"]["agent_success_rates"]), worst_third })
+            Ok(MetaDim {
+                dim,
+                guess: d["constant_guess_rate"].as_f64().unwrap_or(0.0),
+                variance: meta::variance(&rates),
+                rates,
+                rates_without: floats(&d["without_communication"]["agent_success_rates"]),
+                worst_third,
+            })
         })
         .collect()
 }
@@ -724,7 +781,14 @@ struct Targets {
 
 impl OfflineDesigner {
     /// Build, validate and explain one phase's protocol for `targets`.
-    fn design(&mut self, ctx: &DesignContext, phase: usize, previous: &[PhaseProtocol], targets: Targets, critical: &[usize]) -> Result<PhaseProtocol> {
+    fn design(
+        &mut self,
+        ctx: &DesignContext,
+        phase: usize,
+        previous: &[PhaseProtocol],
+        targets: Targets,
+        critical: &[usize],
+    ) -> Result<PhaseProtocol> {
         let env = ctx.env;
         let n = env.n_agents;
         let prev: Vec<ValidatedProtocol> = previous.iter().map(|p| p.validated.clone()).collect();
@@ -787,7 +851,8 @@ impl OfflineDesigner {
             history_padding: HistoryPadding::default(),
             fields,
         };
-        let validated = protocol::validate_phase(&p, env, &prev).map_err(|e| anyhow!("offline designer: its phase {phase} protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
+        let validated = protocol::validate_phase(&p, env, &prev)
+            .map_err(|e| anyhow!("offline designer: its phase {phase} protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
         let reasoning = format!(
             "# Offline designer, phase {phase} ({goal})\n\nThis protocol was built by a deterministic algorithm (greedy least-squares feature selection over the dataset), not by a language model.\n\n## Targets\n{}\n\n{}\n\n## Budget\n{left} message columns left of {}; this phase's share is {share} ({phases_left} phase(s) left), i.e. {per_block} value columns per sender block after the {n}-column sender one-hot.\n\n## Candidates\n{} candidate features ({}), {} kept by the marginal-correlation prescreen, {} sampled steps.\n\n## Selection\n{}\n\nResulting width: {} columns per receiving agent.\n",
             targets.dims.iter().map(|&d| format!("- {}", meta::dim_label(d, &names))).collect::<Vec<_>>().join("\n"),
@@ -800,7 +865,15 @@ impl OfflineDesigner {
             steps.iter().map(|l| format!("- {l}")).collect::<Vec<_>>().join("\n"),
             validated.width,
         );
-        self.log(phase, "protocol", format!("offline designer: select features for phase {phase} ({goal}); targets {:?}; {per_block} value columns per sender block", targets.dims), serde_json::to_string_pretty(&p)?);
+        self.log(
+            phase,
+            "protocol",
+            format!(
+                "offline designer: select features for phase {phase} ({goal}); targets {:?}; {per_block} value columns per sender block",
+                targets.dims
+            ),
+            serde_json::to_string_pretty(&p)?,
+        );
         Ok(PhaseProtocol { protocol: p, validated, reasoning })
     }
 }
@@ -854,10 +927,13 @@ impl Designer for OfflineDesigner {
         let (dims, weights) = worst(pool, self.cfg.max_targets);
         debug_assert_eq!(weights.len(), n);
         let names = ctx.schema.state_meanings();
-        let listing: Vec<String> = critical.iter().map(|&d| {
-            let k = r.position(d).unwrap_or(0);
-            format!("{} (mean E_t[chi] without messages {:.3}, constant guess {:.3})", meta::dim_label(d, &names), r.mean_rate(k), g[k])
-        }).collect();
+        let listing: Vec<String> = critical
+            .iter()
+            .map(|&d| {
+                let k = r.position(d).unwrap_or(0);
+                format!("{} (mean E_t[chi] without messages {:.3}, constant guess {:.3})", meta::dim_label(d, &names), r.mean_rate(k), g[k])
+            })
+            .collect();
         self.log(
             0,
             "critical_dims",
@@ -872,7 +948,12 @@ impl Designer for OfflineDesigner {
         let names = ctx.schema.state_meanings();
         let s = &meta_v["summary"];
         let g = |side: &str, key: &str| s[side][key].as_f64().unwrap_or(f64::NAN);
-        let (rw, ro, vw, vo) = (g("with_communication", "mean_recovery"), g("without_communication", "mean_recovery"), g("with_communication", "mean_variance_across_agents"), g("without_communication", "mean_variance_across_agents"));
+        let (rw, ro, vw, vo) = (
+            g("with_communication", "mean_recovery"),
+            g("without_communication", "mean_recovery"),
+            g("with_communication", "mean_variance_across_agents"),
+            g("without_communication", "mean_variance_across_agents"),
+        );
         let mut by_rate: Vec<&MetaDim> = dims.iter().collect();
         by_rate.sort_by(|a, b| a.skill().partial_cmp(&b.skill()).unwrap_or(std::cmp::Ordering::Equal));
         let mut by_gain: Vec<&MetaDim> = dims.iter().collect();
@@ -881,8 +962,21 @@ impl Designer for OfflineDesigner {
         let mut by_var: Vec<&MetaDim> = dims.iter().collect();
         by_var.sort_by(|a, b| b.variance.partial_cmp(&a.variance).unwrap_or(std::cmp::Ordering::Equal));
         let label = |d: usize| short(&meta::dim_label(d, &names));
-        let worst3: Vec<String> = by_rate.iter().take(3).map(|d| format!("{} with {} / without {} (constant guess {:.2})", label(d.dim), fmt_rates(&d.rates), fmt_rates(&d.rates_without), d.guess)).collect();
-        let best3: Vec<String> = by_gain.iter().take(3).filter(|d| gain(d) > 0.0).map(|d| format!("{} (+{:.2})", label(d.dim), gain(d))).collect();
+        let worst3: Vec<String> = by_rate
+            .iter()
+            .take(3)
+            .map(|d| {
+                format!(
+                    "{} with {} / without {} (constant guess {:.2})",
+                    label(d.dim),
+                    fmt_rates(&d.rates),
+                    fmt_rates(&d.rates_without),
+                    d.guess
+                )
+            })
+            .collect();
+        let best3: Vec<String> =
+            by_gain.iter().take(3).filter(|d| gain(d) > 0.0).map(|d| format!("{} (+{:.2})", label(d.dim), gain(d))).collect();
         let evaluation = format!(
             "offline designer: over {} target state dims (alpha {}), agents recover {:.3} of held-out steps with the messages against {:.3} without; the variance of recovery across agents is {:.4} with and {:.4} without. Largest gains from the messages: {}. Worst recovered with messages relative to a constant guess: {}.",
             dims.len(),
@@ -913,7 +1007,20 @@ impl Designer for OfflineDesigner {
                 )
             }
         } else {
-            let list: Vec<String> = by_var.iter().take(6).map(|d| format!("{} (variance {:.4}, largest in the {} third at {:.4}; {})", label(d.dim), d.variance, d.worst_third.1, d.worst_third.0, lagging(d))).collect();
+            let list: Vec<String> = by_var
+                .iter()
+                .take(6)
+                .map(|d| {
+                    format!(
+                        "{} (variance {:.4}, largest in the {} third at {:.4}; {})",
+                        label(d.dim),
+                        d.variance,
+                        d.worst_third.1,
+                        d.worst_third.0,
+                        lagging(d)
+                    )
+                })
+                .collect();
             format!("Recovery is uneven across agents on: {}. The lagging agents depend on what their teammates saw earlier, which the current messages do not keep once it leaves the teammate's view.", list.join("; "))
         };
         let suggestions = if phase <= 1 {
@@ -922,11 +1029,23 @@ impl Designer for OfflineDesigner {
             "1. Add temporal cues over the last 10 steps (max, mean, most recent non-zero of the observation dims that predict the uneven dims, and the sender's action histogram) so agents that missed an event can still infer it. 2. Weight the choice towards the agents that lag on each dim. 3. Keep the sender one-hot so the receivers know whose history they read.".to_string()
         };
         let fb = Feedback { evaluation, missing_information_hypothesis: missing, improvement_suggestions: suggestions };
-        self.log(phase, "feedback", format!("offline designer: feedback from the meta-information of phases 0..={}: {}", phase - 1, meta::summary_line(meta_v)), serde_json::to_string_pretty(&fb)?);
+        self.log(
+            phase,
+            "feedback",
+            format!("offline designer: feedback from the meta-information of phases 0..={}: {}", phase - 1, meta::summary_line(meta_v)),
+            serde_json::to_string_pretty(&fb)?,
+        );
         Ok(fb)
     }
 
-    fn refine(&mut self, ctx: &DesignContext, phase: usize, previous: &[PhaseProtocol], _feedback: &Feedback, meta_v: &Value) -> Result<PhaseProtocol> {
+    fn refine(
+        &mut self,
+        ctx: &DesignContext,
+        phase: usize,
+        previous: &[PhaseProtocol],
+        _feedback: &Feedback,
+        meta_v: &Value,
+    ) -> Result<PhaseProtocol> {
         if phase == 0 {
             bail!("offline designer: refine is for phases 1 and later (phase 0 is `initial`)");
         }
@@ -936,7 +1055,11 @@ impl Designer for OfflineDesigner {
         }
         let n = ctx.env.n_agents;
         if let Some(d) = dims.iter().find(|d| d.rates.len() != n) {
-            bail!("offline designer: the meta-information has {} agent rates for s[{}], the environment has {n} agents", d.rates.len(), d.dim);
+            bail!(
+                "offline designer: the meta-information has {} agent rates for s[{}], the environment has {n} agents",
+                d.rates.len(),
+                d.dim
+            );
         }
         let thr = self.cfg.poor_threshold;
         let targets = if phase == 1 {
@@ -956,7 +1079,8 @@ impl Designer for OfflineDesigner {
                 .iter()
                 .map(|d| {
                     let best = d.rates.iter().cloned().fold(0f64, f64::max);
-                    let weights = d.rates.iter().map(|&r| (failure(r, d.guess) - failure(best, d.guess)) + 0.1 * failure(r, d.guess)).collect();
+                    let weights =
+                        d.rates.iter().map(|&r| (failure(r, d.guess) - failure(best, d.guess)) + 0.1 * failure(r, d.guess)).collect();
                     (d.dim, -d.variance.max(d.worst_third.0), weights)
                 })
                 .collect();

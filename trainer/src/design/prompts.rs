@@ -203,7 +203,8 @@ impl Templates {
     /// I_T: the task, the observation tensor shape, the meaning of every observation and state
     /// dim (`o[batch][agent_id][d]`, `s[d]`) and of every action.
     pub fn task(&self, env_name: &str, schema: &EnvSchema) -> Result<String> {
-        let obs: Vec<String> = schema.obs_meanings().iter().enumerate().map(|(d, m)| format!("  - `o[batch][agent_id][{d}]`: {m}")).collect();
+        let obs: Vec<String> =
+            schema.obs_meanings().iter().enumerate().map(|(d, m)| format!("  - `o[batch][agent_id][{d}]`: {m}")).collect();
         let state: Vec<String> = schema.state_meanings().iter().enumerate().map(|(d, m)| format!("  - `s[{d}]`: {m}")).collect();
         let actions: Vec<String> = schema.actions.iter().enumerate().map(|(a, m)| format!("  - {a}: {m}")).collect();
         self.render(
@@ -228,7 +229,10 @@ impl Templates {
 
     /// The chain-of-thought turn before phase 0: select the task-critical state dims.
     pub fn critical_dims(&self, env: &ProtocolEnv) -> Result<String> {
-        self.render("critical_dims.md", &[("state_dim", env.state_dim.to_string()), ("last_state_dim", env.state_dim.saturating_sub(1).to_string())])
+        self.render(
+            "critical_dims.md",
+            &[("state_dim", env.state_dim.to_string()), ("last_state_dim", env.state_dim.saturating_sub(1).to_string())],
+        )
     }
 
     /// The feedback prompt's phase instruction (how to read the evaluation, what to suggest):
@@ -272,7 +276,16 @@ impl Templates {
     /// The feedback prompt for `phase` (= k + 1) on the protocol so far (phases 0..=k) and its
     /// meta-information (rendered within `meta_max_chars`).
     #[allow(clippy::too_many_arguments)]
-    pub fn feedback(&self, env_name: &str, schema: &EnvSchema, env: &ProtocolEnv, phase: usize, previous: &[ValidatedProtocol], meta: &serde_json::Value, meta_max_chars: usize) -> Result<String> {
+    pub fn feedback(
+        &self,
+        env_name: &str,
+        schema: &EnvSchema,
+        env: &ProtocolEnv,
+        phase: usize,
+        previous: &[ValidatedProtocol],
+        meta: &serde_json::Value,
+        meta_max_chars: usize,
+    ) -> Result<String> {
         if previous.is_empty() {
             bail!("feedback for phase {phase}: there is no protocol to analyse yet");
         }
@@ -298,7 +311,10 @@ impl Templates {
 
     /// The validator's text handed back for another try.
     pub fn correction(&self, phase: usize, errors: &str, budget_left: usize) -> Result<String> {
-        self.render("correction.md", &[("phase", phase.to_string()), ("errors", errors.trim_end().to_string()), ("budget_left", budget_left.to_string())])
+        self.render(
+            "correction.md",
+            &[("phase", phase.to_string()), ("errors", errors.trim_end().to_string()), ("budget_left", budget_left.to_string())],
+        )
     }
 
     /// What was wrong with a feedback reply, handed back for another try.
@@ -345,7 +361,8 @@ fn budget_text(env: &ProtocolEnv, previous: &[ValidatedProtocol]) -> String {
     s
 }
 
-const PREVIOUS_FIXED: &str = "These phases are fixed; the new phase's fields are appended after theirs, so do not repeat what they already send.\n";
+const PREVIOUS_FIXED: &str =
+    "These phases are fixed; the new phase's fields are appended after theirs, so do not repeat what they already send.\n";
 
 /// The earlier phases as JSON with their widths (the JSON is what the LLM wrote and reads best).
 fn previous_phases_text(previous: &[ValidatedProtocol], none: &str, intro: &str) -> String {
@@ -354,7 +371,11 @@ fn previous_phases_text(previous: &[ValidatedProtocol], none: &str, intro: &str)
     }
     let mut s = String::from(intro);
     for (k, v) in previous.iter().enumerate() {
-        s.push_str(&format!("\nPhase {k} ({} message columns per receiving agent):\n```json\n{}\n```\n", v.width, protocol_json(&v.protocol)));
+        s.push_str(&format!(
+            "\nPhase {k} ({} message columns per receiving agent):\n```json\n{}\n```\n",
+            v.width,
+            protocol_json(&v.protocol)
+        ));
     }
     s.trim().to_string()
 }
@@ -398,7 +419,9 @@ fn reference_for_analysis(env: &ProtocolEnv) -> String {
     let r = protocol::language_reference(Some(env));
     let r = r.trim_end();
     match r.split_once('\n') {
-        Some((first, rest)) if first.starts_with("Answer with") => format!("A protocol is one JSON object (no code, nothing is executed):\n{rest}"),
+        Some((first, rest)) if first.starts_with("Answer with") => {
+            format!("A protocol is one JSON object (no code, nothing is executed):\n{rest}")
+        }
         _ => r.to_string(),
     }
 }
@@ -425,7 +448,8 @@ pub fn render_meta(meta: &serde_json::Value, max_chars: usize) -> String {
         return format!("{cut}\n[... cut at {max_chars} characters to fit the prompt]");
     }
     if !cuts.is_empty() {
-        let notes: Vec<String> = cuts.iter().map(|(p, n)| format!("{} (first entries of {n})", if p.is_empty() { "/" } else { p })).collect();
+        let notes: Vec<String> =
+            cuts.iter().map(|(p, n)| format!("{} (first entries of {n})", if p.is_empty() { "/" } else { p })).collect();
         s.push_str(&format!("\n[shortened to fit the prompt: lists cut at {}]", notes.join(", ")));
     }
     s
@@ -493,7 +517,10 @@ mod tests {
         // The README documents every template and its placeholders.
         let readme = include_str!("../../../prompts/README.md");
         for s in SPECS {
-            let row = readme.lines().find(|l| l.starts_with(&format!("| `{}`", s.name))).unwrap_or_else(|| panic!("prompts/README.md lacks {}", s.name));
+            let row = readme
+                .lines()
+                .find(|l| l.starts_with(&format!("| `{}`", s.name)))
+                .unwrap_or_else(|| panic!("prompts/README.md lacks {}", s.name));
             for p in s.placeholders {
                 assert!(row.contains(&format!("`{p}`")), "prompts/README.md: {} lacks {p}", s.name);
             }
@@ -513,7 +540,10 @@ mod tests {
         let t = Templates::embedded();
         let e = t.render("correction.md", &[("phase", "1".into()), ("errors", "x".into())]).unwrap_err().to_string();
         assert!(e.contains("correction.md") && e.contains("budget_left"), "{e}");
-        let e = t.render("correction.md", &[("phase", "1".into()), ("errors", "x".into()), ("budget_left", "3".into()), ("bogus", "".into())]).unwrap_err().to_string();
+        let e = t
+            .render("correction.md", &[("phase", "1".into()), ("errors", "x".into()), ("budget_left", "3".into()), ("bogus", "".into())])
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("bogus"), "{e}");
         let mut broken = t.clone();
         broken.texts.insert("feedback.md", "no placeholders here".into());

@@ -108,9 +108,8 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
 
     let mut phases: Vec<PhaseProtocol> = Vec::new();
     let mut files: Vec<PathBuf> = Vec::new();
-    let persist_transcript = |d: &dyn Designer| -> Result<()> {
-        write(&dir.join("transcript.json"), &serde_json::to_string_pretty(&d.transcript())?)
-    };
+    let persist_transcript =
+        |d: &dyn Designer| -> Result<()> { write(&dir.join("transcript.json"), &serde_json::to_string_pretty(&d.transcript())?) };
     // Phase 0 before the data when the designer works from the task prompt alone (an LLM).
     if !designer.needs_data_for_initial() {
         let p0 = designer.initial(&ctx0).inspect_err(|_| {
@@ -129,16 +128,19 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
             let run_dir = dir.join("collect");
             std::fs::create_dir_all(&run_dir)?;
             let protocol = files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join("+");
-            let cfg = crate::train::TrainConfig::resolve(None, &[
-                format!("run.env={:?}", opts.env),
-                "run.algo=\"qmix\"".into(),
-                format!("run.protocol={protocol:?}"),
-                format!("run.steps={}", opts.pretrain_steps.max(1)),
-                format!("run.envs={}", opts.envs),
-                format!("run.servers={}", opts.servers),
-                format!("run.dataset_episodes={}", opts.dataset_episodes),
-                format!("learn.seed={}", opts.seed),
-            ])?;
+            let cfg = crate::train::TrainConfig::resolve(
+                None,
+                &[
+                    format!("run.env={:?}", opts.env),
+                    "run.algo=\"qmix\"".into(),
+                    format!("run.protocol={protocol:?}"),
+                    format!("run.steps={}", opts.pretrain_steps.max(1)),
+                    format!("run.envs={}", opts.envs),
+                    format!("run.servers={}", opts.servers),
+                    format!("run.dataset_episodes={}", opts.dataset_episodes),
+                    format!("learn.seed={}", opts.seed),
+                ],
+            )?;
             let mut cfg = cfg;
             cfg.run.dataset_epsilon = opts.dataset_epsilon;
             cfg.check()?;
@@ -152,7 +154,12 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
     if data.header.env != opts.env {
         bail!("dataset {} was collected on {}, not {}", data_dir.display(), data.header.env, opts.env);
     }
-    eprintln!("lmac: dataset: {} episodes, {} steps ({})", data.episodes.len(), data.episodes.iter().map(|e| e.len).sum::<usize>(), data.header.policy);
+    eprintln!(
+        "lmac: dataset: {} episodes, {} steps ({})",
+        data.episodes.len(),
+        data.episodes.iter().map(|e| e.len).sum::<usize>(),
+        data.header.policy
+    );
     let ctx = DesignContext { dataset: Some(&data), ..ctx0 };
 
     if phases.is_empty() {

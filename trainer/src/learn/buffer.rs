@@ -139,8 +139,7 @@ impl Batch {
                     let last = if ti == 0 { -1 } else { ep.actions[(ti - 1) * n + ag] };
                     layout.write(&mut batch.inputs[row * iw..(row + 1) * iw], obs, Some(st), last, ag);
                     batch.actions[row] = ep.actions[ti * n + ag];
-                    batch.avail[row * a..(row + 1) * a]
-                        .copy_from_slice(&ep.avail[(ti * n + ag) * a..(ti * n + ag + 1) * a]);
+                    batch.avail[row * a..(row + 1) * a].copy_from_slice(&ep.avail[(ti * n + ag) * a..(ti * n + ag + 1) * a]);
                 }
                 batch.reward[tb] = ep.reward[ti];
                 let last_step = ti + 1 == ep.len;

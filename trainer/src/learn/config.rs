@@ -148,16 +148,10 @@ impl LearnConfig {
             return Err(err("hypernet_layers", format!("must be 1 or 2, got {}", self.hypernet_layers)));
         }
         if !(1..=3).contains(&self.qplex_adv_hypernet_layers) {
-            return Err(err(
-                "qplex_adv_hypernet_layers",
-                format!("must be 1, 2 or 3, got {}", self.qplex_adv_hypernet_layers),
-            ));
+            return Err(err("qplex_adv_hypernet_layers", format!("must be 1, 2 or 3, got {}", self.qplex_adv_hypernet_layers)));
         }
         if self.batch_size > self.buffer_size {
-            return Err(err(
-                "batch_size",
-                format!("({}) must not exceed buffer_size ({})", self.batch_size, self.buffer_size),
-            ));
+            return Err(err("batch_size", format!("({}) must not exceed buffer_size ({})", self.batch_size, self.buffer_size)));
         }
         if !(self.gamma.is_finite() && (0.0..=1.0).contains(&self.gamma)) {
             return Err(err("gamma", format!("must be in [0, 1], got {}", self.gamma)));

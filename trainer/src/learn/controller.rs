@@ -149,14 +149,7 @@ impl Controller {
 
 impl Controller {
     /// Greedy actions (epsilon 0), for evaluation and tests.
-    pub fn greedy_actions(
-        &mut self,
-        obs: &[f32],
-        state: Option<&[f32]>,
-        last_actions: &[i32],
-        avail: &[u8],
-        first: &[bool],
-    ) -> Vec<i32> {
+    pub fn greedy_actions(&mut self, obs: &[f32], state: Option<&[f32]>, last_actions: &[i32], avail: &[u8], first: &[bool]) -> Vec<i32> {
         // epsilon = 0 never draws from the RNG.
         let mut rng = LearnRng::seed_from(0);
         self.select_actions(obs, state, last_actions, avail, first, 0.0, &mut rng)
@@ -165,9 +158,6 @@ impl Controller {
 
 impl std::fmt::Debug for Controller {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Controller")
-            .field("n_envs", &self.n_envs)
-            .field("params", &self.agent.num_params())
-            .finish()
+        f.debug_struct("Controller").field("n_envs", &self.n_envs).field("params", &self.agent.num_params()).finish()
     }
 }

@@ -85,11 +85,9 @@ pub struct Learner {
 pub(crate) fn make_optimizer(cfg: &LearnConfig) -> ModuleOptimizer {
     match cfg.optimizer {
         OptimizerKind::Adam => AdamConfig::new().with_epsilon(cfg.adam_eps).init(),
-        OptimizerKind::Rmsprop => RmsPropConfig::new()
-            .with_alpha(cfg.rmsprop_alpha)
-            .with_epsilon(cfg.rmsprop_eps)
-            .with_momentum(0.0)
-            .init(),
+        OptimizerKind::Rmsprop => {
+            RmsPropConfig::new().with_alpha(cfg.rmsprop_alpha).with_epsilon(cfg.rmsprop_eps).with_momentum(0.0).init()
+        }
     }
 }
 
@@ -191,9 +189,7 @@ impl Learner {
     pub fn train_step(&mut self) -> Result<TrainStats, LearnError> {
         let batch = self.sample_batch();
         let mut stats = self.train_on(&batch)?;
-        if self.counters.episodes - self.counters.last_target_update_episode
-            >= self.cfg.target_update_interval_episodes
-        {
+        if self.counters.episodes - self.counters.last_target_update_episode >= self.cfg.target_update_interval_episodes {
             self.update_target();
             stats.target_updated = true;
         }
@@ -238,14 +234,10 @@ impl Learner {
                 .collect()
         };
         let actions_i: Vec<i64> = batch.actions.iter().map(|&x| x as i64).collect();
-        let actions_t = |device: &Device| -> Tensor<4, Int> {
-            Tensor::from_data(TensorData::new(actions_i.clone(), [t, b, n, 1]), device)
-        };
+        let actions_t = |device: &Device| -> Tensor<4, Int> { Tensor::from_data(TensorData::new(actions_i.clone(), [t, b, n, 1]), device) };
         let unavail: Vec<bool> = batch.avail.iter().map(|&x| x == 0).collect();
         let unavail_t: Tensor<4, Bool> = Tensor::from_data(TensorData::new(unavail, [t, b, n, a]), &dev);
-        let states_t = |device: &Device| -> Tensor<2> {
-            Tensor::from_data(TensorData::new(batch.state.clone(), [nb, sd]), device)
-        };
+        let states_t = |device: &Device| -> Tensor<2> { Tensor::from_data(TensorData::new(batch.state.clone(), [nb, sd]), device) };
         let kind = self.cfg.mixer;
         let onehot = |idx: Tensor<4, Int>| -> Tensor<2> {
             // idx [t, b, n, 1] -> [nb, n * a]
@@ -278,28 +270,17 @@ impl Learner {
             (target_masked.clone().gather(3, cur.clone()), cur)
         };
         let target_q = target_q.reshape([nb, n]);
-        let target_extra = (kind == MixerKind::Qplex).then(|| QplexInputs {
-            actions_onehot: onehot(target_actions),
-            max_q: target_masked.max_dim(3).reshape([nb, n]),
-        });
-        let target_tot: Vec<f32> = self
-            .target
-            .mixer
-            .forward(target_q, states_t(&dev), target_extra)
-            .into_data()
-            .try_into_vec::<f32>()
-            .expect("f32 target values");
+        let target_extra = (kind == MixerKind::Qplex)
+            .then(|| QplexInputs { actions_onehot: onehot(target_actions), max_q: target_masked.max_dim(3).reshape([nb, n]) });
+        let target_tot: Vec<f32> =
+            self.target.mixer.forward(target_q, states_t(&dev), target_extra).into_data().try_into_vec::<f32>().expect("f32 target values");
 
         // ---- TD(0) targets on the host: y_t = r_t + gamma (1 - term_t) Q_tot'(t+1)
         let mut y = vec![0.0f32; nb];
         for ti in 0..t {
             for bi in 0..b {
                 let i = ti * b + bi;
-                let next = if batch.has_next[i] > 0.0 && batch.terminated[i] == 0.0 {
-                    target_tot[(ti + 1) * b + bi]
-                } else {
-                    0.0
-                };
+                let next = if batch.has_next[i] > 0.0 && batch.terminated[i] == 0.0 { target_tot[(ti + 1) * b + bi] } else { 0.0 };
                 // Masked transitions get target 0 so a NaN in one cannot leak through `0 * NaN`.
                 y[i] = if batch.mask[i] > 0.0 { batch.reward[i] + self.cfg.gamma * next } else { 0.0 };
             }
@@ -308,10 +289,8 @@ impl Learner {
         let target_mean = y.iter().zip(&batch.mask).map(|(v, m)| v * m).sum::<f32>() / mask_sum;
 
         // ---- mixed online values and loss
-        let extra = (kind == MixerKind::Qplex).then(|| QplexInputs {
-            actions_onehot: onehot(actions_t(&ad)),
-            max_q: mac_plain.max_dim(3).reshape([nb, n]),
-        });
+        let extra = (kind == MixerKind::Qplex)
+            .then(|| QplexInputs { actions_onehot: onehot(actions_t(&ad)), max_q: mac_plain.max_dim(3).reshape([nb, n]) });
         let q_tot = self.net.mixer.forward(chosen, states_t(&ad), extra);
         let y_t: Tensor<1> = Tensor::from_data(TensorData::new(y, [nb]), &ad);
         let mask_t: Tensor<1> = Tensor::from_data(TensorData::new(batch.mask.clone(), [nb]), &ad);

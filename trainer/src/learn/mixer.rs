@@ -20,10 +20,7 @@ pub struct HyperNet {
 impl HyperNet {
     pub fn new(rng: &mut LearnRng, input: usize, output: usize, layers: usize, embed: usize, device: &Device) -> Self {
         if layers >= 2 {
-            HyperNet {
-                l1: linear(rng, input, embed, device),
-                l2: Some(linear(rng, embed, output, device)),
-            }
+            HyperNet { l1: linear(rng, input, embed, device), l2: Some(linear(rng, embed, output, device)) }
         } else {
             HyperNet { l1: linear(rng, input, output, device), l2: None }
         }
@@ -89,10 +86,7 @@ pub struct StackedLinear {
 impl StackedLinear {
     pub fn new(rng: &mut LearnRng, k: usize, input: usize, output: usize, device: &Device) -> Self {
         let bound = 1.0 / (input as f32).sqrt();
-        StackedLinear {
-            weight: uniform(rng, [k, input, output], bound, device),
-            bias: uniform(rng, [k, 1, output], bound, device),
-        }
+        StackedLinear { weight: uniform(rng, [k, input, output], bound, device), bias: uniform(rng, [k, 1, output], bound, device) }
     }
 
     pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
@@ -200,13 +194,19 @@ pub struct QplexInputs {
 }
 
 impl Mixer {
-    pub fn new(rng: &mut LearnRng, kind: MixerKind, n_agents: usize, state_dim: usize, n_actions: usize, cfg: &LearnConfig, device: &Device) -> Self {
+    pub fn new(
+        rng: &mut LearnRng,
+        kind: MixerKind,
+        n_agents: usize,
+        state_dim: usize,
+        n_actions: usize,
+        cfg: &LearnConfig,
+        device: &Device,
+    ) -> Self {
         match kind {
             MixerKind::Vdn => Mixer { qmix: None, qplex: None },
             MixerKind::Qmix => Mixer { qmix: Some(QmixMixer::new(rng, n_agents, state_dim, cfg, device)), qplex: None },
-            MixerKind::Qplex => {
-                Mixer { qmix: None, qplex: Some(QplexMixer::new(rng, n_agents, state_dim, n_actions, cfg, device)) }
-            }
+            MixerKind::Qplex => Mixer { qmix: None, qplex: Some(QplexMixer::new(rng, n_agents, state_dim, n_actions, cfg, device)) },
         }
     }
 
