@@ -100,7 +100,8 @@ fn lbf_episodes_flow_end_to_end_with_fullcomm_messages() {
         assert!((-1e-5..=1.0 + 1e-5).contains(&ret), "team return {ret} outside [0, 1]: {e}");
         assert_eq!(term, (ret - 1.0).abs() < 1e-4, "terminated iff all food eaten (return 1): {e}");
     }
-    assert_eq!(servers.len(), 2, "both env servers delivered episodes");
+    // 2 env servers x 2 sub-batches (the default double buffering): 4 ring servers.
+    assert_eq!(servers.len(), 4, "every sub-batch of both env servers delivered episodes");
     // Episode ids are unique.
     let ids: HashSet<u64> = episodes.iter().map(|e| e["episode_id"].as_u64().unwrap()).collect();
     assert_eq!(ids.len(), episodes.len());
@@ -111,7 +112,8 @@ fn clean_shutdown_leaves_no_shared_memory_and_files_are_owner_only() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let before = all_shm_files();
     let mut child = lmac()
-        .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "4", "--steps", "3000000"])
+        // One sub-batch: the plain (not double-buffered) server loop.
+        .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "4", "--sub-batches", "1", "--steps", "3000000"])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
@@ -144,8 +146,9 @@ fn a_killed_env_server_is_reported_by_name_and_nothing_hangs() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let slab = wait_for(Duration::from_secs(30), || lmac_shm_files().difference(&before).find(|f| f.ends_with("-s1")).cloned())
-        .expect("env server 1's slab appears");
+    // 2 servers x 4 envs = 2 sub-batches each: env server 1 owns the slabs of ring servers 2 and 3.
+    let slab = wait_for(Duration::from_secs(30), || lmac_shm_files().difference(&before).find(|f| f.ends_with("-s3")).cloned())
+        .expect("env server 1's second slab appears");
     std::thread::sleep(Duration::from_millis(1500)); // let the ring run
     let pid = slab_owner_pid(&slab);
     unsafe { libc::kill(pid as i32, libc::SIGKILL) };
@@ -160,7 +163,7 @@ fn a_killed_env_server_is_reported_by_name_and_nothing_hangs() {
     let left: Vec<String> = lmac_shm_files().difference(&before).cloned().collect();
     assert!(left.is_empty(), "slabs left after the failure: {left:?}");
     // Nothing of the run survives: no process still holds the killed server's peers.
-    let run = slab.trim_start_matches("lmac-").trim_end_matches("-s1");
+    let run = slab.trim_start_matches("lmac-").trim_end_matches("-s3");
     let pids_alive = std::process::Command::new("pgrep").args(["-f", &format!("--run {run}")]).output().unwrap();
     assert!(String::from_utf8_lossy(&pids_alive.stdout).trim().is_empty());
 }
@@ -200,7 +203,7 @@ fn a_three_phase_protocol_runs_in_the_runner_and_matches_an_independent_recomput
 #[test]
 fn a_protocol_over_the_message_budget_is_refused_before_anything_starts() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    // A copy of the LBF schema whose message budget is smaller than FullComm's 29 columns.
+    // A copy of the LBF schema whose message budget is smaller than FullComm's 31 columns.
     let dir = std::env::temp_dir().join(format!("lmac-budget-{}", std::process::id()));
     std::fs::create_dir_all(dir.join("lbf")).unwrap();
     let text = std::fs::read_to_string(root().join("env-server/schemas/lbf/8x8-2p-2f-s1-coop.toml")).unwrap();
@@ -214,7 +217,12 @@ fn a_protocol_over_the_message_budget_is_refused_before_anything_starts() {
     std::fs::remove_dir_all(&dir).ok();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("writes 29 message columns") && err.contains("allows 10"), "{err}");
+    assert!(err.contains("writes 31 message columns") && err.contains("allows 10"), "{err}");
+    assert_eq!(lmac_shm_files(), before, "nothing was started");
+    let out = lmac().args(["run", "--envs", "4", "--sub-batches", "3", "--steps", "100"]).output().unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--sub-batches 3 must be at least 1 and divide --envs 4"), "{err}");
     assert_eq!(lmac_shm_files(), before, "nothing was started");
     let out = lmac().args(["run", "--protocol", "nonsense", "--steps", "100"]).output().unwrap();
     assert!(!out.status.success());

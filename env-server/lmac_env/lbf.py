@@ -4,8 +4,11 @@ The dynamics are lbforaging's own (`ForagingEnv.step`: moves, collisions, cooper
 normalised rewards). Observations and state are built here from the environment's fields,
 because lbforaging 2.0.0's ``grid_observation`` is broken:
 
-- observation (27 per agent): the 3x3 window around the agent (sight 1) of three layers of the
-  padded grid: agent levels, food levels, accessible cells (1 = free cell inside the field);
+- observation (29 per agent): the 3x3 window around the agent (sight 1) of three layers of the
+  padded grid: agent levels, food levels, accessible cells (1 = free cell inside the field),
+  then the agent's own field row and column scaled to [0, 1] (lbforaging's vector observation
+  also starts each agent's own entry with its position; without it a receiver could not place a
+  teammate's 3x3 view anywhere on the grid, so no message could say where food or teammates are);
 - state (3 x (S+2)^2): the same three layers over the whole padded grid (300 for 8x8, 507 for
   11x11).
 
@@ -76,9 +79,13 @@ class LbfVecEnv(VecEnv):
             g[0, r + s, c + s] = pl.level
             g[2, r + s, c + s] = 0.0
         out.state[e] = g.reshape(-1)
+        view = 3 * (2 * s + 1) ** 2
+        scale = 1.0 / (self.size - 1)
         for i, pl in enumerate(env.players):
             r, c = pl.position
-            out.obs[e, i] = g[:, r:r + 2 * s + 1, c:c + 2 * s + 1].reshape(-1)
+            out.obs[e, i, :view] = g[:, r:r + 2 * s + 1, c:c + 2 * s + 1].reshape(-1)
+            out.obs[e, i, view] = r * scale
+            out.obs[e, i, view + 1] = c * scale
             av = out.avail[e, i]
             av[:] = 0
             for a in env._valid_actions[pl]:

@@ -2,8 +2,8 @@
 its shared-memory slab, then hands the slot to the protocol runner. The trainer hands it back
 with the chosen actions. Started by `lmac` (one process per server); also usable by hand:
 
-    python -m lmac_env.server --env lbf:8x8-2p-2f-s1-coop --envs 32 --run myrun --server 0 \
-        --n-servers 1 --slots 4 --msg-dim 29
+    python -m lmac_env.server --env lbf:8x8-2p-2f-s1-coop --envs 32 --sub-batches 2 --run myrun \
+        --server 0 --n-servers 2 --slots 4 --msg-dim 29
 
 `python -m lmac_env.server --raw --steps 2000 ...` steps the same environments with random
 available actions and no pipeline (the baseline of `lmac bench pipeline`).
@@ -116,7 +116,56 @@ def _write_step(driver: Driver, lease) -> None:
     # The views die with this frame, so the caller may hand the slot over.
 
 
+class _SubBatch:
+    """One sub-batch of this process: its environments, its slab and its ring port. To the
+    protocol runner and the trainer each sub-batch is an env server of its own (index `server`)."""
+
+    def __init__(self, args, server: int, num_envs: int, lmac_shm):
+        self.server = server
+        self.env = make(args.env, num_envs, seed=args.seed + 1_000_003 * server)
+        self.driver = Driver(self.env, server)
+        self.slab = lmac_shm.Slab.create(f"lmac-{args.run}-s{server}", str(schema_path(args.env)), num_envs,
+                                         args.msg_dim, args.slots)
+        self.port = lmac_shm.Port(args.run, "env", server, args.n_servers, args.slots,
+                                  startup_timeout=args.startup_timeout)
+        self.seq = 0
+        self.open = True
+
+    def start(self) -> None:
+        lease = self.slab.lease(0, "env")
+        _write_first(self.driver, lease)
+        lease.seq = self.seq
+        lease.release()
+        self.port.send_slot(self.server, 0, self.seq)
+
+    def serve_one(self) -> None:
+        """Wait (up to 0.25 s) for this sub-batch's slot to come back with actions, step it and
+        hand it over again."""
+        msg = self.port.recv(0.25)
+        if msg is None:
+            return
+        kind, _, slot, _ = msg
+        if kind == "bye":
+            self.open = False
+        elif kind == "slot":
+            self.seq += 1
+            lease = self.slab.lease(slot, "env")
+            _write_step(self.driver, lease)
+            lease.seq = self.seq
+            lease.release()
+            self.port.send_slot(self.server, slot, self.seq)
+
+    def close(self) -> None:
+        self.env.close()
+        del self.port
+        del self.slab  # unlinks the shared memory
+
+
 def serve(args) -> int:
+    """Serve `--sub-batches` H sub-batches of `--envs / H` environments each (env servers
+    `--server` .. `--server + H - 1` of the ring). With H = 2 the process steps one half while
+    the other half's slot is with the protocol runner and the trainer, so it never sleeps
+    waiting for actions (double buffering); with H = 1 stepping and the round trip alternate."""
     import lmac_shm
 
     stop = {"flag": False}
@@ -128,42 +177,28 @@ def serve(args) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
 
-    who = f"env server {args.server} ({args.env})"
-    spath = schema_path(args.env)
-    env = make(args.env, args.envs, seed=args.seed + 1_000_003 * args.server)
-    driver = Driver(env, args.server)
-    slab = lmac_shm.Slab.create(f"lmac-{args.run}-s{args.server}", str(spath), args.envs,
-                                args.msg_dim, args.slots)
-    port = None
+    last = args.server + args.sub_batches - 1
+    who = f"env server {args.server} ({args.env})" if args.sub_batches == 1 else \
+        f"env servers {args.server}-{last} ({args.env})"
+    units: list[_SubBatch] = []
     try:
-        port = lmac_shm.Port(args.run, "env", args.server, args.n_servers, args.slots,
-                             startup_timeout=args.startup_timeout)
-        port.handshake(args.startup_timeout)
-        seq = 0
-        lease = slab.lease(0, "env")
-        _write_first(driver, lease)
-        lease.seq = seq
-        lease.release()
-        port.send_slot(args.server, 0, seq)
+        for k in range(args.sub_batches):
+            units.append(_SubBatch(args, args.server + k, args.envs // args.sub_batches, lmac_shm))
+        for u in units:
+            u.port.handshake(args.startup_timeout)
+        for u in units:
+            u.start()
         t0 = time.perf_counter()
-        while not stop["flag"]:
-            msg = port.recv(0.25)
-            if msg is None:
-                continue
-            kind, server, slot, _ = msg
-            if kind == "bye":
-                break
-            if kind != "slot":
-                continue
-            seq += 1
-            lease = slab.lease(slot, "env")
-            _write_step(driver, lease)
-            lease.seq = seq
-            lease.release()
-            port.send_slot(args.server, slot, seq)
+        # Strict round robin: each sub-batch's slot comes back in the order it was sent.
+        while not stop["flag"] and any(u.open for u in units):
+            for u in units:
+                if u.open:
+                    u.serve_one()
         dt = time.perf_counter() - t0
-        print(f"lmac: {who}: {seq * args.envs} env steps, {driver.episodes_done} episodes "
-              f"in {dt:.1f} s; goodbye", file=sys.stderr, flush=True)
+        steps = sum(u.seq * u.env.num_envs for u in units)
+        episodes = sum(u.driver.episodes_done for u in units)
+        print(f"lmac: {who}: {steps} env steps, {episodes} episodes in {dt:.1f} s; goodbye",
+              file=sys.stderr, flush=True)
         return 0
     except lmac_shm.StoppedError:
         return 0
@@ -171,9 +206,8 @@ def serve(args) -> int:
         print(f"lmac: {who}: {e}", file=sys.stderr, flush=True)
         return 3
     finally:
-        env.close()
-        del port
-        del slab  # unlinks the shared memory
+        for u in units:
+            u.close()
 
 
 def raw(args) -> int:
@@ -214,7 +248,9 @@ def main(argv=None) -> int:
     p.add_argument("--envs", type=int, default=8, help="environments stepped together (B)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--run", help="run id (names the shared memory and iceoryx2 services)")
-    p.add_argument("--server", type=int, default=0, help="index of this server")
+    p.add_argument("--server", type=int, default=0, help="ring index of this process's first sub-batch")
+    p.add_argument("--sub-batches", type=int, default=1,
+                   help="split --envs into this many sub-batches stepped in turn (2: double buffering)")
     p.add_argument("--n-servers", type=int, default=1)
     p.add_argument("--slots", type=int, default=4, help="slots in the slab")
     p.add_argument("--msg-dim", type=int, default=0, help="message columns reserved per row")
@@ -225,6 +261,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.envs < 1:
         p.error("--envs must be at least 1")
+    if args.sub_batches < 1 or args.envs % args.sub_batches:
+        p.error(f"--sub-batches must be at least 1 and divide --envs ({args.envs})")
     if args.raw:
         return raw(args)
     if not args.run:

@@ -27,11 +27,11 @@ def test_views_are_the_shared_memory(name):
     assert owner.schema_hash == peer.schema_hash
     lease = owner.lease(1, "env")
     obs = lease.obs
-    assert obs.shape == (4, 2, 27) and obs.dtype == np.float32
+    assert obs.shape == (4, 2, 29) and obs.dtype == np.float32
     obs[2, 1, 5] = 42.0
     lease.msg[0, 0, 3] = 7.0
     rows = lease.rows
-    assert rows[2, 1, 5] == 42.0 and rows[0, 0, 27 + 3] == 7.0  # message columns follow the row
+    assert rows[2, 1, 5] == 42.0 and rows[0, 0, 29 + 3] == 7.0  # message columns follow the row
     lease.state[3, 299] = 1.5
     del obs, rows
     lease.release("trainer")

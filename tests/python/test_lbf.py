@@ -24,9 +24,9 @@ def rollout(seed, steps=60, envs=3):
 def test_dims_match_schema():
     env, trace = rollout(0, steps=2)
     s = env.schema
-    assert (s.n_agents, s.obs_dim, s.state_dim, s.n_actions) == (2, 27, 300, 6)
+    assert (s.n_agents, s.obs_dim, s.state_dim, s.n_actions) == (2, 29, 300, 6)
     obs, state, _, _ = trace[-1]
-    assert obs.shape == (3, 2, 27) and state.shape == (3, 300)
+    assert obs.shape == (3, 2, 29) and state.shape == (3, 300)
     big = make("lbf:11x11-6p-4f-s1-coop", 1, seed=0).schema
     assert (big.n_agents, big.state_dim) == (6, 507)
 
@@ -38,8 +38,9 @@ def test_observation_is_the_window_of_the_state():
     grid = state[0].reshape(3, 10, 10)
     for i, pl in enumerate(e.players):
         r, c = pl.position
-        np.testing.assert_array_equal(obs[0, i].reshape(3, 3, 3), grid[:, r:r + 3, c:c + 3])
-        assert obs[0, i].reshape(3, 3, 3)[0, 1, 1] == pl.level  # the agent itself at the centre
+        np.testing.assert_array_equal(obs[0, i, :27].reshape(3, 3, 3), grid[:, r:r + 3, c:c + 3])
+        assert obs[0, i, :27].reshape(3, 3, 3)[0, 1, 1] == pl.level  # the agent itself at the centre
+        np.testing.assert_allclose(obs[0, i, 27:], [r / 7, c / 7])  # own row and column, scaled
     # food layer holds the field; access layer is 0 on the padding
     np.testing.assert_array_equal(grid[1, 1:-1, 1:-1], e.field)
     assert grid[2, 0, :].sum() == 0 and grid[2, :, 0].sum() == 0

@@ -62,6 +62,10 @@ struct PipelineOpts {
     /// Env server processes.
     #[arg(long, default_value_t = 1)]
     servers: usize,
+    /// Sub-batches per env server: it steps one while the other's slot travels through the
+    /// runner and the trainer (default: 2 when --envs is even, else 1).
+    #[arg(long)]
+    sub_batches: Option<usize>,
     /// Slots in each server's shared-memory slab.
     #[arg(long, default_value_t = 4)]
     slots: usize,
@@ -417,11 +421,16 @@ fn pipeline_report(p: &PipelineOpts, extra: Vec<String>, interrupted: Arc<Atomic
     if p.envs == 0 || p.servers == 0 || p.slots == 0 {
         bail!("--envs, --servers and --slots must be at least 1");
     }
+    let sub_batches = p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(p.envs));
+    if sub_batches == 0 || p.envs % sub_batches != 0 {
+        bail!("--sub-batches {sub_batches} must be at least 1 and divide --envs {}", p.envs);
+    }
     let rp = RunPlan {
         run: run_id(),
         env: p.env.clone(),
         servers: p.servers,
         envs_per_server: p.envs,
+        sub_batches,
         slots: p.slots,
         msg_dim: plan.msg_dim(),
         protocol: p.protocol.clone(),
@@ -497,6 +506,7 @@ fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
     let (raw_rate, pipe_rate, ratio) = (median(raws.clone()), median(pipes.clone()), median(ratios.clone()));
     let v = serde_json::json!({
         "env": p.env, "envs_total": p.envs * p.servers, "servers": p.servers, "protocol": p.protocol,
+        "sub_batches": p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(p.envs)),
         "env_steps": p.steps, "repeats": repeat,
         "raw_env_steps_per_s": raw_rate, "pipeline_env_steps_per_s": pipe_rate, "ratio": ratio,
         "raw_runs": raws, "pipeline_runs": pipes, "ratio_runs": ratios,
@@ -593,6 +603,7 @@ fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: 
             env: env.into(),
             envs: n / servers,
             servers,
+            sub_batches: None,
             slots: 4,
             protocol: cfg.protocol()?,
             steps,
@@ -699,6 +710,7 @@ fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Resu
             env: cfg.run.env.clone(),
             envs: cfg.run.envs,
             servers: cfg.run.servers,
+            sub_batches: Some(cfg.run.sub_batches()),
             slots: 4,
             protocol: cfg.protocol()?,
             steps: u64::MAX / 4,
@@ -831,6 +843,8 @@ fn child(c: ChildCmd) -> Result<i32> {
 fn design(a: DesignArgs) -> Result<i32> {
     use lmac_trainer::design::llm::LlmMode;
     use lmac_trainer::design::llm_designer::{LlmDesigner, LlmDesignerOptions};
+    use lmac_trainer::design::meta::{self, MetaConfig};
+    use lmac_trainer::design::offline::{OfflineConfig, OfflineDesigner};
     use lmac_trainer::design::run::{run_design, DesignOptions};
     use lmac_trainer::design::Designer;
     let interrupted = interrupt_flag();
@@ -846,8 +860,16 @@ fn design(a: DesignArgs) -> Result<i32> {
         dataset: a.dataset.clone(),
         phases: a.phases,
     };
+    // One discriminator configuration for the offline designer's phase-0 measurement and for
+    // every phase's meta-information.
+    let mut meta_cfg = MetaConfig::default();
+    if let Some(u) = a.disc_updates {
+        meta_cfg.discriminator.updates = u;
+    }
+    meta_cfg.discriminator.validate()?;
     let mut designer: Box<dyn Designer> = if a.llm == "offline" {
-        bail!("the offline designer is being written")
+        let cfg = OfflineConfig { discriminator: meta_cfg.discriminator.clone(), phases: a.phases, ..Default::default() };
+        Box::new(OfflineDesigner::new(cfg))
     } else {
         let mode: LlmMode = a.llm_mode.parse().map_err(anyhow::Error::msg)?;
         let rec = a.recordings.clone().unwrap_or_else(|| a.out.join("llm-recordings"));
@@ -856,9 +878,9 @@ fn design(a: DesignArgs) -> Result<i32> {
         Box::new(LlmDesigner::from_spec(&a.llm, a.base_url.as_deref(), mode, Some(rec), options)?)
     };
     let train = |dir: &std::path::Path| train_dirs(&[dir.to_path_buf()], interrupted.clone());
-    let evaluate = |_ctx: &lmac_trainer::design::DesignContext,
-                    _phases: &[lmac_protocol_runner::protocol::ValidatedProtocol]|
-     -> Result<serde_json::Value> { bail!("the evaluation is being written") };
+    let evaluate = |ctx: &lmac_trainer::design::DesignContext, phases: &[lmac_protocol_runner::protocol::ValidatedProtocol]| {
+        meta::evaluate(ctx, phases, &meta_cfg)
+    };
     let dir = run_design(&opts, designer.as_mut(), &train, &evaluate)?;
     plot_design(&dir);
     println!("design written to {}", dir.display());

@@ -14,8 +14,14 @@ use std::time::{Duration, Instant};
 pub struct RunPlan {
     pub run: String,
     pub env: String,
+    /// Env server processes.
     pub servers: usize,
+    /// Environments each env server process steps.
     pub envs_per_server: usize,
+    /// Each process splits its environments into this many sub-batches, one slab and one ring
+    /// index each, and steps them in turn: with 2, one half steps while the other half's slot is
+    /// with the protocol runner and the trainer (double buffering, as in Sample Factory).
+    pub sub_batches: usize,
     pub slots: usize,
     /// Message columns reserved in the slab.
     pub msg_dim: usize,
@@ -89,6 +95,22 @@ fn describe(status: &ExitStatus) -> String {
     }
 }
 
+impl RunPlan {
+    /// The env servers the ring, the protocol runner and the trainer see: one per sub-batch.
+    pub fn ring_servers(&self) -> usize {
+        self.servers * self.sub_batches
+    }
+}
+
+/// The default split of `envs` environments per process: two sub-batches when they halve evenly.
+pub fn default_sub_batches(envs: usize) -> usize {
+    if envs >= 2 && envs % 2 == 0 {
+        2
+    } else {
+        1
+    }
+}
+
 /// Remove what a run may leave in shared memory: its slabs and dead iceoryx2 nodes.
 pub fn cleanup_run(run: &str, servers: usize) {
     for s in 0..servers {
@@ -108,19 +130,26 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
     let exe = std::env::current_exe().context("locating the lmac executable")?;
     let mut procs: Vec<Proc> = Vec::new();
     let spawn_all = |procs: &mut Vec<Proc>| -> Result<()> {
+        let h = plan.sub_batches;
         for s in 0..plan.servers {
             let mut c = python_command()?;
             c.args(["-m", "lmac_env.server", "--env", &plan.env, "--run", &plan.run])
-                .args(["--envs", &plan.envs_per_server.to_string(), "--server", &s.to_string()])
-                .args(["--n-servers", &plan.servers.to_string(), "--slots", &plan.slots.to_string()])
+                .args(["--envs", &plan.envs_per_server.to_string(), "--sub-batches", &h.to_string()])
+                .args(["--server", &(s * h).to_string(), "--n-servers", &plan.ring_servers().to_string()])
+                .args(["--slots", &plan.slots.to_string()])
                 .args(["--msg-dim", &plan.msg_dim.to_string(), "--seed", &plan.seed.to_string()])
                 .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
                 .stdin(Stdio::null());
             let child = c.spawn().context("starting an env server (python)")?;
-            procs.push(Proc { name: format!("env server {s} ({})", plan.env), child, status: None });
+            let name = if h == 1 {
+                format!("env server {s} ({})", plan.env)
+            } else {
+                format!("env server {s} (sub-batches {}-{}, {})", s * h, s * h + h - 1, plan.env)
+            };
+            procs.push(Proc { name, child, status: None });
         }
         let common = |c: &mut Command| {
-            c.args(["--run", &plan.run, "--env", &plan.env, "--servers", &plan.servers.to_string()])
+            c.args(["--run", &plan.run, "--env", &plan.env, "--servers", &plan.ring_servers().to_string()])
                 .args(["--slots", &plan.slots.to_string(), "--protocol", &plan.protocol])
                 .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
                 .stdin(Stdio::null());
@@ -151,7 +180,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
         Ok(()) => supervise(&mut procs, trainer_idx, &interrupted),
     };
     stop_all(&mut procs);
-    cleanup_run(&plan.run, plan.servers);
+    cleanup_run(&plan.run, plan.ring_servers());
     let out = stdout_reader.map(|h| h.join().unwrap_or_default()).unwrap_or_default();
     result.map(|()| RunOutcome { trainer_stdout: out })
 }

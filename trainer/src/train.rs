@@ -30,6 +30,9 @@ pub struct RunSection {
     pub envs: usize,
     /// Env server processes.
     pub servers: usize,
+    /// Sub-batches per env server (double buffering, see `supervisor::RunPlan`); 0: two when
+    /// `envs` is even, else one.
+    pub sub_batches: usize,
     /// Gradient updates per collected (training) episode. pymarl does one update per run of
     /// `batch_size_run` parallel episodes (EPyMARL's parallel runner: 1/8 to 1/10); 0.125
     /// matches 8 parallel environments.
@@ -56,6 +59,17 @@ pub struct RunSection {
     pub dataset_epsilon: Option<f32>,
 }
 
+impl RunSection {
+    /// The sub-batches each env server steps in turn (`sub_batches`, or the default for `envs`).
+    pub fn sub_batches(&self) -> usize {
+        if self.sub_batches == 0 {
+            crate::supervisor::default_sub_batches(self.envs)
+        } else {
+            self.sub_batches
+        }
+    }
+}
+
 impl Default for RunSection {
     fn default() -> Self {
         RunSection {
@@ -64,6 +78,7 @@ impl Default for RunSection {
             steps: 2_000_000,
             envs: 16,
             servers: 2,
+            sub_batches: 0,
             updates_per_episode: 0.125,
             test_interval: 10_000,
             test_episodes: 32,
@@ -153,6 +168,9 @@ impl TrainConfig {
         }
         if r.envs == 0 || r.servers == 0 {
             bail!("run.envs and run.servers: must be at least 1");
+        }
+        if r.envs % r.sub_batches() != 0 {
+            bail!("run.sub_batches: {} does not divide run.envs {}", r.sub_batches(), r.envs);
         }
         if !(r.updates_per_episode.is_finite() && r.updates_per_episode > 0.0) {
             bail!("run.updates_per_episode: must be positive, got {}", r.updates_per_episode);
@@ -558,7 +576,9 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         Learner::new(dims, learn.clone(), device)?
     };
     let counters = learner.counters();
-    let controllers = (0..args.n_servers).map(|_| Controller::new(&learner, cfg.run.envs)).collect();
+    // One controller per ring server (sub-batch), each driving that sub-batch's environments.
+    let envs_per_slab = cfg.run.envs / cfg.run.sub_batches();
+    let controllers = (0..args.n_servers).map(|_| Controller::new(&learner, envs_per_slab)).collect();
     let shared = Arc::new(Mutex::new(Shared { updates: counters.updates, ..Default::default() }));
     let (tx, rx) = mpsc::channel::<ToLearner>();
     let learner_thread = {
@@ -577,7 +597,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         b
     });
     let mut actor = TrainActor {
-        testing: vec![vec![false; cfg.run.envs]; args.n_servers],
+        testing: vec![vec![false; envs_per_slab]; args.n_servers],
         test_pending: if counters.t_env == 0 { cfg.run.test_episodes } else { 0 },
         test_returns: Vec::new(),
         next_test: (counters.t_env / cfg.run.test_interval + 1) * cfg.run.test_interval,

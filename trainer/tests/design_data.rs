@@ -39,7 +39,7 @@ fn header(env: &str, n: usize, od: usize, sd: usize, na: usize, limit: usize) ->
 
 /// Random LBF-8x8-shaped episodes (values 0..3, random lengths and actions).
 fn lbf_like(episodes: usize, seed: u64) -> Dataset {
-    let (n, od, sd, na, limit) = (2, 27, 300, 6, 25);
+    let (n, od, sd, na, limit) = (2, 29, 300, 6, 25);
     let mut rng = LearnRng::seed_from(seed);
     let eps = (0..episodes)
         .map(|_| {
@@ -275,13 +275,13 @@ fn messages_equal_the_runner_plan() {
     let data = lbf_like(9, 2);
     let env = lbf_env();
     // Built-in FullComm.
-    let mut a = FullComm { n_agents: 2, obs_dim: 27 };
-    let mut b = FullComm { n_agents: 2, obs_dim: 27 };
+    let mut a = FullComm { n_agents: 2, obs_dim: 29 };
+    let mut b = FullComm { n_agents: 2, obs_dim: 29 };
     let got = data.messages(&mut a);
     assert_eq!(got, runner_reference(&data, &mut b, 3));
     // Other agent's observation, then the one-hot of the sender (agent 1 for receiver 0).
-    assert_eq!(&got[0][..27], &data.episodes[0].obs[27..54]);
-    assert_eq!(&got[0][27..29], &[0.0, 1.0]);
+    assert_eq!(&got[0][..29], &data.episodes[0].obs[29..58]);
+    assert_eq!(&got[0][29..31], &[0.0, 1.0]);
     // The fullcomm-like example phase 0 and the phase 2 with 10-step windows, compiled.
     let phases: Vec<ValidatedProtocol> = ["lbf_8x8_phase0.json", "lbf_8x8_phase1.json", "lbf_8x8_phase2.json"]
         .iter()
@@ -357,7 +357,7 @@ fn discriminator_recovers_what_the_messages_carry() {
     assert!(e.contains("message columns"), "{e}");
 }
 
-/// The cost of one update at LBF 8x8 widths (obs 27, state 300, 64 message columns), the
+/// The cost of one update at LBF 8x8 widths (obs 29, state 300, 64 message columns), the
 /// default configuration (batch 32). Printed for the docs; run with --nocapture to see it.
 #[test]
 fn discriminator_cost() {
@@ -523,12 +523,12 @@ fn offline_designer_reports_an_exhausted_budget() {
 
 // ------------------------------------------------------------------------------------------
 // Design-sized run (ignored by default: about a minute). A random-policy walk on an LBF 8x8
-// grid built here with the real schema's layout (3x3x3 views, 3 x 10 x 10 padded state), 5000
+// grid built here with the real schema's layout (3x3x3 views and own position, 3 x 10 x 10 padded state), 5000
 // episodes of 25 steps as in the paper, the default configurations, three phases. Prints the
 // time of each stage: `cargo test --release -p lmac-trainer --test design_data -- --ignored --nocapture`.
 
 fn lbf_walk(episodes: usize, seed: u64) -> Dataset {
-    let (n, od, sd, na, limit, size) = (2usize, 27usize, 300usize, 6usize, 25usize, 8i32);
+    let (n, od, sd, na, limit, size) = (2usize, 29usize, 300usize, 6usize, 25usize, 8i32);
     let mut rng = LearnRng::seed_from(seed);
     let mut eps = Vec::new();
     for _ in 0..episodes {
@@ -552,7 +552,7 @@ fn lbf_walk(episodes: usize, seed: u64) -> Dataset {
                 [a, f, (inside && a == 0.0 && f == 0.0) as u8 as f32]
             };
             for &(ar, ac) in &agents {
-                let mut o = [0f32; 27];
+                let mut o = [0f32; 29];
                 for dr in -1..=1 {
                     for dc in -1..=1 {
                         let v = level(ar + dr, ac + dc, &agents, &food);
@@ -562,6 +562,9 @@ fn lbf_walk(episodes: usize, seed: u64) -> Dataset {
                         }
                     }
                 }
+                // Own row and column, scaled to [0, 1] as the LBF env server writes them.
+                o[27] = ar as f32 / (size - 1) as f32;
+                o[28] = ac as f32 / (size - 1) as f32;
                 tr.obs.extend_from_slice(&o);
             }
             let mut s = [0f32; 300];

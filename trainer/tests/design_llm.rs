@@ -275,7 +275,7 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
     }
     // I_T: shape, every obs and state dim, then the critical-dims step.
     let first = reqs[0].last_message();
-    assert!(first.contains("(batch, 2, 27)") && first.contains("`o[batch][agent_id][26]`") && first.contains("`s[299]`"), "{first}");
+    assert!(first.contains("(batch, 2, 29)") && first.contains("`o[batch][agent_id][28]`") && first.contains("`s[299]`"), "{first}");
     assert!(first.contains("task-critical state dimensions"));
     // I_P with the language reference and the budget, after the reasoning turn.
     let gen = reqs[1].last_message();

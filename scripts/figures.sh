@@ -1,0 +1,67 @@
+#!/usr/bin/env bash
+# Measure the figures the README and docs/ quote, on this machine, and keep them as JSON in
+# docs/figures/ (one file per measurement, raw output of the lmac commands). Run on a quiet
+# machine: every figure is a ratio against a baseline measured in the same run, but absolute
+# rates move with the load. Takes about 15 minutes (plus the ndarray build, about 5).
+#   bash scripts/figures.sh            # everything
+#   FIGURES="pipeline grf" bash scripts/figures.sh   # some of: pipeline smaclite grf train criterion
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+bash scripts/setup.sh
+LMAC="$ROOT/target/release/lmac"
+OUT="$ROOT/docs/figures"
+mkdir -p "$OUT"
+WHAT="${FIGURES:-pipeline smaclite grf train criterion}"
+log() { printf '\033[1m[figures]\033[0m %s\n' "$*"; }
+want() { [[ " $WHAT " == *" $1 "* ]]; }
+
+if want pipeline; then
+  log "pipeline: LBF 8x8, 32 envs in one env server (double-buffered), one sub-batch, two servers"
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 64000 --repeat 5 --json >"$OUT/pipeline_lbf8x8.json"
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --sub-batches 1 --steps 64000 --repeat 5 --json \
+    >"$OUT/pipeline_lbf8x8_one_sub_batch.json"
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 16 --servers 2 --steps 64000 --repeat 5 --json \
+    >"$OUT/pipeline_lbf8x8_two_servers.json"
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --protocol fullcomm --steps 64000 --repeat 3 --json \
+    >"$OUT/pipeline_lbf8x8_fullcomm.json"
+  "$LMAC" bench pipeline --env lbf:11x11-6p-4f-s1-coop --envs 32 --steps 32000 --repeat 3 --json >"$OUT/pipeline_lbf11x11.json"
+fi
+
+if want smaclite; then
+  for map in bane_vs_hM 1o_10b_vs_1r 2o_20b_vs_2r 5z_vs_1ul; do
+    log "pipeline: smaclite:$map, 32 envs"
+    "$LMAC" bench pipeline --env "smaclite:$map" --envs 32 --steps 32000 --repeat 3 --json >"$OUT/pipeline_smaclite_$map.json"
+  done
+fi
+
+if want grf; then
+  if "$ROOT/.venv/bin/python" -c 'import gfootball' 2>/dev/null; then
+    for sc in academy_3_vs_1_with_keeper academy_run_pass_and_shoot_with_keeper; do
+      for w in 0 2; do
+        log "grf raw: $sc, 4 envs, LMAC_GRF_WORKERS=$w"
+        LMAC_GRF_WORKERS=$w PYTHONPATH="$ROOT/env-server" "$ROOT/.venv/bin/python" -m lmac_env.server --raw \
+          --env "grf:$sc" --envs 4 --steps 500 >"$OUT/grf_raw_${sc}_workers$w.json"
+      done
+      log "pipeline: grf:$sc, 4 envs"
+      "$LMAC" bench pipeline --env "grf:$sc" --envs 4 --steps 4000 --repeat 3 --json >"$OUT/pipeline_grf_$sc.json"
+    done
+  else
+    log "grf: gfootball is not installed (LMAC_WITH_GRF=1 bash scripts/setup.sh); skipped"
+  fi
+fi
+
+if want train; then
+  log "bench train (flex backend)"
+  "$LMAC" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json >"$OUT/train_flex.json"
+  log "bench train (ndarray backend: a second build of lmac in target-ndarray/)"
+  cargo build --release -q --bin lmac -p lmac-trainer --no-default-features --features ndarray --target-dir "$ROOT/target-ndarray"
+  "$ROOT/target-ndarray/release/lmac" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json \
+    >"$OUT/train_ndarray.json"
+fi
+
+if want criterion; then
+  log "criterion benches (short measurement windows)"
+  cargo bench -q -p lmac-benches -- --warm-up-time 1 --measurement-time 4 2>/dev/null | tee "$OUT/criterion.txt"
+fi
+log "figures in $OUT"
