@@ -2,7 +2,7 @@
 # Measure the figures the README and docs/ quote, on this machine, and keep them as JSON in
 # docs/figures/ (one file per measurement, raw output of the lmac commands). Run on a quiet
 # machine: every figure is a ratio against a baseline measured in the same run, but absolute
-# rates move with the load. Takes about 15 minutes (plus the ndarray build, about 5).
+# rates move with the load. Takes about 20 minutes (plus the ndarray build).
 #   bash scripts/figures.sh            # everything
 #   FIGURES="pipeline grf" bash scripts/figures.sh   # some of: pipeline smaclite grf train criterion
 set -euo pipefail
@@ -54,9 +54,11 @@ fi
 if want train; then
   log "bench train (flex backend)"
   "$LMAC" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json >"$OUT/train_flex.json"
-  log "bench train (ndarray backend: a second build of lmac in target-ndarray/)"
-  cargo build --release -q --bin lmac -p lmac-trainer --no-default-features --features ndarray --target-dir "$ROOT/target-ndarray"
-  "$ROOT/target-ndarray/release/lmac" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json \
+  log "bench train (ndarray backend: lmac built once more with --features ndarray, kept as lmac-ndarray)"
+  cargo build --release -q --bin lmac -p lmac-trainer --no-default-features --features ndarray
+  cp "$ROOT/target/release/lmac" "$ROOT/target/release/lmac-ndarray"
+  cargo build --release -q --bin lmac  # the default (flex) binary again
+  "$ROOT/target/release/lmac-ndarray" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json \
     >"$OUT/train_ndarray.json"
 fi
 

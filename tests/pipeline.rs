@@ -229,3 +229,42 @@ fn a_protocol_over_the_message_budget_is_refused_before_anything_starts() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("unknown protocol \"nonsense\""), "{err}");
 }
+
+/// Real Google Research Football episodes through the whole pipeline (both scenarios). Skipped,
+/// saying so, where gfootball is not installed (`LMAC_WITH_GRF=0`).
+#[test]
+fn grf_episodes_run_through_the_pipeline() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let python = root().join(".venv/bin/python");
+    let have = Command::new(&python).args(["-c", "import gfootball, gfootball_engine"]).output().map(|o| o.status.success());
+    if have.ok() != Some(true) {
+        eprintln!("skipped: gfootball is not installed in .venv (LMAC_WITH_GRF=1 bash scripts/setup.sh installs it)");
+        return;
+    }
+    for (sc, n) in [("academy_3_vs_1_with_keeper", 3u64), ("academy_run_pass_and_shoot_with_keeper", 2)] {
+        let env = format!("grf:{sc}");
+        let tmp = std::env::temp_dir().join(format!("lmac-grf-{}-{n}.jsonl", std::process::id()));
+        let out = lmac()
+            .args(["run", "--env", &env, "--envs", "4", "--protocol", "fullcomm", "--steps", "1200", "--verify", "--json"])
+            .arg("--episodes-out")
+            .arg(&tmp)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{env}: {}", String::from_utf8_lossy(&out.stderr));
+        let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(report["violation_count"], 0, "{env}: {}", report["violations"]);
+        let episodes: Vec<serde_json::Value> =
+            std::fs::read_to_string(&tmp).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        std::fs::remove_file(&tmp).ok();
+        assert!(!episodes.is_empty(), "{env}: no episode finished in 1200 steps");
+        for e in &episodes {
+            let (len, ret) = (e["len"].as_u64().unwrap(), e["team_return"].as_f64().unwrap());
+            assert!((1..=150).contains(&len), "{env}: episode length {len} outside 1..=150: {e}");
+            // Scoring reward only: +1 for our goal, -1 for theirs, at most one goal per episode.
+            assert!([-1.0, 0.0, 1.0].contains(&ret), "{env}: team return {ret} is not a scoring reward: {e}");
+            if e["truncated"].as_bool().unwrap() {
+                assert_eq!(len, 150, "{env}: truncation happens at the episode limit: {e}");
+            }
+        }
+    }
+}

@@ -31,12 +31,14 @@ def main(design: pathlib.Path) -> None:
                             (axes[1], vars_, "(b) variance across agents")]:
         ax.bar(labels, vals, color=colors)
         for i, v in enumerate(vals):
-            ax.text(i, v, f"{v:.3f}", ha="center", va="bottom", fontsize=8)
+            ax.text(i, v, f"{v:.3g}", ha="center", va="bottom", fontsize=8)
         ax.set_title(title, fontsize=10)
         ax.tick_params(axis="x", labelsize=8)
     axes[0].set_ylim(0, 1.05)
+    dims = s["target_dims"]
+    n_dims = len(dims) if isinstance(dims, list) else dims
     fig.suptitle(f"{s['env']}: protocol design with the {s['designer']} designer "
-                 f"({s['target_dims']} target state dims, alpha {s['alpha']})", fontsize=10)
+                 f"({n_dims} target state dims, alpha {s['alpha']})", fontsize=10)
     fig.tight_layout()
     out = design / "recovery.png"
     fig.savefig(out, dpi=120)
