@@ -18,7 +18,7 @@ want() { [[ " $WHAT " == *" $1 "* ]]; }
 
 if want pipeline; then
   log "pipeline: LBF 8x8, 32 envs in one env server (double-buffered), one sub-batch, two servers"
-  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 64000 --repeat 5 --json >"$OUT/pipeline_lbf8x8.json"
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 32000 --repeat 9 --json >"$OUT/pipeline_lbf8x8.json"
   "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --sub-batches 1 --steps 64000 --repeat 5 --json \
     >"$OUT/pipeline_lbf8x8_one_sub_batch.json"
   "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 16 --servers 2 --steps 64000 --repeat 5 --json \
@@ -45,6 +45,8 @@ if want grf; then
       done
       log "pipeline: grf:$sc, 4 envs"
       "$LMAC" bench pipeline --env "grf:$sc" --envs 4 --steps 4000 --repeat 3 --json >"$OUT/pipeline_grf_$sc.json"
+      LMAC_GRF_WORKERS=2 "$LMAC" bench pipeline --env "grf:$sc" --envs 4 --steps 4000 --repeat 3 --json \
+        >"$OUT/pipeline_grf_${sc}_workers2.json"
     done
   else
     log "grf: gfootball is not installed (LMAC_WITH_GRF=1 bash scripts/setup.sh); skipped"
@@ -64,6 +66,6 @@ fi
 
 if want criterion; then
   log "criterion benches (short measurement windows)"
-  cargo bench -q -p lmac-benches -- --warm-up-time 1 --measurement-time 4 2>/dev/null | tee "$OUT/criterion.txt"
+  cargo bench -q -p lmac-benches --bench data_plane --bench protocol --bench learner -- --warm-up-time 1 --measurement-time 4 2>&1 | grep -v "^Benchmarking" | tee "$OUT/criterion.txt"
 fi
 log "figures in $OUT"

@@ -130,6 +130,8 @@ class _SubBatch:
                                   startup_timeout=args.startup_timeout)
         self.seq = 0
         self.open = True
+        self.waited = 0.0   # seconds waiting for this sub-batch's slot to come back
+        self.stepped = 0.0  # seconds stepping its environments
 
     def start(self) -> None:
         lease = self.slab.lease(0, "env")
@@ -141,7 +143,10 @@ class _SubBatch:
     def serve_one(self) -> None:
         """Wait (up to 0.25 s) for this sub-batch's slot to come back with actions, step it and
         hand it over again."""
+        t0 = time.perf_counter()
         msg = self.port.recv(0.25)
+        t1 = time.perf_counter()
+        self.waited += t1 - t0
         if msg is None:
             return
         kind, _, slot, _ = msg
@@ -151,6 +156,7 @@ class _SubBatch:
             self.seq += 1
             lease = self.slab.lease(slot, "env")
             _write_step(self.driver, lease)
+            self.stepped += time.perf_counter() - t1
             lease.seq = self.seq
             lease.release()
             self.port.send_slot(self.server, slot, self.seq)
@@ -197,7 +203,10 @@ def serve(args) -> int:
         dt = time.perf_counter() - t0
         steps = sum(u.seq * u.env.num_envs for u in units)
         episodes = sum(u.driver.episodes_done for u in units)
-        print(f"lmac: {who}: {steps} env steps, {episodes} episodes in {dt:.1f} s; goodbye",
+        waited, stepped = sum(u.waited for u in units), sum(u.stepped for u in units)
+        # Waiting is what the pipeline costs this process: with double buffering it stays near 0.
+        print(f"lmac: {who}: {steps} env steps, {episodes} episodes in {dt:.1f} s "
+              f"(stepping {stepped:.1f} s, waiting for actions {waited:.1f} s); goodbye",
               file=sys.stderr, flush=True)
         return 0
     except lmac_shm.StoppedError:
