@@ -7,6 +7,7 @@ only reads the fields the environments need. Validation with precise errors live
 """
 from __future__ import annotations
 
+import abc
 import dataclasses
 import pathlib
 import tomllib
@@ -83,7 +84,7 @@ class Batch:
             truncated=np.zeros(num_envs, np.uint8))
 
 
-class VecEnv:
+class VecEnv(abc.ABC):
     """B environments of one kind, stepped together.
 
     Contract:
@@ -98,11 +99,13 @@ class VecEnv:
     schema: Schema
     num_envs: int
 
+    @abc.abstractmethod
     def reset(self, env_ids: np.ndarray, out: Batch) -> None:
-        raise NotImplementedError
+        """Start new episodes in ``env_ids`` (see the contract above)."""
 
+    @abc.abstractmethod
     def step(self, actions: np.ndarray, out: Batch) -> None:
-        raise NotImplementedError
+        """Step every env with ``actions`` (see the contract above)."""
 
     def close(self) -> None:
         pass
