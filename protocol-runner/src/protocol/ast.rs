@@ -239,6 +239,56 @@ pub enum Expr {
     Concat(Vec<Expr>),
 }
 
+/// The elementwise binary operators of [`Expr`], named as in the JSON.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BinOp {
+    Add,
+    Sub,
+    Mul,
+    Div,
+    Min,
+    Max,
+    Gt,
+    Lt,
+    Eq,
+}
+
+impl BinOp {
+    /// The JSON key: `add`, `sub`, ...
+    pub fn name(self) -> &'static str {
+        match self {
+            BinOp::Add => "add",
+            BinOp::Sub => "sub",
+            BinOp::Mul => "mul",
+            BinOp::Div => "div",
+            BinOp::Min => "min",
+            BinOp::Max => "max",
+            BinOp::Gt => "gt",
+            BinOp::Lt => "lt",
+            BinOp::Eq => "eq",
+        }
+    }
+}
+
+impl Expr {
+    /// The operator and operands of an elementwise binary expression (None for the others).
+    pub fn binary(&self) -> Option<(BinOp, &Expr, &Expr)> {
+        let (op, a, b) = match self {
+            Expr::Add(a, b) => (BinOp::Add, a, b),
+            Expr::Sub(a, b) => (BinOp::Sub, a, b),
+            Expr::Mul(a, b) => (BinOp::Mul, a, b),
+            Expr::Div(a, b) => (BinOp::Div, a, b),
+            Expr::Min(a, b) => (BinOp::Min, a, b),
+            Expr::Max(a, b) => (BinOp::Max, a, b),
+            Expr::Gt(a, b) => (BinOp::Gt, a, b),
+            Expr::Lt(a, b) => (BinOp::Lt, a, b),
+            Expr::Eq(a, b) => (BinOp::Eq, a, b),
+            _ => return None,
+        };
+        Some((op, a, b))
+    }
+}
+
 /// A half-open range of observation dims.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]

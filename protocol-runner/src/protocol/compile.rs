@@ -16,19 +16,6 @@ use super::ProtocolEnv;
 use crate::plan::{MessagePlan, StepView};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
-enum Bin {
-    Add,
-    Sub,
-    Mul,
-    Div,
-    Min,
-    Max,
-    Gt,
-    Lt,
-    Eq,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq)]
 enum Un {
     Neg,
     Abs,
@@ -61,7 +48,7 @@ enum Inst {
         v: f32,
     },
     Bin {
-        op: Bin,
+        op: BinOp,
         dst: usize,
         a: usize,
         wa: usize,
@@ -414,17 +401,7 @@ impl Compiler {
             | Expr::Gt(a, b)
             | Expr::Lt(a, b)
             | Expr::Eq(a, b) => {
-                let op = match e {
-                    Expr::Add(..) => Bin::Add,
-                    Expr::Sub(..) => Bin::Sub,
-                    Expr::Mul(..) => Bin::Mul,
-                    Expr::Div(..) => Bin::Div,
-                    Expr::Min(..) => Bin::Min,
-                    Expr::Max(..) => Bin::Max,
-                    Expr::Gt(..) => Bin::Gt,
-                    Expr::Lt(..) => Bin::Lt,
-                    _ => Bin::Eq,
-                };
+                let op = e.binary().expect("a binary operator").0;
                 let (a, wa) = self.expr(a);
                 let (b, wb) = self.expr(b);
                 let w = wa.max(wb);
@@ -618,15 +595,15 @@ fn exec_pure(inst: &Inst, regs: &mut [f32], nr: usize, n_rows: usize, n_agents: 
                 }};
             }
             match op {
-                Bin::Add => each!(|x: f32, y: f32| x + y),
-                Bin::Sub => each!(|x: f32, y: f32| x - y),
-                Bin::Mul => each!(|x: f32, y: f32| x * y),
-                Bin::Div => each!(|x: f32, y: f32| if y.abs() < EPS { 0.0 } else { x / y }),
-                Bin::Min => each!(f32::min),
-                Bin::Max => each!(f32::max),
-                Bin::Gt => each!(|x: f32, y: f32| (x > y) as u8 as f32),
-                Bin::Lt => each!(|x: f32, y: f32| (x < y) as u8 as f32),
-                Bin::Eq => each!(|x: f32, y: f32| ((x - y).abs() < EPS) as u8 as f32),
+                BinOp::Add => each!(|x: f32, y: f32| x + y),
+                BinOp::Sub => each!(|x: f32, y: f32| x - y),
+                BinOp::Mul => each!(|x: f32, y: f32| x * y),
+                BinOp::Div => each!(|x: f32, y: f32| if y.abs() < EPS { 0.0 } else { x / y }),
+                BinOp::Min => each!(f32::min),
+                BinOp::Max => each!(f32::max),
+                BinOp::Gt => each!(|x: f32, y: f32| (x > y) as u8 as f32),
+                BinOp::Lt => each!(|x: f32, y: f32| (x < y) as u8 as f32),
+                BinOp::Eq => each!(|x: f32, y: f32| ((x - y).abs() < EPS) as u8 as f32),
             }
         }
         Inst::Un { op, dst, a, w } => {

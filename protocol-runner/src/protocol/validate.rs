@@ -669,7 +669,7 @@ impl Validator<'_> {
             | Expr::Gt(a, b)
             | Expr::Lt(a, b)
             | Expr::Eq(a, b) => {
-                let op = binop_name(e);
+                let op = e.binary().expect("a binary operator").0.name();
                 let wa = self.expr(a, &format!("{path}.{op}[0]"), field, depth + 1, in_window);
                 let wb = self.expr(b, &format!("{path}.{op}[1]"), field, depth + 1, in_window);
                 let (wa, wb) = (wa?, wb?);
@@ -724,21 +724,6 @@ impl Validator<'_> {
                 total
             }
         }
-    }
-}
-
-pub(crate) fn binop_name(e: &Expr) -> &'static str {
-    match e {
-        Expr::Add(..) => "add",
-        Expr::Sub(..) => "sub",
-        Expr::Mul(..) => "mul",
-        Expr::Div(..) => "div",
-        Expr::Min(..) => "min",
-        Expr::Max(..) => "max",
-        Expr::Gt(..) => "gt",
-        Expr::Lt(..) => "lt",
-        Expr::Eq(..) => "eq",
-        _ => "?",
     }
 }
 
