@@ -268,3 +268,31 @@ fn grf_episodes_run_through_the_pipeline() {
         }
     }
 }
+
+#[test]
+fn the_pipeline_bench_interleaves_raw_and_pipeline_blocks_and_cleans_up() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = all_shm_files();
+    let out = lmac()
+        .args(["bench", "pipeline", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "8", "--steps", "2400", "--repeat", "3", "--json"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "bench failed: {}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON report");
+    assert_eq!(v["method"], "interleaved block pairs");
+    assert_eq!(v["sub_batches"], 2);
+    // One raw and one pipeline rate per block pair, each a real measurement.
+    for key in ["raw_runs", "pipeline_runs", "ratio_runs"] {
+        let runs = v[key].as_array().unwrap_or_else(|| panic!("{key} missing"));
+        assert_eq!(runs.len(), 3, "{key}: {runs:?}");
+        assert!(runs.iter().all(|r| r.as_f64().is_some_and(|x| x.is_finite() && x > 0.0)), "{key}: {runs:?}");
+    }
+    // 2400 env steps over 3 blocks of 8 envs: 100 batched steps, 800 env steps per block.
+    let t = &v["pipeline_time"];
+    assert_eq!(t["block_env_steps"], 800.0);
+    let share = t["handover_share"].as_f64().unwrap();
+    assert!((0.0..1.0).contains(&share), "hand-over share {share}");
+    assert!(t["stepping_vs_raw"].as_f64().unwrap() > 0.0);
+    let left: Vec<String> = all_shm_files().difference(&before).cloned().collect();
+    assert!(left.is_empty(), "shared-memory files left after the bench: {left:?}");
+}

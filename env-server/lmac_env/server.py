@@ -130,6 +130,7 @@ class _SubBatch:
                                   startup_timeout=args.startup_timeout)
         self.seq = 0
         self.open = True
+        self.held = None    # a returned slot message `hold` keeps back
         self.waited = 0.0   # seconds waiting for this sub-batch's slot to come back
         self.stepped = 0.0  # seconds stepping its environments
 
@@ -140,26 +141,42 @@ class _SubBatch:
         lease.release()
         self.port.send_slot(self.server, 0, self.seq)
 
-    def serve_one(self) -> None:
-        """Wait (up to 0.25 s) for this sub-batch's slot to come back with actions, step it and
-        hand it over again."""
+    def _next(self):
+        """The next slot message: the one `hold` kept back, else wait (up to 0.25 s) for one."""
+        if self.held is not None:
+            msg, self.held = self.held, None
+            return msg
         t0 = time.perf_counter()
         msg = self.port.recv(0.25)
-        t1 = time.perf_counter()
-        self.waited += t1 - t0
-        if msg is None:
-            return
-        kind, _, slot, _ = msg
-        if kind == "bye":
+        self.waited += time.perf_counter() - t0
+        if msg is not None and msg[0] == "bye":
             self.open = False
-        elif kind == "slot":
-            self.seq += 1
-            lease = self.slab.lease(slot, "env")
-            _write_step(self.driver, lease)
-            self.stepped += time.perf_counter() - t1
-            lease.seq = self.seq
-            lease.release()
-            self.port.send_slot(self.server, slot, self.seq)
+        return msg
+
+    def serve_one(self) -> bool:
+        """Take this sub-batch's slot back with actions, step it and hand it over again.
+        False when nothing was stepped (a wait timed out or the trainer said goodbye)."""
+        msg = self._next()
+        if msg is None or msg[0] != "slot":
+            return False
+        t1 = time.perf_counter()
+        _, _, slot, _ = msg
+        self.seq += 1
+        lease = self.slab.lease(slot, "env")
+        _write_step(self.driver, lease)
+        self.stepped += time.perf_counter() - t1
+        lease.seq = self.seq
+        lease.release()
+        self.port.send_slot(self.server, slot, self.seq)
+        return True
+
+    def hold(self) -> None:
+        """Wait until this sub-batch's slot is back and keep it unstepped: with every slot held
+        the ring is paused (`lmac bench pipeline` steps the raw baseline meanwhile)."""
+        while self.open and self.held is None:
+            msg = self._next()
+            if msg is not None and msg[0] == "slot":
+                self.held = msg
 
     def close(self) -> None:
         self.env.close()
@@ -195,6 +212,8 @@ def serve(args) -> int:
         for u in units:
             u.start()
         t0 = time.perf_counter()
+        if args.compare_raw:
+            _compare(args, units, stop)
         # Strict round robin: each sub-batch's slot comes back in the order it was sent.
         while not stop["flag"] and any(u.open for u in units):
             for u in units:
@@ -219,35 +238,85 @@ def serve(args) -> int:
             u.close()
 
 
-def raw(args) -> int:
-    """No pipeline: step the same environments with random available actions in this process."""
-    env = make(args.env, args.envs, seed=args.seed)
-    schema = env.schema
-    driver = Driver(env, 0)
-    out = Batch.allocate(schema, args.envs)
-    meta = Meta.allocate(schema, args.envs)
-    rng = np.random.default_rng(args.seed)
-    driver.first(out, meta)
-    actions = np.zeros((args.envs, schema.n_agents), np.int32)
-    for _ in range(args.warmup):
-        _random_actions(rng, out.avail, actions)
-        driver.advance(actions, out, meta)
-    t0 = time.perf_counter()
-    for _ in range(args.steps):
-        _random_actions(rng, out.avail, actions)
-        driver.advance(actions, out, meta)
-    dt = time.perf_counter() - t0
-    print(json.dumps({"mode": "raw", "env": args.env, "envs": args.envs, "batched_steps": args.steps,
-                      "env_steps": args.steps * args.envs, "seconds": dt,
-                      "env_steps_per_s": args.steps * args.envs / dt,
-                      "episodes": driver.episodes_done}))
-    return 0
+class _RawStepper:
+    """The baseline: the same environments stepped in this process with random available
+    actions, no pipeline (what `lmac bench pipeline` compares the pipeline against)."""
+
+    def __init__(self, env_name: str, num_envs: int, seed: int):
+        self.env = make(env_name, num_envs, seed=seed)
+        self.driver = Driver(self.env, 0)
+        self.out = Batch.allocate(self.env.schema, num_envs)
+        self.meta = Meta.allocate(self.env.schema, num_envs)
+        self.rng = np.random.default_rng(seed)
+        self.actions = np.zeros((num_envs, self.env.schema.n_agents), np.int32)
+        self.driver.first(self.out, self.meta)
+
+    def run(self, batched_steps: int) -> float:
+        """Step `batched_steps` times; seconds taken."""
+        t0 = time.perf_counter()
+        for _ in range(batched_steps):
+            _random_actions(self.rng, self.out.avail, self.actions)
+            self.driver.advance(self.actions, self.out, self.meta)
+        return time.perf_counter() - t0
 
 
 def _random_actions(rng, avail: np.ndarray, out: np.ndarray) -> None:
     """Uniform over available actions, vectorized: argmax of random keys masked by avail."""
     keys = rng.random(avail.shape, dtype=np.float32) + avail  # available actions score >= 1
     out[:] = keys.argmax(-1)
+
+
+def raw(args) -> int:
+    """No pipeline: step the environments with random available actions in this process."""
+    r = _RawStepper(args.env, args.envs, args.seed)
+    r.run(args.warmup)
+    dt = r.run(args.steps)
+    print(json.dumps({"mode": "raw", "env": args.env, "envs": args.envs, "batched_steps": args.steps,
+                      "env_steps": args.steps * args.envs, "seconds": dt,
+                      "env_steps_per_s": args.steps * args.envs / dt,
+                      "episodes": r.driver.episodes_done}))
+    r.env.close()
+    return 0
+
+
+def _compare(args, units: list[_SubBatch], stop: dict) -> None:
+    """`--compare-raw K`: alternate, in this process, a block of K batched steps through the
+    pipeline and a block of K batched steps of the raw baseline (a second set of the same
+    environments, stepped here with random actions, the ring paused), `--compare-blocks` times.
+    Adjacent blocks see the same machine, so their ratio is immune to the slow drifts of a shared
+    host that separate runs suffer. A pipeline block starts with every slot back here and ends
+    when every slot is back again, so it pays all of its round trips."""
+    def pipeline_round() -> None:
+        for u in units:
+            while not u.serve_one() and u.open and not stop["flag"]:
+                pass
+
+    baseline = _RawStepper(args.env, args.envs, args.seed + 999_983)
+    baseline.run(args.warmup)
+    for _ in range(args.warmup):
+        pipeline_round()
+    blocks = []
+    for _ in range(args.compare_blocks):
+        for u in units:
+            u.hold()
+        stepped0 = sum(u.stepped for u in units)
+        t0 = time.perf_counter()
+        for _ in range(args.compare_raw):
+            pipeline_round()
+        for u in units:
+            u.hold()
+        pipeline_s = time.perf_counter() - t0
+        if stop["flag"] or not all(u.open for u in units):
+            break
+        raw_s = baseline.run(args.compare_raw)
+        # stepping_s: the part of pipeline_s spent stepping (the rest is hand-over and waiting).
+        blocks.append({"pipeline_s": pipeline_s, "stepping_s": sum(u.stepped for u in units) - stepped0,
+                       "raw_s": raw_s})
+    baseline.env.close()
+    report = {"env": args.env, "envs": args.envs, "sub_batches": args.sub_batches,
+              "block_env_steps": args.compare_raw * args.envs, "blocks": blocks}
+    with open(args.compare_out, "w") as f:
+        json.dump(report, f)
 
 
 def main(argv=None) -> int:
@@ -266,12 +335,19 @@ def main(argv=None) -> int:
     p.add_argument("--startup-timeout", type=float, default=60.0)
     p.add_argument("--raw", action="store_true", help="baseline: no pipeline, random actions")
     p.add_argument("--steps", type=int, default=1000, help="--raw: batched steps to time")
-    p.add_argument("--warmup", type=int, default=20, help="--raw: batched steps before timing")
+    p.add_argument("--warmup", type=int, default=20, help="--raw, --compare-raw: batched steps before timing")
+    p.add_argument("--compare-raw", type=int, default=0, metavar="K",
+                   help="bench: alternate blocks of K batched steps through the pipeline and of the raw "
+                        "baseline in this process (see _compare); needs --compare-out")
+    p.add_argument("--compare-blocks", type=int, default=9, help="--compare-raw: block pairs")
+    p.add_argument("--compare-out", help="--compare-raw: write the block timings (JSON) here")
     args = p.parse_args(argv)
     if args.envs < 1:
         p.error("--envs must be at least 1")
     if args.sub_batches < 1 or args.envs % args.sub_batches:
         p.error(f"--sub-batches must be at least 1 and divide --envs ({args.envs})")
+    if args.compare_raw and not args.compare_out:
+        p.error("--compare-raw needs --compare-out")
     if args.raw:
         return raw(args)
     if not args.run:

@@ -9,7 +9,7 @@
 
 use crate::slab::Stage;
 use iceoryx2::node::NodeView;
-use iceoryx2::port::listener::Listener;
+use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
@@ -283,7 +283,7 @@ impl Port {
 
     /// Wait up to `timeout` for the next slot message addressed to this process.
     /// Start-up tokens are forwarded transparently; a goodbye is returned (kind KIND_BYE) after
-    /// being forwarded by env servers. Returns Ok(None) on timeout.
+    /// being forwarded by env servers. Returns Ok(None) on timeout (or a signal, see `recv_raw`).
     pub fn recv(&mut self, timeout: Duration) -> Result<Option<SlotMsg>, RingError> {
         let deadline = Instant::now() + timeout;
         loop {
@@ -315,6 +315,7 @@ impl Port {
     }
 
     /// Next message of any kind, sleeping on the event listener, checking liveness while idle.
+    /// Ok(None) at the deadline or when a signal interrupted the sleep.
     fn recv_raw(&mut self, deadline: Instant) -> Result<Option<SlotMsg>, RingError> {
         loop {
             let n = self.inbox.len();
@@ -339,7 +340,12 @@ impl Port {
             }
             let wait = (deadline - now).min(LIVENESS_PERIOD);
             let mut dead = false;
-            self.listener.timed_wait(|ev| dead |= ev.id == EventId::new(NOTIFIER_DEAD), wait).map_err(ipc("wait"))?;
+            match self.listener.timed_wait(|ev| dead |= ev.id == EventId::new(NOTIFIER_DEAD), wait) {
+                // A signal (Ctrl-C, SIGCHLD, a debugger or profiler attaching) cut the wait short:
+                // return as on a timeout so the caller can look at it; nothing was lost.
+                Err(ListenerWaitError::InterruptSignal) => return Ok(None),
+                r => r.map(|_| ()).map_err(ipc("wait"))?,
+            }
             self.dead_notified |= dead;
         }
     }

@@ -216,8 +216,9 @@ enum BenchCmd {
     Pipeline {
         #[command(flatten)]
         p: PipelineOpts,
-        /// Alternate raw and pipeline runs this many times; report medians.
-        #[arg(long, default_value_t = 3)]
+        /// Alternate raw and pipeline this many times (blocks inside one env server, or
+        /// separate runs with --servers above 1); report medians.
+        #[arg(long, default_value_t = 9)]
         repeat: usize,
         /// Print JSON.
         #[arg(long)]
@@ -405,8 +406,14 @@ fn interrupt_flag() -> Arc<AtomicBool> {
     flag
 }
 
-/// Start the processes of one pipeline run and return the trainer's JSON report.
-fn pipeline_report(p: &PipelineOpts, extra: Vec<String>, interrupted: Arc<AtomicBool>) -> Result<serde_json::Value> {
+/// Start the processes of one pipeline run and return the trainer's JSON report. `extra` goes to
+/// the trainer, `env_extra` to the env servers.
+fn pipeline_report(
+    p: &PipelineOpts,
+    extra: Vec<String>,
+    env_extra: Vec<String>,
+    interrupted: Arc<AtomicBool>,
+) -> Result<serde_json::Value> {
     let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
     let plan = lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?;
     if plan.msg_dim() > schema.message_columns {
@@ -437,6 +444,7 @@ fn pipeline_report(p: &PipelineOpts, extra: Vec<String>, interrupted: Arc<Atomic
         seed: p.seed,
         startup_timeout_s: p.startup_timeout,
         trainer_args: [vec!["--steps".into(), p.steps.to_string()], extra].concat(),
+        env_server_args: env_extra,
     };
     let out = supervisor::run_pipeline(&rp, interrupted)?;
     let line = out.trainer_stdout.lines().rev().find(|l| l.starts_with('{')).context("the trainer printed no report")?;
@@ -457,7 +465,7 @@ fn run(a: RunArgs) -> Result<i32> {
                 .to_string(),
         );
     }
-    let report = pipeline_report(&a.p, extra, interrupt_flag())?;
+    let report = pipeline_report(&a.p, extra, vec![], interrupt_flag())?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
@@ -480,12 +488,123 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
+/// What `repeat` alternations of raw stepping and the pipeline measured.
+struct Alternations {
+    raws: Vec<f64>,
+    pipes: Vec<f64>,
+    trainer_us: f64,
+    method: &'static str,
+    /// Interleaved blocks only: where the pipeline's time went.
+    split: Option<serde_json::Value>,
+}
+
+/// Raw stepping against the pipeline, `repeat` alternations. One env server: interleaved blocks
+/// inside it (see `lmac_env.server._compare`), so each pipeline block is compared with a raw
+/// block run right after it on the same machine. Several env servers: separate raw and pipeline
+/// runs, alternated (their raw baseline is one process stepping all their environments).
 fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
     let interrupted = interrupt_flag();
+    let repeat = repeat.max(1);
+    let m = if p.servers == 1 { bench_interleaved(&p, repeat, interrupted)? } else { bench_separate_runs(&p, repeat, interrupted)? };
+    let ratios: Vec<f64> = m.raws.iter().zip(&m.pipes).map(|(r, q)| if *r > 0.0 { q / r } else { 0.0 }).collect();
+    // Rates over the whole measurement (harmonic means: total env steps over total time, the
+    // same steps in every alternation); the ratio is the median over alternations, each a pair
+    // measured back to back, which keeps one disturbed alternation from moving it.
+    let overall = |rates: &[f64]| rates.len() as f64 / rates.iter().map(|r| 1.0 / r).sum::<f64>();
+    let (raw_rate, pipe_rate, ratio) = (overall(&m.raws), overall(&m.pipes), median(ratios.clone()));
+    let (lo, hi) = ratios.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &r| (lo.min(r), hi.max(r)));
+    let v = serde_json::json!({
+        "env": p.env, "envs_total": p.envs * p.servers, "servers": p.servers, "protocol": p.protocol,
+        "sub_batches": p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(p.envs)),
+        "env_steps": p.steps, "repeats": repeat, "method": m.method,
+        "raw_env_steps_per_s": raw_rate, "pipeline_env_steps_per_s": pipe_rate, "ratio": ratio,
+        "ratio_of_rates": pipe_rate / raw_rate, "ratio_min": lo, "ratio_max": hi,
+        "raw_runs": m.raws, "pipeline_runs": m.pipes, "ratio_runs": ratios,
+        "trainer_us_per_batched_step": m.trainer_us, "pipeline_time": m.split,
+    });
+    if json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "{} ({} envs): raw {:.0} env-steps/s, pipeline {:.0} env-steps/s ({} servers, protocol {}): ratio {:.3} \
+             overall, {:.3} median of {} {} (range {:.3}-{:.3})",
+            p.env,
+            p.envs * p.servers,
+            raw_rate,
+            pipe_rate,
+            p.servers,
+            p.protocol,
+            pipe_rate / raw_rate,
+            ratio,
+            repeat,
+            m.method,
+            lo,
+            hi
+        );
+        if let Some(t) = &m.split {
+            println!(
+                "  the pipeline's time: {:.1}% hand-over (taking, returning, waiting for slots); its stepping cost {:.3}x raw's",
+                100.0 * t["handover_share"].as_f64().unwrap_or(0.0),
+                t["stepping_vs_raw"].as_f64().unwrap_or(0.0)
+            );
+        }
+    }
+    Ok(0)
+}
+
+/// Per-block raw and pipeline rates from one env server alternating blocks of both.
+fn bench_interleaved(p: &PipelineOpts, repeat: usize, interrupted: Arc<AtomicBool>) -> Result<Alternations> {
+    const WARMUP: u64 = 20; // batched steps each side takes before the first block
+    let block = p.steps.div_ceil((p.envs * repeat) as u64).max(1);
+    let out = std::env::temp_dir().join(format!("lmac-bench-pipeline-{}.json", run_id()));
+    let env_extra = vec![
+        "--compare-raw".to_string(),
+        block.to_string(),
+        "--compare-blocks".into(),
+        repeat.to_string(),
+        "--compare-out".into(),
+        out.display().to_string(),
+        "--warmup".into(),
+        WARMUP.to_string(),
+    ];
+    // The trainer stays until every block is done: it counts the blocks' env steps plus the
+    // warm-up's (and takes fewer warm-up slots than the env server's warm-up gives it).
+    let mut trainer_p = p.clone();
+    trainer_p.steps = (repeat as u64 * block + WARMUP) * p.envs as u64;
+    let report = pipeline_report(&trainer_p, vec![], env_extra, interrupted);
+    let blocks = std::fs::read_to_string(&out);
+    let _ = std::fs::remove_file(&out);
+    let report = report?;
+    let blocks: serde_json::Value =
+        serde_json::from_str(&blocks.with_context(|| format!("the env server wrote no block timings ({})", out.display()))?)?;
+    let per_block = (block * p.envs as u64) as f64;
+    let (mut raws, mut pipes) = (Vec::new(), Vec::new());
+    let (mut pipe_s, mut step_s, mut raw_s) = (0.0, 0.0, 0.0);
+    for b in blocks["blocks"].as_array().into_iter().flatten() {
+        let secs = |k: &str| b[k].as_f64().unwrap_or(f64::NAN);
+        raws.push(per_block / secs("raw_s"));
+        pipes.push(per_block / secs("pipeline_s"));
+        (pipe_s, step_s, raw_s) = (pipe_s + secs("pipeline_s"), step_s + secs("stepping_s"), raw_s + secs("raw_s"));
+    }
+    if raws.len() < repeat {
+        bail!("the env server finished {} of {repeat} block pairs", raws.len());
+    }
+    // Where the pipeline's time goes, summed over the blocks: stepping (against the same steps
+    // in the raw baseline) and the rest (taking slots, handing them over, waiting).
+    let split = serde_json::json!({
+        "block_env_steps": per_block,
+        "stepping_vs_raw": step_s / raw_s,
+        "handover_share": 1.0 - step_s / pipe_s,
+    });
+    let trainer_us = report["trainer_us_per_slot"].as_f64().unwrap_or(0.0);
+    Ok(Alternations { raws, pipes, trainer_us, method: "interleaved block pairs", split: Some(split) })
+}
+
+/// Separate raw and pipeline runs, alternated so a change of machine load hits both alike.
+fn bench_separate_runs(p: &PipelineOpts, repeat: usize, interrupted: Arc<AtomicBool>) -> Result<Alternations> {
     let batched = (p.steps / (p.envs * p.servers) as u64).max(1);
     let (mut raws, mut pipes, mut trainer_us) = (Vec::new(), Vec::new(), Vec::new());
-    // Alternate raw and pipeline runs so a change of machine load hits both alike.
-    for _ in 0..repeat.max(1) {
+    for _ in 0..repeat {
         // 1. Raw: the same environments stepped in one Python process, no pipeline.
         let out = supervisor::python_command()?
             .args(["-m", "lmac_env.server", "--raw", "--env", &p.env, "--envs", &(p.envs * p.servers).to_string()])
@@ -498,36 +617,11 @@ fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
         let raw: serde_json::Value = serde_json::from_slice(&out.stdout).context("raw baseline output")?;
         raws.push(raw["env_steps_per_s"].as_f64().unwrap_or(0.0));
         // 2. The full pipeline on the same number of env steps.
-        let pipe = pipeline_report(&p, vec![], interrupted.clone())?;
+        let pipe = pipeline_report(p, vec![], vec![], interrupted.clone())?;
         pipes.push(pipe["env_steps_per_s"].as_f64().unwrap_or(0.0));
         trainer_us.push(pipe["trainer_us_per_slot"].as_f64().unwrap_or(0.0));
     }
-    let ratios: Vec<f64> = raws.iter().zip(&pipes).map(|(r, q)| if *r > 0.0 { q / r } else { 0.0 }).collect();
-    let (raw_rate, pipe_rate, ratio) = (median(raws.clone()), median(pipes.clone()), median(ratios.clone()));
-    let v = serde_json::json!({
-        "env": p.env, "envs_total": p.envs * p.servers, "servers": p.servers, "protocol": p.protocol,
-        "sub_batches": p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(p.envs)),
-        "env_steps": p.steps, "repeats": repeat,
-        "raw_env_steps_per_s": raw_rate, "pipeline_env_steps_per_s": pipe_rate, "ratio": ratio,
-        "raw_runs": raws, "pipeline_runs": pipes, "ratio_runs": ratios,
-        "trainer_us_per_batched_step": median(trainer_us),
-    });
-    if json {
-        println!("{}", serde_json::to_string_pretty(&v)?);
-    } else {
-        println!(
-            "{} ({} envs): raw {:.0} env-steps/s, pipeline {:.0} env-steps/s ({} servers, protocol {}), ratio {:.3} (median of {})",
-            p.env,
-            p.envs * p.servers,
-            raw_rate,
-            pipe_rate,
-            p.servers,
-            p.protocol,
-            ratio,
-            repeat
-        );
-    }
-    Ok(0)
+    Ok(Alternations { raws, pipes, trainer_us: median(trainer_us), method: "separate runs", split: None })
 }
 
 fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: usize, json: bool) -> Result<i32> {
@@ -610,7 +704,7 @@ fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: 
             seed: 0,
             startup_timeout: 60.0,
         };
-        let rand_rate = pipeline_report(&p, vec![], interrupted.clone())?["env_steps_per_s"].as_f64().unwrap_or(0.0);
+        let rand_rate = pipeline_report(&p, vec![], vec![], interrupted.clone())?["env_steps_per_s"].as_f64().unwrap_or(0.0);
         eprintln!(
             "lmac: {n} envs: training {train_rate:.0} env-steps/s ({updates_done} updates), random acting {rand_rate:.0} env-steps/s"
         );
@@ -724,7 +818,7 @@ fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Resu
             "--warmup".into(),
             "1".into(),
         ];
-        pipeline_report(&p, extra, interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
+        pipeline_report(&p, extra, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
     }
     Ok(())
 }

@@ -30,6 +30,8 @@ pub struct RunPlan {
     pub startup_timeout_s: f64,
     /// Extra arguments for the trainer child (after `lmac child trainer ...`).
     pub trainer_args: Vec<String>,
+    /// Extra arguments for every env server (after `python -m lmac_env.server ...`).
+    pub env_server_args: Vec<String>,
 }
 
 /// The repository root (the folder holding `env-server/lmac_env`): `$LMAC_ROOT`, else found by
@@ -139,6 +141,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
                 .args(["--slots", &plan.slots.to_string()])
                 .args(["--msg-dim", &plan.msg_dim.to_string(), "--seed", &plan.seed.to_string()])
                 .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
+                .args(&plan.env_server_args)
                 .stdin(Stdio::null());
             let child = c.spawn().context("starting an env server (python)")?;
             let name = if h == 1 {
