@@ -18,20 +18,20 @@ want() { [[ " $WHAT " == *" $1 "* ]]; }
 
 if want pipeline; then
   log "pipeline: LBF 8x8, 32 envs in one env server (double-buffered), one sub-batch, two servers"
-  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 32000 --repeat 9 --json >"$OUT/pipeline_lbf8x8.json"
-  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --sub-batches 1 --steps 64000 --repeat 5 --json \
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 128000 --repeat 41 --json >"$OUT/pipeline_lbf8x8.json"
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --sub-batches 1 --steps 64000 --repeat 21 --json \
     >"$OUT/pipeline_lbf8x8_one_sub_batch.json"
-  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 16 --servers 2 --steps 64000 --repeat 5 --json \
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 16 --servers 2 --steps 64000 --repeat 9 --json \
     >"$OUT/pipeline_lbf8x8_two_servers.json"
-  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --protocol fullcomm --steps 64000 --repeat 3 --json \
+  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --protocol fullcomm --steps 64000 --repeat 21 --json \
     >"$OUT/pipeline_lbf8x8_fullcomm.json"
-  "$LMAC" bench pipeline --env lbf:11x11-6p-4f-s1-coop --envs 32 --steps 32000 --repeat 3 --json >"$OUT/pipeline_lbf11x11.json"
+  "$LMAC" bench pipeline --env lbf:11x11-6p-4f-s1-coop --envs 32 --steps 32000 --repeat 15 --json >"$OUT/pipeline_lbf11x11.json"
 fi
 
 if want smaclite; then
   for map in bane_vs_hM 1o_10b_vs_1r 2o_20b_vs_2r 5z_vs_1ul; do
     log "pipeline: smaclite:$map, 32 envs"
-    "$LMAC" bench pipeline --env "smaclite:$map" --envs 32 --steps 32000 --repeat 3 --json >"$OUT/pipeline_smaclite_$map.json"
+    "$LMAC" bench pipeline --env "smaclite:$map" --envs 32 --steps 64000 --repeat 21 --json >"$OUT/pipeline_smaclite_$map.json"
   done
 fi
 
@@ -44,8 +44,8 @@ if want grf; then
           --env "grf:$sc" --envs 4 --steps 500 >"$OUT/grf_raw_${sc}_workers$w.json"
       done
       log "pipeline: grf:$sc, 4 envs"
-      "$LMAC" bench pipeline --env "grf:$sc" --envs 4 --steps 4000 --repeat 3 --json >"$OUT/pipeline_grf_$sc.json"
-      LMAC_GRF_WORKERS=2 "$LMAC" bench pipeline --env "grf:$sc" --envs 4 --steps 4000 --repeat 3 --json \
+      "$LMAC" bench pipeline --env "grf:$sc" --envs 4 --steps 4000 --repeat 9 --json >"$OUT/pipeline_grf_$sc.json"
+      LMAC_GRF_WORKERS=2 "$LMAC" bench pipeline --env "grf:$sc" --envs 4 --steps 4000 --repeat 9 --json \
         >"$OUT/pipeline_grf_${sc}_workers2.json"
     done
   else

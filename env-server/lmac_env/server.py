@@ -6,7 +6,9 @@ with the chosen actions. Started by `lmac` (one process per server); also usable
         --server 0 --n-servers 2 --slots 4 --msg-dim 29
 
 `python -m lmac_env.server --raw --steps 2000 ...` steps the same environments with random
-available actions and no pipeline (the baseline of `lmac bench pipeline`).
+available actions and no pipeline (the baseline of `lmac bench pipeline`); with `--compare-raw K`
+a pipeline server alternates blocks of K batched steps through the ring and of that baseline in
+this process (how `lmac bench pipeline` measures one env server).
 """
 from __future__ import annotations
 
@@ -212,8 +214,7 @@ def serve(args) -> int:
         for u in units:
             u.start()
         t0 = time.perf_counter()
-        if args.compare_raw:
-            _compare(args, units, stop)
+        baseline_s = _compare(args, units, stop) if args.compare_raw else 0.0
         # Strict round robin: each sub-batch's slot comes back in the order it was sent.
         while not stop["flag"] and any(u.open for u in units):
             for u in units:
@@ -224,8 +225,9 @@ def serve(args) -> int:
         episodes = sum(u.driver.episodes_done for u in units)
         waited, stepped = sum(u.waited for u in units), sum(u.stepped for u in units)
         # Waiting is what the pipeline costs this process: with double buffering it stays near 0.
+        baseline = f", raw baseline blocks {baseline_s:.1f} s" if args.compare_raw else ""
         print(f"lmac: {who}: {steps} env steps, {episodes} episodes in {dt:.1f} s "
-              f"(stepping {stepped:.1f} s, waiting for actions {waited:.1f} s); goodbye",
+              f"(stepping {stepped:.1f} s, waiting for actions {waited:.1f} s{baseline}); goodbye",
               file=sys.stderr, flush=True)
         return 0
     except lmac_shm.StoppedError:
@@ -279,7 +281,7 @@ def raw(args) -> int:
     return 0
 
 
-def _compare(args, units: list[_SubBatch], stop: dict) -> None:
+def _compare(args, units: list[_SubBatch], stop: dict) -> float:
     """`--compare-raw K`: alternate, in this process, a block of K batched steps through the
     pipeline and a block of K batched steps of the raw baseline (a second set of the same
     environments, stepped here with random actions, the ring paused), `--compare-blocks` times.
@@ -317,6 +319,7 @@ def _compare(args, units: list[_SubBatch], stop: dict) -> None:
               "block_env_steps": args.compare_raw * args.envs, "blocks": blocks}
     with open(args.compare_out, "w") as f:
         json.dump(report, f)
+    return sum(b["raw_s"] for b in blocks)
 
 
 def main(argv=None) -> int:

@@ -34,11 +34,21 @@ pub struct EnvSchema {
     pub episode_limit: usize,
     #[serde(default)]
     pub message_columns: usize,
+    /// Whether an env server splits its batch into two halves stepped in turn while the other
+    /// half's slot travels (double buffering; the default). `false` for environments whose step
+    /// costs about the same for half a batch as for a whole one (vectorized numpy, fixed cost
+    /// per call): there the split costs more than the wait it hides.
+    #[serde(default = "double_buffer_default")]
+    pub double_buffer: bool,
     pub alpha: f64,
     pub reward: String,
     pub actions: Vec<String>,
     pub obs_dims: Vec<DimGroup>,
     pub state_dims: Vec<DimGroup>,
+}
+
+fn double_buffer_default() -> bool {
+    true
 }
 
 /// A schema problem: which file, which field, what is wrong.

@@ -63,7 +63,8 @@ struct PipelineOpts {
     #[arg(long, default_value_t = 1)]
     servers: usize,
     /// Sub-batches per env server: it steps one while the other's slot travels through the
-    /// runner and the trainer (default: 2 when --envs is even, else 1).
+    /// runner and the trainer (default: 2 when --envs is even, unless the environment's schema
+    /// sets double_buffer = false; else 1).
     #[arg(long)]
     sub_batches: Option<usize>,
     /// Slots in each server's shared-memory slab.
@@ -428,7 +429,7 @@ fn pipeline_report(
     if p.envs == 0 || p.servers == 0 || p.slots == 0 {
         bail!("--envs, --servers and --slots must be at least 1");
     }
-    let sub_batches = p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(p.envs));
+    let sub_batches = p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(&schema, p.envs));
     if sub_batches == 0 || p.envs % sub_batches != 0 {
         bail!("--sub-batches {sub_batches} must be at least 1 and divide --envs {}", p.envs);
     }
@@ -505,6 +506,8 @@ struct Alternations {
 fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
     let interrupted = interrupt_flag();
     let repeat = repeat.max(1);
+    let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
+    let sub_batches = p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(&schema, p.envs));
     let m = if p.servers == 1 { bench_interleaved(&p, repeat, interrupted)? } else { bench_separate_runs(&p, repeat, interrupted)? };
     let ratios: Vec<f64> = m.raws.iter().zip(&m.pipes).map(|(r, q)| if *r > 0.0 { q / r } else { 0.0 }).collect();
     // Rates over the whole measurement (harmonic means: total env steps over total time, the
@@ -515,7 +518,7 @@ fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
     let (lo, hi) = ratios.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &r| (lo.min(r), hi.max(r)));
     let v = serde_json::json!({
         "env": p.env, "envs_total": p.envs * p.servers, "servers": p.servers, "protocol": p.protocol,
-        "sub_batches": p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(p.envs)),
+        "sub_batches": sub_batches,
         "env_steps": p.steps, "repeats": repeat, "method": m.method,
         "raw_env_steps_per_s": raw_rate, "pipeline_env_steps_per_s": pipe_rate, "ratio": ratio,
         "ratio_of_rates": pipe_rate / raw_rate, "ratio_min": lo, "ratio_max": hi,
@@ -804,7 +807,7 @@ fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Resu
             env: cfg.run.env.clone(),
             envs: cfg.run.envs,
             servers: cfg.run.servers,
-            sub_batches: Some(cfg.run.sub_batches()),
+            sub_batches: Some(cfg.run.sub_batches()?),
             slots: 4,
             protocol: cfg.protocol()?,
             steps: u64::MAX / 4,

@@ -104,9 +104,10 @@ impl RunPlan {
     }
 }
 
-/// The default split of `envs` environments per process: two sub-batches when they halve evenly.
-pub fn default_sub_batches(envs: usize) -> usize {
-    if envs >= 2 && envs % 2 == 0 {
+/// The default split of `envs` environments per process: two sub-batches when they halve evenly,
+/// unless the schema turns double buffering off.
+pub fn default_sub_batches(schema: &lmac_shm_schema::EnvSchema, envs: usize) -> usize {
+    if schema.double_buffer && envs >= 2 && envs % 2 == 0 {
         2
     } else {
         1
@@ -251,5 +252,23 @@ fn stop_all(procs: &mut [Proc]) {
     for p in procs.iter_mut() {
         let _ = p.child.kill();
         let _ = p.child.wait();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::default_sub_batches;
+    use lmac_shm_schema::schema::load_env;
+
+    #[test]
+    fn double_buffering_by_default_unless_the_schema_turns_it_off() {
+        let lbf = load_env("lbf:8x8-2p-2f-s1-coop").unwrap();
+        assert!(lbf.double_buffer, "default");
+        assert_eq!(default_sub_batches(&lbf, 32), 2);
+        assert_eq!(default_sub_batches(&lbf, 7), 1, "an odd batch does not halve");
+        let fast = load_env("smaclite:5z_vs_1ul").unwrap();
+        assert!(!fast.double_buffer);
+        assert_eq!(default_sub_batches(&fast, 32), 1);
+        assert_eq!(default_sub_batches(&load_env("smaclite:2o_20b_vs_2r").unwrap(), 32), 2);
     }
 }

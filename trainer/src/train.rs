@@ -31,7 +31,7 @@ pub struct RunSection {
     /// Env server processes.
     pub servers: usize,
     /// Sub-batches per env server (double buffering, see `supervisor::RunPlan`); 0: two when
-    /// `envs` is even, else one.
+    /// `envs` is even and the schema allows it (`double_buffer`), else one.
     pub sub_batches: usize,
     /// Gradient updates per collected (training) episode. pymarl does one update per run of
     /// `batch_size_run` parallel episodes (EPyMARL's parallel runner: 1/8 to 1/10); 0.125
@@ -60,13 +60,14 @@ pub struct RunSection {
 }
 
 impl RunSection {
-    /// The sub-batches each env server steps in turn (`sub_batches`, or the default for `envs`).
-    pub fn sub_batches(&self) -> usize {
-        if self.sub_batches == 0 {
-            crate::supervisor::default_sub_batches(self.envs)
-        } else {
-            self.sub_batches
+    /// The sub-batches each env server steps in turn (`sub_batches`, or the default for `envs`
+    /// and the environment's schema).
+    pub fn sub_batches(&self) -> Result<usize> {
+        if self.sub_batches != 0 {
+            return Ok(self.sub_batches);
         }
+        let schema = lmac_shm_schema::schema::load_env(&self.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
+        Ok(crate::supervisor::default_sub_batches(&schema, self.envs))
     }
 }
 
@@ -169,8 +170,9 @@ impl TrainConfig {
         if r.envs == 0 || r.servers == 0 {
             bail!("run.envs and run.servers: must be at least 1");
         }
-        if r.envs % r.sub_batches() != 0 {
-            bail!("run.sub_batches: {} does not divide run.envs {}", r.sub_batches(), r.envs);
+        let sub_batches = r.sub_batches()?;
+        if r.envs % sub_batches != 0 {
+            bail!("run.sub_batches: {sub_batches} does not divide run.envs {}", r.envs);
         }
         if !(r.updates_per_episode.is_finite() && r.updates_per_episode > 0.0) {
             bail!("run.updates_per_episode: must be positive, got {}", r.updates_per_episode);
@@ -577,7 +579,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     };
     let counters = learner.counters();
     // One controller per ring server (sub-batch), each driving that sub-batch's environments.
-    let envs_per_slab = cfg.run.envs / cfg.run.sub_batches();
+    let envs_per_slab = cfg.run.envs / cfg.run.sub_batches()?;
     let controllers = (0..args.n_servers).map(|_| Controller::new(&learner, envs_per_slab)).collect();
     let shared = Arc::new(Mutex::new(Shared { updates: counters.updates, ..Default::default() }));
     let (tx, rx) = mpsc::channel::<ToLearner>();
