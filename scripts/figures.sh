@@ -18,7 +18,10 @@ want() { [[ " $WHAT " == *" $1 "* ]]; }
 
 if want pipeline; then
   log "pipeline: LBF 8x8, 32 envs in one env server (double-buffered), one sub-batch, two servers"
-  "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 128000 --repeat 41 --json >"$OUT/pipeline_lbf8x8.json"
+  # The headline figure five times over: how much it moves from run to run on this machine.
+  for i in 1 2 3 4 5; do
+    "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 128000 --repeat 41 --json >"$OUT/pipeline_lbf8x8_run$i.json"
+  done
   "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --sub-batches 1 --steps 64000 --repeat 21 --json \
     >"$OUT/pipeline_lbf8x8_one_sub_batch.json"
   "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 16 --servers 2 --steps 64000 --repeat 9 --json \
