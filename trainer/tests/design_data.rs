@@ -116,6 +116,7 @@ fn synthetic_schema(message_columns: usize) -> EnvSchema {
         n_actions: SYN_NA,
         episode_limit: SYN_LEN,
         message_columns,
+        double_buffer: true,
         alpha: 0.1,
         reward: "none".into(),
         actions: vec!["a".into(), "b".into(), "c".into()],
