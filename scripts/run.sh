@@ -8,5 +8,5 @@ bash scripts/setup.sh
 LMAC="$ROOT/target/release/lmac"
 "$LMAC" envs
 echo
-"$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 64000
+"$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 128000 --repeat 41
 "$LMAC" run --env lbf:8x8-2p-2f-s1-coop --envs 16 --servers 2 --protocol fullcomm --steps 32000 --verify

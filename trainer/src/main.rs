@@ -219,7 +219,7 @@ enum BenchCmd {
         p: PipelineOpts,
         /// Alternate raw and pipeline this many times (blocks inside one env server, or
         /// separate runs with --servers above 1); report medians.
-        #[arg(long, default_value_t = 9)]
+        #[arg(long, default_value_t = 21)]
         repeat: usize,
         /// Print JSON.
         #[arg(long)]
