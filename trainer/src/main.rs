@@ -807,7 +807,8 @@ fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Resu
             env: cfg.run.env.clone(),
             envs: cfg.run.envs,
             servers: cfg.run.servers,
-            sub_batches: Some(cfg.run.sub_batches()?),
+            // 0 = the default for the environment's schema (pipeline_report applies it).
+            sub_batches: (cfg.run.sub_batches != 0).then_some(cfg.run.sub_batches),
             slots: 4,
             protocol: cfg.protocol()?,
             steps: u64::MAX / 4,

@@ -59,18 +59,6 @@ pub struct RunSection {
     pub dataset_epsilon: Option<f32>,
 }
 
-impl RunSection {
-    /// The sub-batches each env server steps in turn (`sub_batches`, or the default for `envs`
-    /// and the environment's schema).
-    pub fn sub_batches(&self) -> Result<usize> {
-        if self.sub_batches != 0 {
-            return Ok(self.sub_batches);
-        }
-        let schema = lmac_shm_schema::schema::load_env(&self.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
-        Ok(crate::supervisor::default_sub_batches(&schema, self.envs))
-    }
-}
-
 impl Default for RunSection {
     fn default() -> Self {
         RunSection {
@@ -170,9 +158,9 @@ impl TrainConfig {
         if r.envs == 0 || r.servers == 0 {
             bail!("run.envs and run.servers: must be at least 1");
         }
-        let sub_batches = r.sub_batches()?;
-        if r.envs % sub_batches != 0 {
-            bail!("run.sub_batches: {sub_batches} does not divide run.envs {}", r.envs);
+        // 0 takes the default, which always divides (supervisor::default_sub_batches).
+        if r.sub_batches != 0 && r.envs % r.sub_batches != 0 {
+            bail!("run.sub_batches: {} does not divide run.envs {}", r.sub_batches, r.envs);
         }
         if !(r.updates_per_episode.is_finite() && r.updates_per_episode > 0.0) {
             bail!("run.updates_per_episode: must be positive, got {}", r.updates_per_episode);
@@ -579,7 +567,8 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     };
     let counters = learner.counters();
     // One controller per ring server (sub-batch), each driving that sub-batch's environments.
-    let envs_per_slab = cfg.run.envs / cfg.run.sub_batches()?;
+    // The ring has servers x sub-batches members (`args.n_servers`).
+    let envs_per_slab = cfg.run.envs * cfg.run.servers / args.n_servers;
     let controllers = (0..args.n_servers).map(|_| Controller::new(&learner, envs_per_slab)).collect();
     let shared = Arc::new(Mutex::new(Shared { updates: counters.updates, ..Default::default() }));
     let (tx, rx) = mpsc::channel::<ToLearner>();
