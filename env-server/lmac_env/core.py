@@ -90,10 +90,14 @@ class VecEnv(abc.ABC):
     Contract:
     - ``reset(env_ids, out)`` starts new episodes in the listed envs and writes their first
       obs/state/avail into those rows of ``out`` (other rows untouched).
-    - ``step(actions, out)`` applies int actions of shape (B, n_agents) to every env and writes
-      every row of obs/state/avail/reward/terminated; it may set ``truncated`` for an env's own
-      time limit. The server loop (lmac_env.server) counts episode steps, truncates at the
-      schema's episode_limit and calls ``reset`` for finished envs (auto-reset).
+    - ``step(actions, out, active=None)`` applies int actions of shape (B, n_agents) to the envs
+      and writes every row of obs/state/avail/reward/terminated of the envs it steps; it may set
+      ``truncated`` for an env's own time limit. ``active`` (bool (B,), None = all) lists the
+      envs to step: an inactive env's episode has ended (its last row carried the observation
+      after a time limit) and the server resets it right after this call, so it must not be
+      advanced where that could fail (a real game); a vectorized simulator may step it anyway,
+      its rows are overwritten by the reset. The server loop (lmac_env.server) counts episode
+      steps, truncates at the schema's episode_limit and calls ``reset`` for finished envs.
     - Deterministic for a given ``seed`` passed to the constructor.
     """
     schema: Schema
@@ -104,8 +108,8 @@ class VecEnv(abc.ABC):
         """Start new episodes in ``env_ids`` (see the contract above)."""
 
     @abc.abstractmethod
-    def step(self, actions: np.ndarray, out: Batch) -> None:
-        """Step every env with ``actions`` (see the contract above)."""
+    def step(self, actions: np.ndarray, out: Batch, active: np.ndarray | None = None) -> None:
+        """Step the ``active`` envs (all when None) with ``actions`` (see the contract above)."""
 
     def close(self) -> None:
         pass

@@ -199,8 +199,10 @@ class _LocalGroup:
             _write_features(o, self.n, self.obs[j], self.state[j])
         return self.obs[local_ids], self.state[local_ids]
 
-    def step(self, actions):
+    def step(self, actions, active=None):
         for j, env in enumerate(self.envs):
+            if active is not None and not active[j]:
+                continue   # its game ended (the server resets it next); stepping it could fail
             o, r, done = env.step(actions[j].tolist())
             self.reward[j] = r
             self.terminated[j] = done
@@ -231,7 +233,7 @@ def _worker_main(conn, scenario, n_agents, seed, env_indices, fixed_players):
         except EOFError:
             break
         if cmd == "step":
-            conn.send(group.step(arg))
+            conn.send(group.step(*arg))
         elif cmd == "reset":
             conn.send(group.reset(arg))
         elif cmd == "close":
@@ -346,14 +348,15 @@ class GrfVecEnv(VecEnv):
             out.avail[rows] = 1
             # reward/terminated/truncated stay: on auto-reset they belong to the ending step
 
-    def step(self, actions: np.ndarray, out: Batch) -> None:
+    def step(self, actions: np.ndarray, out: Batch, active: np.ndarray | None = None) -> None:
         actions = np.asarray(actions, dtype=np.int64)
+        act = (lambda s: None) if active is None else (lambda s: np.asarray(active[s], bool))
         if self.remote:
             for g, s in zip(self.groups, self.slices):
-                g.send("step", actions[s])
+                g.send("step", (actions[s], act(s)))
             results = [g.recv() for g in self.groups]
         else:
-            results = [g.step(actions[s]) for g, s in zip(self.groups, self.slices)]
+            results = [g.step(actions[s], act(s)) for g, s in zip(self.groups, self.slices)]
         for s, (obs, state, reward, term) in zip(self.slices, results):
             out.obs[s] = obs
             out.state[s] = state

@@ -102,8 +102,10 @@ class LbfVecEnv(VecEnv):
                 env.reset()
             self._write(e, out)
 
-    def step(self, actions: np.ndarray, out: Batch) -> None:
+    def step(self, actions: np.ndarray, out: Batch, active: np.ndarray | None = None) -> None:
         for e, env in enumerate(self.envs):
+            if active is not None and not active[e]:
+                continue
             _, rewards, _, _, _ = env.step([int(a) for a in actions[e]])
             out.reward[e] = float(sum(rewards))
             out.terminated[e] = 1 if env.field.sum() == 0 else 0

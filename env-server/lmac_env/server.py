@@ -26,6 +26,7 @@ from .registry import make
 
 FLAG_FIRST = 1     # shm-schema layout.rs FLAG_FIRST: this row starts an episode
 FLAG_PREV_WON = 2  # FLAG_PREV_WON: the episode that ended at this row was won
+FLAG_FINAL = 4     # FLAG_FINAL: this row is the observation after a truncated episode's last step
 
 
 @dataclasses.dataclass
@@ -44,7 +45,16 @@ class Meta:
 
 class Driver:
     """Episode bookkeeping shared by the pipeline and the raw baseline: auto-reset, episode ids,
-    step counters, truncation at the schema's episode limit."""
+    step counters, truncation at the schema's episode limit.
+
+    How an episode ends on the rows of an env:
+    - terminated (the env ended it: no successor to learn from): the same row already starts
+      the next episode (FLAG_FIRST) and carries the final step's reward and terminated = 1;
+    - truncated (a time limit: the learner bootstraps from what came next): the row carries the
+      final step's reward, truncated = 1, FLAG_FINAL and the observation, state and available
+      actions after the last step, with the runner's messages on it like any row. The actions
+      chosen on it are ignored: the next row starts the next episode (reward 0, no end flags).
+    FLAG_PREV_WON marks the row that ends a won episode."""
 
     def __init__(self, env: VecEnv, server: int):
         self.env = env
@@ -57,43 +67,54 @@ class Driver:
         self.episodes_done = 0
         self.return_sum = 0.0
         self._returns = np.zeros(b, np.float64)
+        self._final = np.zeros(b, bool)   # envs whose last row was FLAG_FINAL: reset next
 
     def first(self, out: Batch, meta: Meta) -> None:
         self.env.reset(np.arange(self.env.num_envs), out)
         out.reward[:] = 0
         out.terminated[:] = 0
         out.truncated[:] = 0
+        self._final[:] = False
         meta.episode_id[:] = self.episode_id
         meta.ep_step[:] = 0
         meta.flags[:] = FLAG_FIRST
         meta.last_actions[:] = -1
 
     def advance(self, actions: np.ndarray, out: Batch, meta: Meta) -> None:
-        self.env.step(actions, out)
-        self.ep_step += 1
-        hit_limit = (self.ep_step >= self.limit) & (out.terminated == 0)
-        out.truncated[hit_limit] = 1
-        done = (out.terminated != 0) | (out.truncated != 0)
-        self._returns += out.reward
+        final = self._final
+        live = ~final
+        self.env.step(actions, out, live if final.any() else None)
+        self.ep_step[live] += 1
+        term = live & (out.terminated != 0)
+        trunc = live & ~term & ((out.truncated != 0) | (self.ep_step >= self.limit))
+        ended = term | trunc
+        out.terminated[:] = term
+        out.truncated[:] = trunc
+        out.reward[final] = 0.0
+        self._returns[live] += out.reward[live]
         meta.last_actions[:] = actions
         meta.flags[:] = 0
-        if done.any():
-            ids = np.nonzero(done)[0]
+        if ended.any():
+            ids = np.nonzero(ended)[0]
             # Success of the finished episodes: the env's own `won` (SMAC) or, by default,
             # termination before the time limit (LBF: all food eaten).
             won = getattr(self.env, "won", None)
-            won = (out.terminated != 0) if won is None else np.asarray(won, bool)
-            won_ids = ids[won[ids]]
+            won = term if won is None else np.asarray(won, bool)
+            meta.flags[ids[won[ids]]] |= FLAG_PREV_WON
             self.episodes_done += len(ids)
             self.return_sum += float(self._returns[ids].sum())
             self._returns[ids] = 0.0
+        meta.flags[trunc] |= FLAG_FINAL
+        restart = term | final
+        if restart.any():
+            ids = np.nonzero(restart)[0]
             self.env.reset(ids, out)
             self.ep_step[ids] = 0
             self.episode_id[ids] = self.next_id + np.arange(len(ids), dtype=np.uint64)
             self.next_id += np.uint64(len(ids))
-            meta.flags[ids] = FLAG_FIRST
-            meta.flags[won_ids] |= FLAG_PREV_WON
+            meta.flags[ids] |= FLAG_FIRST
             meta.last_actions[ids] = -1
+        self._final = trunc
         meta.episode_id[:] = self.episode_id
         meta.ep_step[:] = self.ep_step
 

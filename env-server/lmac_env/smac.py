@@ -320,8 +320,10 @@ class SmacVecEnv(VecEnv):
             self.envs[int(e)].reset()
             self._write(int(e), out)
 
-    def step(self, actions: np.ndarray, out: Batch) -> None:
+    def step(self, actions: np.ndarray, out: Batch, active: np.ndarray | None = None) -> None:
         for e, env in enumerate(self.envs):
+            if active is not None and not active[e]:
+                continue   # its game ended; stepping it would fail (the server resets it next)
             reward, terminated, info = env.step([int(a) for a in actions[e]])
             won = bool(info.get("battle_won", False))
             timeout = terminated and not won and env._episode_steps >= self.limit \

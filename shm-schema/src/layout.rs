@@ -19,6 +19,12 @@ pub const ENV_META_BYTES: usize = 16;
 pub const FLAG_FIRST: u32 = 1;
 /// `flags` bit: the episode that ended at this row was won (SMAC win, LBF all food eaten).
 pub const FLAG_PREV_WON: u32 = 2;
+/// `flags` bit: the episode was truncated (time limit) at this row, and this row's observation,
+/// state and available actions are what followed its last step, so the learner can bootstrap
+/// from them; reward and `truncated` belong to that last step. The actions chosen on this row
+/// are ignored and the next row starts a new episode. (A terminated episode has no such row:
+/// the row carrying `terminated` is already the next episode's first.)
+pub const FLAG_FINAL: u32 = 4;
 
 /// Run-time parameters that, with the schema, fix the byte layout.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

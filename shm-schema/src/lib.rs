@@ -8,7 +8,7 @@ pub mod ring;
 pub mod schema;
 pub mod slab;
 
-pub use layout::{LayoutParams, SlotLayout, FLAG_FIRST, FLAG_PREV_WON};
+pub use layout::{LayoutParams, SlotLayout, FLAG_FINAL, FLAG_FIRST, FLAG_PREV_WON};
 pub use ring::{Port, RingError, RingSpec, SlotMsg};
 pub use schema::EnvSchema;
 pub use slab::{Slab, SlabError, Slot, Stage};

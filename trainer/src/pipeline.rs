@@ -2,9 +2,9 @@
 //! step into its episode (the trainer's only copy), choose actions, write them into the slot and
 //! hand it back to the env server. Counts throughput and checks the data-plane invariants.
 
-use crate::episode::{Episode, EpisodeDims};
+use crate::episode::{Episode, EpisodeDims, NextStep};
 use lmac_shm_schema::ring::{Port, RingError, RingSpec, KIND_SLOT};
-use lmac_shm_schema::{EnvSchema, Slab, Slot, Stage, FLAG_FIRST, FLAG_PREV_WON};
+use lmac_shm_schema::{EnvSchema, Slab, Slot, Stage, FLAG_FINAL, FLAG_FIRST, FLAG_PREV_WON};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
@@ -120,12 +120,23 @@ pub enum PipelineError {
     Protocol(String),
 }
 
+/// Where an env's rows stand.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Phase {
+    /// No row seen yet.
+    Fresh,
+    /// An episode is being assembled.
+    Open,
+    /// A truncated episode's final row was seen; the next row must start a new episode.
+    AwaitFirst,
+}
+
 /// Per env: the episode being assembled.
 struct EnvTrack {
     ep: Episode,
     episode_id: u64,
     expect_step: u32,
-    started: bool,
+    phase: Phase,
 }
 
 pub struct Assembler {
@@ -143,7 +154,7 @@ impl Assembler {
         let tracks = (0..n_servers)
             .map(|_| {
                 (0..num_envs)
-                    .map(|_| EnvTrack { ep: Episode::with_capacity(&dims, limit), episode_id: 0, expect_step: 0, started: false })
+                    .map(|_| EnvTrack { ep: Episode::with_capacity(&dims, limit), episode_id: 0, expect_step: 0, phase: Phase::Fresh })
                     .collect()
             })
             .collect();
@@ -158,53 +169,100 @@ impl Assembler {
     }
 
     /// Take in the step of every env in `slot`: close the previous transition with this row's
-    /// reward (finishing the episode if it ended) and open the next one with this row's obs.
+    /// reward (finishing the episode if it ended) and open the next one with this row's obs. A
+    /// truncated episode's final row (`FLAG_FINAL`) becomes the episode's `next` step.
     pub fn ingest(&mut self, server: usize, slot: &Slot<'_>) {
         let l = slot.layout().clone();
         let d = self.dims;
         let (obs, state, avail) = (slot.obs(), slot.state(), slot.avail());
         let (reward, term, trunc) = (slot.reward(), slot.terminated(), slot.truncated());
+        let na = l.n_agents * l.n_actions;
+        let rows_of = |e: usize| -> Vec<f32> {
+            let mut v = Vec::with_capacity(l.n_agents * d.obs_width);
+            for a in 0..l.n_agents {
+                let base = (e * l.n_agents + a) * l.row_width;
+                v.extend_from_slice(&obs[base..base + d.obs_width]);
+            }
+            v
+        };
         for e in 0..l.num_envs {
             let (eid, step, flags) = slot.env_meta(e);
-            let first = flags & FLAG_FIRST != 0;
+            let (first, last) = (flags & FLAG_FIRST != 0, flags & FLAG_FINAL != 0);
+            let (te, tr) = (term[e] != 0, trunc[e] != 0);
             let mut t = std::mem::replace(
                 &mut self.tracks[server][e],
-                EnvTrack { ep: Episode::default(), episode_id: 0, expect_step: 0, started: false },
+                EnvTrack { ep: Episode::default(), episode_id: 0, expect_step: 0, phase: Phase::Fresh },
             );
-            if t.started {
-                // This row's reward/termination belong to the previous step of this env.
-                t.ep.reward.push(reward[e]);
-                t.ep.len += 1;
-                let (te, tr) = (term[e] != 0, trunc[e] != 0);
-                if te && tr {
-                    self.violate(format!("server {server} env {e}: episode {} both terminated and truncated", t.episode_id));
+            if first && last {
+                self.violate(format!("server {server} env {e}: a row flagged both first and final (episode {eid})"));
+            }
+            match t.phase {
+                Phase::Open => {
+                    // This row's reward/termination belong to the previous step of this env.
+                    t.ep.reward.push(reward[e]);
+                    t.ep.len += 1;
+                    if te && tr {
+                        self.violate(format!("server {server} env {e}: episode {} both terminated and truncated", t.episode_id));
+                    }
+                    if tr && t.ep.len != self.limit {
+                        self.violate(format!(
+                            "server {server} env {e}: episode {} truncated after {} steps, limit is {}",
+                            t.episode_id, t.ep.len, self.limit
+                        ));
+                    }
+                    if t.ep.len > self.limit {
+                        self.violate(format!(
+                            "server {server} env {e}: episode {} ran {} steps, limit is {}",
+                            t.episode_id, t.ep.len, self.limit
+                        ));
+                    }
+                    // A termination is reported on the next episode's first row, a truncation
+                    // on the episode's own final row.
+                    if te != first || tr != last {
+                        self.violate(format!(
+                            "server {server} env {e}: episode {} end flags (terminated {te}, truncated {tr}) disagree with the row's flags (first {first}, final {last})",
+                            t.episode_id
+                        ));
+                    }
+                    if te || tr {
+                        t.ep.terminated = te;
+                        t.ep.truncated = tr;
+                        if last {
+                            t.ep.next = Some(NextStep {
+                                obs: rows_of(e),
+                                state: state[e * l.state_dim..(e + 1) * l.state_dim].to_vec(),
+                                avail: avail[e * na..(e + 1) * na].to_vec(),
+                            });
+                        }
+                        let done = std::mem::replace(&mut t.ep, Episode::with_capacity(&d, self.limit));
+                        self.finished.push((server, e, t.episode_id, done, flags & FLAG_PREV_WON != 0));
+                    }
                 }
-                if tr && t.ep.len != self.limit {
-                    self.violate(format!(
-                        "server {server} env {e}: episode {} truncated after {} steps, limit is {}",
-                        t.episode_id, t.ep.len, self.limit
-                    ));
+                Phase::AwaitFirst => {
+                    if !first || te || tr || reward[e] != 0.0 {
+                        self.violate(format!(
+                            "server {server} env {e}: the row after episode {}'s final row is not a clean first step (first {first}, terminated {te}, truncated {tr}, reward {})",
+                            t.episode_id, reward[e]
+                        ));
+                    }
                 }
-                if t.ep.len > self.limit {
-                    self.violate(format!(
-                        "server {server} env {e}: episode {} ran {} steps, limit is {}",
-                        t.episode_id, t.ep.len, self.limit
-                    ));
+                Phase::Fresh => {
+                    if !first {
+                        self.violate(format!("server {server} env {e}: the first step seen is not flagged as an episode start"));
+                    }
                 }
-                if (te || tr) != first {
-                    self.violate(format!("server {server} env {e}: episode end flags (terminated {te}, truncated {tr}) disagree with the first-step flag {first}"));
+            }
+            if last {
+                // The final row is not a step of any episode: the next row starts one.
+                if eid != t.episode_id {
+                    self.violate(format!("server {server} env {e}: final row of episode {eid}, expected {}", t.episode_id));
                 }
-                if te || tr {
-                    t.ep.terminated = te;
-                    t.ep.truncated = tr;
-                    let done = std::mem::replace(&mut t.ep, Episode::with_capacity(&d, self.limit));
-                    self.finished.push((server, e, t.episode_id, done, flags & FLAG_PREV_WON != 0));
-                }
-            } else if !first {
-                self.violate(format!("server {server} env {e}: the first step seen is not flagged as an episode start"));
+                t.phase = Phase::AwaitFirst;
+                self.tracks[server][e] = t;
+                continue;
             }
             if first {
-                if t.started && eid == t.episode_id {
+                if t.phase != Phase::Fresh && eid == t.episode_id {
                     self.violate(format!("server {server} env {e}: a new episode reuses id {eid}"));
                 }
                 t.episode_id = eid;
@@ -216,24 +274,22 @@ impl Assembler {
                 self.violate(format!("server {server} env {e}: episode {eid} step {step}, expected {}", t.expect_step));
             }
             t.expect_step = step + 1;
-            t.started = true;
-            let row = l.row_width;
-            for a in 0..l.n_agents {
-                let base = (e * l.n_agents + a) * row;
-                t.ep.obs.extend_from_slice(&obs[base..base + d.obs_width]);
-            }
+            t.phase = Phase::Open;
+            t.ep.obs.extend_from_slice(&rows_of(e));
             t.ep.state.extend_from_slice(&state[e * l.state_dim..(e + 1) * l.state_dim]);
-            let na = l.n_agents * l.n_actions;
             t.ep.avail.extend_from_slice(&avail[e * na..(e + 1) * na]);
             self.tracks[server][e] = t;
         }
     }
 
-    /// Record the actions chosen for the step just ingested.
+    /// Record the actions chosen for the step just ingested (not on final rows: those actions
+    /// are ignored by the env server).
     pub fn record_actions(&mut self, server: usize, actions: &[i32]) {
         let n = self.dims.n_agents;
         for (e, t) in self.tracks[server].iter_mut().enumerate() {
-            t.ep.actions.extend_from_slice(&actions[e * n..(e + 1) * n]);
+            if t.phase == Phase::Open {
+                t.ep.actions.extend_from_slice(&actions[e * n..(e + 1) * n]);
+            }
         }
     }
 

@@ -221,7 +221,9 @@ class SmacliteVecEnv(VecEnv):
             pos[:, :N] = np.take_along_axis(pz, o[..., None], axis=1)
         return pos
 
-    def step(self, actions: np.ndarray, out: Batch) -> None:
+    def step(self, actions: np.ndarray, out: Batch, active: np.ndarray | None = None) -> None:
+        # Inactive envs (ended, reset by the server right after) are simulated with the rest,
+        # which costs nothing extra in this vectorized simulator; only the tallies skip them.
         N, E, B = self.N, self.E, self.num_envs
         ar = self._ar
         a = np.asarray(actions, dtype=np.int64).reshape(B, N)
@@ -325,9 +327,10 @@ class SmacliteVecEnv(VecEnv):
         out.terminated[:] = term
         out.truncated[:] = (self.t >= self.spec.episode_limit) & ~term
         ended = term | (self.t >= self.spec.episode_limit)
+        counted = ended if active is None else ended & active
         self.won = win
-        self.episodes += int(ended.sum())
-        self.wins += int(win.sum())
+        self.episodes += int(counted.sum())
+        self.wins += int((win & counted).sum())
         self._write(out, None)
 
     # ------------------------------------------------------------------ enemy behaviour

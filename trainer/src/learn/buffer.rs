@@ -78,7 +78,8 @@ impl ReplayBuffer {
     }
 }
 
-/// A padded batch of `b` episodes over `t` steps (the longest episode), time-major.
+/// A padded batch of `b` episodes over `t` steps (the longest episode, counting a truncated
+/// episode's next step), time-major.
 #[derive(Clone, Debug)]
 pub struct Batch {
     pub b: usize,
@@ -108,7 +109,7 @@ pub struct Batch {
 impl Batch {
     pub fn from_episodes(eps: &[&Episode], dims: &EpisodeDims, layout: &InputLayout) -> Batch {
         let b = eps.len();
-        let t = eps.iter().map(|e| e.len).max().unwrap_or(0);
+        let t = eps.iter().map(|e| e.len + e.next.is_some() as usize).max().unwrap_or(0);
         let (n, a, s, ow) = (dims.n_agents, dims.n_actions, dims.state_dim, dims.obs_width);
         let iw = layout.width();
         let mut batch = Batch {
@@ -143,16 +144,32 @@ impl Batch {
                 }
                 batch.reward[tb] = ep.reward[ti];
                 let last_step = ti + 1 == ep.len;
-                batch.has_next[tb] = if last_step { 0.0 } else { 1.0 };
-                if last_step {
-                    // Terminated: target is the reward alone. Truncated (or neither flag, i.e. an
-                    // episode cut without a known successor): no target, masked.
-                    if ep.terminated {
-                        batch.terminated[tb] = 1.0;
-                        batch.mask[tb] = 1.0;
-                    }
-                } else {
+                let succeeded = !last_step || ep.next.is_some();
+                batch.has_next[tb] = if succeeded { 1.0 } else { 0.0 };
+                // Terminated: the target is the reward alone. Truncated with its next step: the
+                // target bootstraps from it. Cut without a known successor: masked.
+                if last_step && ep.terminated {
+                    batch.terminated[tb] = 1.0;
+                }
+                if succeeded || ep.terminated {
                     batch.mask[tb] = 1.0;
+                }
+            }
+            if let Some(next) = &ep.next {
+                // The step after the last: inputs, state and avail for the target only (mask 0).
+                let tb = ep.len * b + bi;
+                batch.state[tb * s..(tb + 1) * s].copy_from_slice(&next.state);
+                for ag in 0..n {
+                    let row = tb * n + ag;
+                    let last = ep.actions[(ep.len - 1) * n + ag];
+                    layout.write(
+                        &mut batch.inputs[row * iw..(row + 1) * iw],
+                        &next.obs[ag * ow..(ag + 1) * ow],
+                        Some(&next.state),
+                        last,
+                        ag,
+                    );
+                    batch.avail[row * a..(row + 1) * a].copy_from_slice(&next.avail[ag * a..(ag + 1) * a]);
                 }
             }
         }

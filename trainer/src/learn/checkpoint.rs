@@ -15,10 +15,12 @@ use super::buffer::ReplayBuffer;
 use super::config::LearnConfig;
 use super::learner::{make_optimizer, Counters, LearnError, Learner, QNet};
 use super::LearnRng;
-use crate::episode::{Episode, EpisodeDims};
+use crate::episode::{Episode, EpisodeDims, NextStep};
 
 const FORMAT_VERSION: u32 = 1;
-const BUFFER_MAGIC: &[u8; 8] = b"LMACRB01";
+/// Replay buffer files: format 2 stores truncated episodes' next steps; format 1 is still read.
+const BUFFER_MAGIC: &[u8; 8] = b"LMACRB02";
+const BUFFER_MAGIC_V1: &[u8; 8] = b"LMACRB01";
 
 #[derive(Serialize, Deserialize)]
 struct DimsJson {
@@ -51,6 +53,58 @@ fn sibling(dir: &Path, suffix: &str) -> PathBuf {
 
 fn fsync_path(p: &Path) -> Result<(), LearnError> {
     File::open(p).and_then(|f| f.sync_all()).map_err(|e| ck(e, "fsync", p))
+}
+
+/// What a checkpoint's `state.json` says, read without building any network.
+#[derive(Clone, Debug)]
+pub struct CheckpointInfo {
+    /// The directory actually read (`<dir>` or, after a crash in the final rename, `<dir>.old`).
+    pub dir: PathBuf,
+    pub dims: EpisodeDims,
+    pub counters: Counters,
+    pub has_buffer: bool,
+}
+
+/// Largest dimension a checkpoint may declare: far above any environment here, low enough that
+/// building the networks it implies cannot exhaust memory on a corrupt file.
+const MAX_DIM: usize = 1 << 16;
+
+/// Read and check a checkpoint's `state.json` (falls back to `<dir>.old`, see
+/// [`Learner::load_checkpoint`]). Errors name the file and the field.
+pub fn peek_checkpoint(dir: impl AsRef<Path>) -> Result<CheckpointInfo, LearnError> {
+    let (dir, st) = read_state(dir.as_ref())?;
+    Ok(CheckpointInfo { dir, dims: st.dims.to_dims(), counters: st.counters, has_buffer: st.has_buffer })
+}
+
+impl DimsJson {
+    fn to_dims(&self) -> EpisodeDims {
+        EpisodeDims { n_agents: self.n_agents, obs_width: self.obs_width, state_dim: self.state_dim, n_actions: self.n_actions }
+    }
+}
+
+fn read_state(dir: &Path) -> Result<(PathBuf, StateJson), LearnError> {
+    let mut dir = dir.to_path_buf();
+    if !dir.join("state.json").exists() {
+        let old = sibling(&dir, ".old");
+        if old.join("state.json").exists() {
+            dir = old;
+        } else {
+            return Err(LearnError::Checkpoint(format!("no checkpoint at {}", dir.display())));
+        }
+    }
+    let p = dir.join("state.json");
+    let bytes = fs::read(&p).map_err(|e| ck(e, "read", &p))?;
+    let st: StateJson = serde_json::from_slice(&bytes).map_err(|e| ck(e, "parse", &p))?;
+    if st.format_version != FORMAT_VERSION {
+        return Err(ck(format!("format_version {} (expected {FORMAT_VERSION})", st.format_version), "load", &p));
+    }
+    let d = &st.dims;
+    for (field, v) in [("n_agents", d.n_agents), ("obs_width", d.obs_width), ("state_dim", d.state_dim), ("n_actions", d.n_actions)] {
+        if v > MAX_DIM || (v == 0 && field != "state_dim") {
+            return Err(ck(format!("dims.{field} is {v}, outside 1..={MAX_DIM}"), "load", &p));
+        }
+    }
+    Ok((dir, st))
 }
 
 impl Learner {
@@ -110,27 +164,8 @@ impl Learner {
     /// Rebuild a learner from a checkpoint written by [`save_checkpoint`](Self::save_checkpoint)
     /// (falls back to `<dir>.old` when a crash interrupted the final rename).
     pub fn load_checkpoint(dir: impl AsRef<Path>, device: Device) -> Result<Learner, LearnError> {
-        let mut dir = dir.as_ref().to_path_buf();
-        if !dir.join("state.json").exists() {
-            let old = sibling(&dir, ".old");
-            if old.join("state.json").exists() {
-                dir = old;
-            } else {
-                return Err(LearnError::Checkpoint(format!("no checkpoint at {}", dir.display())));
-            }
-        }
-        let p = dir.join("state.json");
-        let bytes = fs::read(&p).map_err(|e| ck(e, "read", &p))?;
-        let st: StateJson = serde_json::from_slice(&bytes).map_err(|e| ck(e, "parse", &p))?;
-        if st.format_version != FORMAT_VERSION {
-            return Err(ck(format!("format version {} (expected {FORMAT_VERSION})", st.format_version), "load", &p));
-        }
-        let dims = EpisodeDims {
-            n_agents: st.dims.n_agents,
-            obs_width: st.dims.obs_width,
-            state_dim: st.dims.state_dim,
-            n_actions: st.dims.n_actions,
-        };
+        let (dir, st) = read_state(dir.as_ref())?;
+        let dims = st.dims.to_dims();
         let mut l = Learner::new(dims, st.config, device)?;
         let ad = l.device.clone().autodiff();
         let mut scratch = LearnRng::seed_from(0); // initial values are overwritten by the load
@@ -158,7 +193,7 @@ fn write_buffer(buf: &ReplayBuffer, path: &Path) -> std::io::Result<()> {
     w.write_all(&(next as u64).to_le_bytes())?;
     for ep in slots {
         w.write_all(&(ep.len as u64).to_le_bytes())?;
-        w.write_all(&[ep.terminated as u8, ep.truncated as u8])?;
+        w.write_all(&[ep.terminated as u8, ep.truncated as u8, ep.next.is_some() as u8])?;
         for v in ep.obs.iter().chain(&ep.state).chain(&ep.reward) {
             w.write_all(&v.to_le_bytes())?;
         }
@@ -166,43 +201,87 @@ fn write_buffer(buf: &ReplayBuffer, path: &Path) -> std::io::Result<()> {
         for v in &ep.actions {
             w.write_all(&v.to_le_bytes())?;
         }
+        if let Some(n) = &ep.next {
+            for v in n.obs.iter().chain(&n.state) {
+                w.write_all(&v.to_le_bytes())?;
+            }
+            w.write_all(&n.avail)?;
+        }
     }
     w.flush()?;
     w.into_inner().map_err(|e| e.into_error())?.sync_all()
 }
 
+fn invalid(msg: String) -> std::io::Error {
+    std::io::Error::new(std::io::ErrorKind::InvalidData, msg)
+}
+
+/// Reads a replay buffer file, checking every count against the bytes left in the file before
+/// allocating, so a truncated or corrupt file is an error naming the field, never a huge
+/// allocation or a panic. Reads format 2 (with truncated episodes' next steps) and format 1.
 fn read_buffer(path: &Path, d: &EpisodeDims, capacity: usize) -> std::io::Result<ReplayBuffer> {
-    let mut r = BufReader::new(File::open(path)?);
-    let mut magic = [0u8; 8];
-    r.read_exact(&mut magic)?;
-    if &magic != BUFFER_MAGIC {
-        return Err(std::io::Error::new(std::io::ErrorKind::InvalidData, "not an lmac replay buffer"));
-    }
-    let mut u = [0u8; 8];
-    r.read_exact(&mut u)?;
-    let count = u64::from_le_bytes(u);
-    r.read_exact(&mut u)?;
-    let next = u64::from_le_bytes(u) as usize;
-    let mut episodes = Vec::with_capacity(count as usize);
-    let f32s = |r: &mut BufReader<File>, n: usize| -> std::io::Result<Vec<f32>> {
-        let mut raw = vec![0u8; n * 4];
+    let file = File::open(path)?;
+    let mut left = file.metadata()?.len();
+    let mut r = BufReader::new(file);
+    let mut take = |r: &mut BufReader<File>, n: u64, field: &str| -> std::io::Result<Vec<u8>> {
+        if n > left {
+            return Err(invalid(format!("{field}: needs {n} bytes but only {left} are left (truncated or corrupt file)")));
+        }
+        left -= n;
+        let mut raw = vec![0u8; n as usize];
         r.read_exact(&mut raw)?;
-        Ok(raw.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+        Ok(raw)
     };
-    for _ in 0..count {
-        r.read_exact(&mut u)?;
-        let len = u64::from_le_bytes(u) as usize;
-        let mut flags = [0u8; 2];
-        r.read_exact(&mut flags)?;
-        let obs = f32s(&mut r, len * d.n_agents * d.obs_width)?;
-        let state = f32s(&mut r, len * d.state_dim)?;
-        let reward = f32s(&mut r, len)?;
-        let mut avail = vec![0u8; len * d.n_agents * d.n_actions];
-        r.read_exact(&mut avail)?;
-        let mut raw = vec![0u8; len * d.n_agents * 4];
-        r.read_exact(&mut raw)?;
-        let actions = raw.chunks_exact(4).map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        episodes.push(Episode { len, obs, state, avail, actions, reward, terminated: flags[0] != 0, truncated: flags[1] != 0 });
+    let magic = take(&mut r, 8, "magic")?;
+    let has_next_flag = match &magic[..] {
+        m if m == BUFFER_MAGIC => true,
+        m if m == BUFFER_MAGIC_V1 => false,
+        _ => return Err(invalid("magic: not an lmac replay buffer".into())),
+    };
+    let u64_of = |b: Vec<u8>| u64::from_le_bytes(b.try_into().expect("8 bytes"));
+    let count = u64_of(take(&mut r, 8, "episode count")?);
+    let next = u64_of(take(&mut r, 8, "next slot")?);
+    if count > capacity as u64 {
+        return Err(invalid(format!("episode count: {count} exceeds the buffer capacity {capacity}")));
     }
-    Ok(ReplayBuffer::from_parts(capacity, episodes, next))
+    if next >= capacity.max(1) as u64 {
+        return Err(invalid(format!("next slot: {next} outside the buffer capacity {capacity}")));
+    }
+    let f32s = |raw: Vec<u8>| -> Vec<f32> { raw.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect() };
+    let (n, ow, sd, na) = (d.n_agents as u64, d.obs_width as u64, d.state_dim as u64, d.n_actions as u64);
+    let mut episodes = Vec::with_capacity(count as usize);
+    for k in 0..count {
+        let len = u64_of(take(&mut r, 8, &format!("episode {k}: length"))?);
+        let flags = take(&mut r, if has_next_flag { 3 } else { 2 }, &format!("episode {k}: flags"))?;
+        // Sizes multiply a length read from the file: check for overflow before comparing.
+        let sized = |per_step: u64, field: &str| -> std::io::Result<u64> {
+            len.checked_mul(per_step).ok_or_else(|| invalid(format!("episode {k}: {field}: length {len} overflows")))
+        };
+        if len == 0 {
+            return Err(invalid(format!("episode {k}: length 0")));
+        }
+        let obs = f32s(take(&mut r, sized(n * ow * 4, "obs")?, &format!("episode {k}: obs"))?);
+        let state = f32s(take(&mut r, sized(sd * 4, "state")?, &format!("episode {k}: state"))?);
+        let reward = f32s(take(&mut r, sized(4, "reward")?, &format!("episode {k}: reward"))?);
+        let avail = take(&mut r, sized(n * na, "avail")?, &format!("episode {k}: avail"))?;
+        let raw = take(&mut r, sized(n * 4, "actions")?, &format!("episode {k}: actions"))?;
+        let actions = raw.chunks_exact(4).map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        let next = if has_next_flag && flags[2] != 0 {
+            Some(NextStep {
+                obs: f32s(take(&mut r, n * ow * 4, &format!("episode {k}: next obs"))?),
+                state: f32s(take(&mut r, sd * 4, &format!("episode {k}: next state"))?),
+                avail: take(&mut r, n * na, &format!("episode {k}: next avail"))?,
+            })
+        } else {
+            None
+        };
+        let ep =
+            Episode { len: len as usize, obs, state, avail, actions, reward, terminated: flags[0] != 0, truncated: flags[1] != 0, next };
+        ep.check(d).map_err(|e| invalid(format!("episode {k}: {e}")))?;
+        episodes.push(ep);
+    }
+    if left != 0 {
+        return Err(invalid(format!("{left} bytes after the last episode (corrupt file)")));
+    }
+    Ok(ReplayBuffer::from_parts(capacity, episodes, next as usize))
 }

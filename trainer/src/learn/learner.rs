@@ -156,25 +156,8 @@ impl Learner {
 
     /// Store a finished episode; advances `t_env` and the episode count.
     pub fn add_episode(&mut self, ep: Episode) -> Result<(), LearnError> {
-        let d = &self.dims;
+        ep.check(&self.dims).map_err(LearnError::BadEpisode)?;
         let l = ep.len;
-        let ok = l > 0
-            && ep.obs.len() == l * d.n_agents * d.obs_width
-            && ep.state.len() == l * d.state_dim
-            && ep.avail.len() == l * d.n_agents * d.n_actions
-            && ep.actions.len() == l * d.n_agents
-            && ep.reward.len() == l
-            && ep.actions.iter().all(|&a| a >= 0 && (a as usize) < d.n_actions);
-        if !ok {
-            return Err(LearnError::BadEpisode(format!(
-                "len {l}: obs {}, state {}, avail {}, actions {}, reward {} (dims {d:?})",
-                ep.obs.len(),
-                ep.state.len(),
-                ep.avail.len(),
-                ep.actions.len(),
-                ep.reward.len()
-            )));
-        }
         self.counters.t_env += l as u64;
         self.counters.episodes += 1;
         self.buffer.push(ep);
