@@ -1,6 +1,7 @@
 //! lmac trainer: episode assembly from shared-memory slots, acting, learning, and the CLI.
 pub mod design;
 pub mod episode;
+pub mod faults;
 pub mod learn;
 pub mod pipeline;
 pub mod supervisor;

@@ -27,6 +27,7 @@ enum Cmd {
     /// Run the pipeline with a random policy: env servers -> protocol runner -> trainer (throughput, checks).
     Run(RunArgs),
     /// Train VDN / QMIX / QPLEX and the baselines through the pipeline, over several seeds.
+    #[command(after_long_help = TRAIN_AFTER_HELP)]
     Train(TrainArgs),
     /// Design a communication protocol in three phases (initialization, recognition enhancement,
     /// sharing enhancement) with an LLM or the embedded offline designer, checked on real data.
@@ -46,6 +47,13 @@ enum Cmd {
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCmd),
+    /// Fault injection: train, SIGKILL a random process of the run (an env server, the protocol
+    /// runner, the trainer or the lmac parent) at a random moment, resume, repeat; report how fast
+    /// each death was noticed, resumes that continued, steps lost and shared memory left behind.
+    Chaos(ChaosArgs),
+    /// Endurance: train for a long time and sample the run's memory, open files and shared-memory
+    /// mappings; report their slopes once the replay buffer is full.
+    Soak(SoakArgs),
     /// Internal: the child processes started by `lmac run`.
     #[command(subcommand, hide = true)]
     Child(ChildCmd),
@@ -98,6 +106,21 @@ struct RunArgs {
     json: bool,
 }
 
+const TRAIN_AFTER_HELP: &str = "\
+Update ratio: by default the learner does run.updates_per_episode = 0.125 gradient updates (of
+learn.batch_size = 32 episodes) per collected episode, pymarl's parallel runner with 8
+environments. That is 8x fewer updates per episode than EPyMARL's episode runner (1 per
+episode), and the target network, copied every 200 episodes, is then copied every 25 updates.
+--preset epymarl reproduces the episode runner's schedule: 1 update per episode from the 32nd
+episode on, a target copy every 200 updates. Each environment switches to new weights when its
+next episode starts.
+
+Resuming: --resume DIR continues every unfinished seed in DIR (a group or one seed) from its
+last checkpoint (run.checkpoint_interval env steps apart, and one at the end). Without the saved
+replay buffer (run.save_buffer = false) the learner refills learn.batch_size episodes before it
+updates again. Metrics rows logged after that checkpoint are dropped, so curves continue
+without a step backwards; each checkpoint is logged in metrics.jsonl.";
+
 #[derive(Args)]
 struct TrainArgs {
     /// Environment (overrides run.env).
@@ -118,12 +141,80 @@ struct TrainArgs {
     /// Override a config value: --set learn.lr=0.001 --set run.envs=8
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
+    /// A named bundle of settings, applied before --set: epymarl (EPyMARL's episode-runner
+    /// learning schedule: 1 update per collected episode, target copy every 200 updates).
+    #[arg(long)]
+    preset: Option<String>,
     /// Where run directories go.
     #[arg(long, default_value = "runs")]
     out: std::path::PathBuf,
     /// Continue the runs in this directory (a seed's directory or a group of seeds).
-    #[arg(long, conflicts_with_all = ["env", "algo", "config", "set", "steps"])]
+    #[arg(long, conflicts_with_all = ["env", "algo", "config", "set", "steps", "preset"])]
     resume: Option<std::path::PathBuf>,
+}
+
+#[derive(Args)]
+struct ChaosArgs {
+    /// Kills (each followed by a resume).
+    #[arg(long, default_value_t = 100)]
+    kills: usize,
+    #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
+    env: String,
+    /// Env steps between checkpoints (at most this many are lost per crash).
+    #[arg(long, default_value_t = 5000)]
+    checkpoint_interval: u64,
+    /// Seconds from each start or resume to the kill: drawn uniformly from MIN,MAX.
+    #[arg(long, value_delimiter = ',', default_value = "3,12")]
+    kill_after: Vec<f64>,
+    /// Environments per env server and env servers.
+    #[arg(long, default_value_t = 8)]
+    envs: usize,
+    #[arg(long, default_value_t = 2)]
+    servers: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Where the run goes (must be empty or absent; default: a temporary folder, removed after).
+    #[arg(long)]
+    out: Option<std::path::PathBuf>,
+    /// Write the report (JSON) here.
+    #[arg(long)]
+    report: Option<std::path::PathBuf>,
+}
+
+#[derive(Args)]
+struct SoakArgs {
+    /// How long to train, e.g. 2h, 30m, 90s.
+    #[arg(long, default_value = "2h", value_parser = parse_duration)]
+    duration: f64,
+    /// Seconds between samples.
+    #[arg(long, default_value_t = 30.0)]
+    interval: f64,
+    #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
+    env: String,
+    #[arg(long, default_value_t = 16)]
+    envs: usize,
+    #[arg(long, default_value_t = 2)]
+    servers: usize,
+    /// Store the replay buffer in checkpoints too (the largest thing a run writes).
+    #[arg(long)]
+    save_buffer: bool,
+    /// Where the run goes (default: a temporary folder, removed after).
+    #[arg(long)]
+    out: Option<std::path::PathBuf>,
+    /// Write the report (JSON, with every sample) here.
+    #[arg(long)]
+    report: Option<std::path::PathBuf>,
+}
+
+fn parse_duration(s: &str) -> Result<f64, String> {
+    let t = s.trim().to_ascii_lowercase();
+    let (num, mul) = match t.chars().last() {
+        Some('h') => (&t[..t.len() - 1], 3600.0),
+        Some('m') => (&t[..t.len() - 1], 60.0),
+        Some('s') => (&t[..t.len() - 1], 1.0),
+        _ => (&t[..], 1.0),
+    };
+    num.parse::<f64>().ok().filter(|v| *v > 0.0).map(|v| v * mul).ok_or_else(|| format!("{s:?} is not a duration (e.g. 2h, 30m, 90s)"))
 }
 
 #[derive(Args)]
@@ -308,6 +399,8 @@ fn dispatch(cli: Cli) -> Result<i32> {
         Cmd::Design(d) => design(d),
         Cmd::Bench(BenchCmd::Pipeline { p, repeat, json }) => bench_pipeline(p, repeat, json),
         Cmd::Bench(BenchCmd::Train { env, algo, envs, steps, updates, json }) => bench_train(&env, &algo, &envs, steps, updates, json),
+        Cmd::Chaos(a) => chaos(a),
+        Cmd::Soak(a) => soak(a),
         Cmd::Child(c) => child(c),
     }
 }
@@ -755,7 +848,11 @@ fn train(a: TrainArgs) -> Result<i32> {
             (r.clone(), d)
         }
     } else {
-        let mut overrides = a.set.clone();
+        let mut overrides = match &a.preset {
+            Some(p) => lmac_trainer::train::preset_overrides(p)?,
+            None => Vec::new(),
+        };
+        overrides.extend(a.set.iter().cloned());
         if let Some(e) = &a.env {
             overrides.push(format!("run.env={e:?}"));
         }
@@ -802,6 +899,18 @@ fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Resu
         let cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(d.join("config.toml"))?)
             .map_err(|e| anyhow::anyhow!("{}: {}", d.join("config.toml").display(), e.message()))?;
         cfg.check()?;
+        // Where the run stands: a checkpoint's step, or 0 for a fresh start.
+        let ck = lmac_trainer::train::checkpoint_dir(d);
+        let done_t_env = match lmac_trainer::learn::checkpoint::peek_checkpoint(&ck) {
+            Ok(info) => info.counters.t_env,
+            Err(_) if !ck.exists() && !ck.with_extension("old").exists() => 0,
+            Err(e) => bail!("{}: {e}", d.display()),
+        };
+        let dataset_done = cfg.run.dataset_episodes == 0 || lmac_trainer::train::dataset_dir(d).exists();
+        if done_t_env >= cfg.run.steps && dataset_done {
+            eprintln!("lmac: {} seed {}: already finished (t_env {done_t_env} of {})", d.display(), cfg.learn.seed, cfg.run.steps);
+            continue;
+        }
         eprintln!("lmac: {} {} seed {} -> {}", cfg.run.env, cfg.run.algo, cfg.learn.seed, d.display());
         let p = PipelineOpts {
             env: cfg.run.env.clone(),
@@ -812,7 +921,9 @@ fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Resu
             slots: 4,
             protocol: cfg.protocol()?,
             steps: u64::MAX / 4,
-            seed: cfg.learn.seed,
+            // A resumed segment's environments start from other seeds than the first segment's
+            // (else it would replay the same episodes).
+            seed: cfg.learn.seed + done_t_env,
             startup_timeout: 60.0,
         };
         let extra = vec![
@@ -936,6 +1047,111 @@ fn child(c: ChildCmd) -> Result<i32> {
         }
     };
     Ok(code)
+}
+
+fn chaos(a: ChaosArgs) -> Result<i32> {
+    use lmac_trainer::faults::{chaos, ChaosOptions};
+    let [lo, hi] = a.kill_after[..] else { bail!("--kill-after: give MIN,MAX seconds, e.g. 3,12") };
+    if !(lo > 0.0 && hi >= lo) {
+        bail!("--kill-after: need 0 < MIN <= MAX, got {lo},{hi}");
+    }
+    let temp = a.out.is_none();
+    let out = a.out.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("lmac-chaos-{}", run_id())));
+    let o = ChaosOptions {
+        kills: a.kills,
+        seed: a.seed,
+        out: out.clone(),
+        env: a.env,
+        checkpoint_interval: a.checkpoint_interval,
+        kill_after: (lo, hi),
+        envs: a.envs,
+        servers: a.servers,
+    };
+    let bar = indicatif::ProgressBar::new(a.kills as u64);
+    bar.set_style(indicatif::ProgressStyle::with_template("[{elapsed_precise}] {bar:30} {pos}/{len} kills {msg}").expect("template"));
+    let r = chaos(&o, |_, k| {
+        bar.inc(1);
+        bar.set_message(format!(
+            "last: {} after {:.1} s, noticed in {}",
+            k.victim.name(),
+            k.after_s,
+            k.detect_s.map_or("-".into(), |d| format!("{d:.2} s"))
+        ));
+    });
+    bar.finish_and_clear();
+    if temp {
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    let r = r?;
+    let text = serde_json::to_string_pretty(&r)?;
+    if let Some(p) = &a.report {
+        std::fs::write(p, &text).with_context(|| format!("writing {}", p.display()))?;
+    }
+    println!(
+        "{} kills in {:.0} s: deaths noticed in p50 {:.2} s, p99 {:.2} s (max {:.2} s, {} unnoticed); resumes that continued {}/{}; \
+         checkpoints that failed to load {}; env steps lost per crash max {} (mean {:.0}, checkpoint interval {}); shared-memory files left {}; metrics monotone {}",
+        r.kills, r.seconds, r.detect_p50_s, r.detect_p99_s, r.detect_max_s, r.undetected, r.resumes_continued, r.kills,
+        r.checkpoint_load_failures, r.steps_lost_max, r.steps_lost_mean, r.checkpoint_interval, r.shm_files_left, r.metrics_monotone
+    );
+    for v in &r.by_victim {
+        println!(
+            "  {}: {} kills, noticed in p50 {:.2} s (max {:.2} s), steps lost max {}",
+            v["victim"].as_str().unwrap_or(""),
+            v["kills"],
+            v["detect_p50_s"].as_f64().unwrap_or(f64::NAN),
+            v["detect_max_s"].as_f64().unwrap_or(f64::NAN),
+            v["steps_lost_max"]
+        );
+    }
+    let ok = r.undetected == 0
+        && r.checkpoint_load_failures == 0
+        && r.resumes_continued == r.kills
+        && r.shm_files_left == 0
+        && r.metrics_monotone;
+    Ok(if ok { 0 } else { 1 })
+}
+
+fn soak(a: SoakArgs) -> Result<i32> {
+    let temp = a.out.is_none();
+    let out = a.out.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("lmac-soak-{}", run_id())));
+    let mut args: Vec<String> = ["--env", &a.env, "--algo", "qmix", "--steps", "1000000000000"].iter().map(|s| s.to_string()).collect();
+    for kv in [format!("run.envs={}", a.envs), format!("run.servers={}", a.servers), format!("run.save_buffer={}", a.save_buffer)] {
+        args.extend(["--set".to_string(), kv]);
+    }
+    args.extend(["--out".to_string(), out.display().to_string()]);
+    let buffer = lmac_trainer::learn::LearnConfig::default().buffer_size as u64;
+    let bar = indicatif::ProgressBar::new(a.duration as u64);
+    bar.set_style(indicatif::ProgressStyle::with_template("[{elapsed_precise}] {bar:30} {pos}/{len} s {msg}").expect("template"));
+    let r = lmac_trainer::faults::soak(&args, &out, &a.env, a.duration, a.interval, buffer, |s| {
+        bar.set_position(s.wall_s as u64);
+        bar.set_message(format!("t_env {} RSS {:.0} MiB, {} fds, {} shm mappings", s.t_env, s.rss_mib, s.open_fds, s.shm_mappings));
+    });
+    bar.finish_and_clear();
+    if temp {
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    let r = r?;
+    if let Some(p) = &a.report {
+        std::fs::write(p, serde_json::to_string_pretty(&r)?).with_context(|| format!("writing {}", p.display()))?;
+    }
+    println!(
+        "{:.0} s, {} env steps: RSS {:.0} MiB when the buffer filled (at {:.0} s), {:.0} MiB at the end (max {:.0}); after it filled: \
+         RSS {:+.1} MiB/h, open fds {:+.2}/h (range {}-{}), shm mappings {:+.2}/h (range {}-{})",
+        r.seconds,
+        r.t_env,
+        r.rss_mib_at_buffer_full.unwrap_or(f64::NAN),
+        r.buffer_full_at_s.unwrap_or(f64::NAN),
+        r.rss_mib_end,
+        r.rss_mib_max,
+        r.rss_mib_per_hour,
+        r.open_fds_per_hour,
+        r.open_fds_range.0,
+        r.open_fds_range.1,
+        r.shm_mappings_per_hour,
+        r.shm_mappings_range.0,
+        r.shm_mappings_range.1
+    );
+    Ok(0)
 }
 
 fn design(a: DesignArgs) -> Result<i32> {

@@ -127,6 +127,28 @@ pub struct RunOutcome {
     pub trainer_stdout: String,
 }
 
+/// Ask the kernel to send the child SIGTERM when this process dies (even by SIGKILL), so a dead
+/// parent never leaves its pipeline running: the children then stop as on Ctrl-C (the trainer
+/// writes a last checkpoint). Linux `PR_SET_PDEATHSIG`; it fires when the spawning thread ends,
+/// and every pipeline is started and supervised from one thread until its children are gone.
+fn stop_with_parent(c: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let parent = std::process::id() as libc::pid_t;
+    // SAFETY: only async-signal-safe calls (prctl, getppid, raise) between fork and exec.
+    unsafe {
+        c.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent may have died before the prctl took effect.
+            if libc::getppid() != parent {
+                libc::raise(libc::SIGTERM);
+            }
+            Ok(())
+        });
+    }
+}
+
 /// Start all processes and supervise them until the trainer finishes, a child dies, or
 /// `interrupted` is set (Ctrl-C).
 pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunOutcome> {
@@ -144,6 +166,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
                 .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
                 .args(&plan.env_server_args)
                 .stdin(Stdio::null());
+            stop_with_parent(&mut c);
             let child = c.spawn().context("starting an env server (python)")?;
             let name = if h == 1 {
                 format!("env server {s} ({})", plan.env)
@@ -157,6 +180,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
                 .args(["--slots", &plan.slots.to_string(), "--protocol", &plan.protocol])
                 .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
                 .stdin(Stdio::null());
+            stop_with_parent(c);
         };
         let mut r = Command::new(&exe);
         r.args(["child", "runner"]);
@@ -166,7 +190,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
         t.args(["child", "trainer"]);
         common(&mut t);
         t.args(["--seed", &plan.seed.to_string()]).args(&plan.trainer_args).stdout(Stdio::piped());
-        procs.push(Proc { name: "trainer".into(), child: t.spawn().context("starting the trainer")?, status: None });
+        procs.push(Proc { name: TRAINER.into(), child: t.spawn().context("starting the trainer")?, status: None });
         Ok(())
     };
     let started = spawn_all(&mut procs);
@@ -228,14 +252,18 @@ fn supervise(procs: &mut [Proc], trainer_idx: usize, interrupted: &AtomicBool) -
                 .or_else(|| failed.iter().copied().find(|&i| procs[i].status.is_some_and(|s| s.code() != Some(3))))
                 .unwrap_or(failed[0]);
             let p = &procs[culprit];
-            bail!("{} (pid {}) died: {}", p.name, p.child.id(), describe(p.status.as_ref().expect("exited")));
+            let what = format!("{} (pid {}) died: {}", p.name, p.child.id(), describe(p.status.as_ref().expect("exited")));
+            // Said at once (stopping the rest can take a while: the trainer writes a checkpoint).
+            eprintln!("lmac: {what}; stopping the other processes");
+            bail!("{what}");
         }
         let _ = newly_dead;
         std::thread::sleep(Duration::from_millis(25));
     }
 }
 
-/// SIGTERM every live child, wait up to 3 s, then SIGKILL.
+/// SIGTERM every live child, wait up to 3 s (the trainer up to 60 s: it writes a last
+/// checkpoint when asked to stop, with the replay buffer if the run saves it), then SIGKILL.
 fn stop_all(procs: &mut [Proc]) {
     for p in procs.iter_mut() {
         if p.status.is_none() && p.child.try_wait().ok().flatten().is_none() {
@@ -243,17 +271,28 @@ fn stop_all(procs: &mut [Proc]) {
         }
     }
     let t0 = Instant::now();
-    while t0.elapsed() < Duration::from_secs(3) {
-        if procs.iter_mut().all(|p| p.status.is_some() || p.child.try_wait().ok().flatten().is_some()) {
+    let grace = |p: &Proc| Duration::from_secs(if p.name == TRAINER { 60 } else { 3 });
+    loop {
+        let mut waiting = false;
+        for p in procs.iter_mut() {
+            if p.status.is_none() && p.child.try_wait().ok().flatten().is_none() {
+                if t0.elapsed() < grace(p) {
+                    waiting = true;
+                } else {
+                    let _ = p.child.kill();
+                    let _ = p.child.wait();
+                }
+            }
+        }
+        if !waiting {
             return;
         }
         std::thread::sleep(Duration::from_millis(20));
     }
-    for p in procs.iter_mut() {
-        let _ = p.child.kill();
-        let _ = p.child.wait();
-    }
 }
+
+/// The trainer child's name in messages and in `Proc::name`.
+const TRAINER: &str = "trainer";
 
 #[cfg(test)]
 mod tests {

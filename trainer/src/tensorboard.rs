@@ -73,6 +73,22 @@ impl EventWriter {
     }
 
     /// Write scalars (tag, value) at `step`; non-finite values are skipped.
+    /// A `SessionLog` START at `step`: TensorBoard discards the events of this run from `step`
+    /// on that earlier files hold (how a resumed run hides what was logged after its checkpoint).
+    pub fn session_start(&mut self, step: u64) -> std::io::Result<()> {
+        let mut log = Vec::new();
+        key(&mut log, 1, 0);
+        varint(&mut log, 1); // SessionLog.SessionStatus.START
+        let mut ev = Vec::new();
+        key(&mut ev, 1, 1);
+        ev.extend_from_slice(&now().to_le_bytes());
+        key(&mut ev, 2, 0);
+        varint(&mut ev, step);
+        bytes_field(&mut ev, 6, &log);
+        self.record(&ev)?;
+        self.file.flush()
+    }
+
     pub fn scalars(&mut self, step: u64, values: &[(&str, f64)]) -> std::io::Result<()> {
         let mut summary = Vec::new();
         for (tag, v) in values.iter().filter(|(_, v)| v.is_finite()) {

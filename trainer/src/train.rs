@@ -33,9 +33,11 @@ pub struct RunSection {
     /// Sub-batches per env server (double buffering, see `supervisor::RunPlan`); 0: two when
     /// `envs` is even and the schema allows it (`double_buffer`), else one.
     pub sub_batches: usize,
-    /// Gradient updates per collected (training) episode. pymarl does one update per run of
-    /// `batch_size_run` parallel episodes (EPyMARL's parallel runner: 1/8 to 1/10); 0.125
-    /// matches 8 parallel environments.
+    /// Gradient updates per collected (training) episode. The default 0.125 is pymarl's parallel
+    /// runner with 8 environments (one update per 8 episodes); EPyMARL's episode runner does 1
+    /// (`--preset epymarl`). The target network is copied every
+    /// `learn.target_update_interval_episodes` episodes, so at 0.125 its 200 episodes are 25
+    /// updates, at 1 they are 200.
     pub updates_per_episode: f64,
     /// Env steps between greedy test phases.
     pub test_interval: u64,
@@ -87,6 +89,51 @@ impl Default for RunSection {
 pub struct TrainConfig {
     pub run: RunSection,
     pub learn: LearnConfig,
+}
+
+/// Named bundles of settings (`lmac train --preset NAME`), applied before `--set` overrides.
+pub const PRESETS: &[(&str, &str)] = &[(
+    "epymarl",
+    "EPyMARL's episode-runner learning schedule: one update of 32 episodes per collected episode \
+     (updates start once the buffer holds 32), target copy every 200 episodes = 200 updates",
+)];
+
+/// The `key=value` overrides of a preset.
+pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
+    Ok(match name {
+        "epymarl" => {
+            vec!["run.updates_per_episode=1.0".into(), "learn.batch_size=32".into(), "learn.target_update_interval_episodes=200".into()]
+        }
+        other => bail!("--preset: unknown preset {other:?}; known: {}", PRESETS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")),
+    })
+}
+
+/// When the learner owes updates, as a function of the episodes collected so far: none until
+/// `first_episode` (the buffer must hold a batch first), then `ratio` per episode, counting
+/// the episode that completes the batch (pymarl trains right after inserting it).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UpdateSchedule {
+    pub ratio: f64,
+    pub first_episode: u64,
+    pub updates_before: u64,
+}
+
+impl UpdateSchedule {
+    /// For a learner that has added `episodes`, done `updates` and holds `buffered` episodes:
+    /// a fresh run owes its first update at episode `batch_size`; a run resumed without its
+    /// buffer refills `batch_size` episodes first; one resumed with it goes on at once.
+    pub fn new(ratio: f64, batch_size: usize, episodes: u64, updates: u64, buffered: usize) -> Self {
+        let refill = (batch_size.saturating_sub(buffered) as u64).max(1);
+        UpdateSchedule { ratio, first_episode: episodes + refill, updates_before: updates }
+    }
+
+    /// Updates owed once `episodes` episodes have been collected.
+    pub fn due(&self, episodes: u64) -> u64 {
+        if episodes < self.first_episode {
+            return self.updates_before;
+        }
+        self.updates_before + (((episodes - self.first_episode + 1) as f64) * self.ratio).floor() as u64
+    }
 }
 
 /// An algorithm = a protocol for the runner + what the agents see; the backbone (mixer) is
@@ -232,26 +279,89 @@ pub struct Metrics {
     csv: std::fs::File,
     jsonl: std::fs::File,
     tb: crate::tensorboard::EventWriter,
+    dir: PathBuf,
 }
 
 fn opt<T: std::fmt::Display>(v: &Option<T>) -> String {
     v.as_ref().map(|x| x.to_string()).unwrap_or_default()
 }
 
-impl Metrics {
-    pub fn open(dir: &Path) -> Result<Metrics> {
-        let csv_path = dir.join("metrics.csv");
-        let new = !csv_path.exists();
-        let mut csv = std::fs::OpenOptions::new().create(true).append(true).open(&csv_path)?;
-        if new {
-            writeln!(csv, "{CSV_HEADER}")?;
+/// What [`Metrics::open`] found of an earlier segment of the run.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct MetricsResume {
+    /// Rows dropped because they were logged after the checkpoint the run continues from (or
+    /// were cut off by the crash).
+    pub dropped_rows: usize,
+    /// `wall_s` of the last row kept: the resumed segment's clock continues from it.
+    pub wall_s: f64,
+}
+
+/// Keep the lines of `path` that `keep` accepts (the first `header` lines always), rewriting
+/// the file atomically when any is dropped; returns (dropped, kept lines).
+fn keep_lines(path: &Path, header: usize, keep: impl Fn(&str) -> bool) -> Result<(usize, Vec<String>)> {
+    let text = match std::fs::read(path) {
+        Ok(b) => String::from_utf8_lossy(&b).into_owned(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok((0, Vec::new())),
+        Err(e) => return Err(anyhow::anyhow!("reading {}: {e}", path.display())),
+    };
+    // A last line without its newline was cut off by the crash: never kept.
+    let complete = if text.ends_with('\n') { &text[..] } else { &text[..text.rfind('\n').map_or(0, |i| i + 1)] };
+    let mut kept = Vec::new();
+    let mut dropped = usize::from(complete.len() < text.len());
+    for (i, line) in complete.lines().enumerate() {
+        if i < header || keep(line) {
+            kept.push(line.to_string());
+        } else {
+            dropped += 1;
         }
-        let jsonl = std::fs::OpenOptions::new().create(true).append(true).open(dir.join("metrics.jsonl"))?;
-        let tb = crate::tensorboard::EventWriter::create(dir)?;
-        Ok(Metrics { csv, jsonl, tb })
+    }
+    if dropped > 0 {
+        let tmp = path.with_extension("tmp");
+        let mut body = kept.join("\n");
+        if !body.is_empty() {
+            body.push('\n');
+        }
+        std::fs::write(&tmp, body).with_context(|| format!("writing {}", tmp.display()))?;
+        std::fs::rename(&tmp, path).with_context(|| format!("replacing {}", path.display()))?;
+    }
+    Ok((dropped, kept))
+}
+
+impl Metrics {
+    /// Open the run's metrics for appending. `resume_t_env` is the step of the checkpoint the run
+    /// continues from (0 for a fresh start): rows logged after it are dropped from the CSV and
+    /// the JSON lines, and TensorBoard is told to discard its later events, so no curve steps
+    /// backwards.
+    pub fn open(dir: &Path, resume_t_env: u64) -> Result<(Metrics, MetricsResume)> {
+        let csv_path = dir.join("metrics.csv");
+        let jsonl_path = dir.join("metrics.jsonl");
+        let t_env_of_csv = |line: &str| line.split(',').next().and_then(|v| v.parse::<u64>().ok());
+        let ok_csv =
+            |line: &str| line.split(',').count() == CSV_HEADER.split(',').count() && t_env_of_csv(line).is_some_and(|t| t <= resume_t_env);
+        let (dropped_csv, kept) = keep_lines(&csv_path, 1, ok_csv)?;
+        let wall_s = kept.iter().skip(1).last().and_then(|l| l.split(',').nth(3)).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+        let ok_json = |line: &str| {
+            serde_json::from_str::<serde_json::Value>(line).ok().and_then(|v| v["t_env"].as_u64()).is_some_and(|t| t <= resume_t_env)
+        };
+        let (dropped_json, _) = keep_lines(&jsonl_path, 0, ok_json)?;
+        let open =
+            |p: &Path| std::fs::OpenOptions::new().create(true).append(true).open(p).with_context(|| format!("opening {}", p.display()));
+        let new = kept.is_empty();
+        let mut csv = open(&csv_path)?;
+        if new {
+            writeln!(csv, "{CSV_HEADER}").with_context(|| format!("writing {}", csv_path.display()))?;
+        }
+        let jsonl = open(&jsonl_path)?;
+        let mut tb =
+            crate::tensorboard::EventWriter::create(dir).with_context(|| format!("creating TensorBoard events in {}", dir.display()))?;
+        if resume_t_env > 0 {
+            tb.session_start(resume_t_env + 1).with_context(|| format!("writing {}", tb.path().display()))?;
+        }
+        Ok((Metrics { csv, jsonl, tb, dir: dir.to_path_buf() }, MetricsResume { dropped_rows: dropped_csv.max(dropped_json), wall_s }))
     }
 
     pub fn write(&mut self, r: &MetricsRow) -> Result<()> {
+        let csv_err = |e: std::io::Error| anyhow::anyhow!("writing {}: {e}", self.dir.join("metrics.csv").display());
         writeln!(
             self.csv,
             "{},{},{},{:.2},{:.1},{:.4},{},{},{},{},{},{}",
@@ -267,26 +377,49 @@ impl Metrics {
             opt(&r.loss),
             opt(&r.grad_norm),
             opt(&r.q_taken_mean)
-        )?;
-        writeln!(self.jsonl, "{}", serde_json::to_string(r)?)?;
+        )
+        .and_then(|_| self.csv.flush())
+        .map_err(csv_err)?;
+        self.json_line(&serde_json::to_value(r)?)?;
         let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
-        self.tb.scalars(
-            r.t_env,
-            &[
-                ("env_steps_per_s", r.env_steps_per_s),
-                ("epsilon", r.epsilon as f64),
-                ("train_return_mean", f(r.train_return_mean)),
-                ("test_return_mean", f(r.test_return_mean)),
-                ("test_win_rate", f(r.test_win_rate)),
-                ("loss", f(r.loss.map(f64::from))),
-                ("grad_norm", f(r.grad_norm.map(f64::from))),
-                ("q_taken_mean", f(r.q_taken_mean.map(f64::from))),
-            ],
-        )?;
-        self.csv.flush()?;
-        self.jsonl.flush()?;
+        self.tb
+            .scalars(
+                r.t_env,
+                &[
+                    ("env_steps_per_s", r.env_steps_per_s),
+                    ("epsilon", r.epsilon as f64),
+                    ("train_return_mean", f(r.train_return_mean)),
+                    ("test_return_mean", f(r.test_return_mean)),
+                    ("test_win_rate", f(r.test_win_rate)),
+                    ("loss", f(r.loss.map(f64::from))),
+                    ("grad_norm", f(r.grad_norm.map(f64::from))),
+                    ("q_taken_mean", f(r.q_taken_mean.map(f64::from))),
+                ],
+            )
+            .map_err(|e| anyhow::anyhow!("writing {}: {e}", self.tb.path().display()))?;
         Ok(())
     }
+
+    /// A checkpoint was written: its path and step go into `metrics.jsonl` (so a scheduler
+    /// following the run knows where to resume from).
+    pub fn checkpoint(&mut self, c: &CheckpointWritten) -> Result<()> {
+        self.json_line(&serde_json::json!({"t_env": c.t_env, "episodes": c.episodes, "updates": c.updates, "checkpoint": c.path}))
+    }
+
+    fn json_line(&mut self, v: &serde_json::Value) -> Result<()> {
+        writeln!(self.jsonl, "{v}")
+            .and_then(|_| self.jsonl.flush())
+            .map_err(|e| anyhow::anyhow!("writing {}: {e}", self.dir.join("metrics.jsonl").display()))
+    }
+}
+
+/// A checkpoint the learner wrote.
+#[derive(Clone, Debug)]
+pub struct CheckpointWritten {
+    pub t_env: u64,
+    pub episodes: u64,
+    pub updates: u64,
+    pub path: PathBuf,
 }
 
 /// What the learner thread shares with the actor.
@@ -300,6 +433,8 @@ struct Shared {
     q_taken_mean: Option<f32>,
     error: Option<String>,
     last_checkpoint: Option<PathBuf>,
+    /// Checkpoints written and not yet logged to `metrics.jsonl`.
+    checkpoints: Vec<CheckpointWritten>,
 }
 
 enum ToLearner {
@@ -327,8 +462,13 @@ pub struct TrainActor {
     tx: mpsc::Sender<ToLearner>,
     shared: Arc<Mutex<Shared>>,
     episodes_sent: u64,
+    schedule: UpdateSchedule,
     metrics: Metrics,
+    /// A metrics write that failed: it ends the run.
+    failed: Option<String>,
     started: Instant,
+    /// `wall_s` already spent by earlier segments of a resumed run.
+    wall_offset: f64,
     t_env_at_start: u64,
     scratch_first: Vec<bool>,
     bar: Option<indicatif::ProgressBar>,
@@ -354,20 +494,31 @@ impl TrainActor {
 
     fn wait_for_learner(&self) {
         // Keep updates per episode at the configured ratio: acting waits while the learner lags
-        // by more than two updates (only once the buffer can be sampled).
-        let ratio = self.cfg.run.updates_per_episode;
+        // by more than two updates.
+        let due = self.schedule.due(self.episodes_sent);
         loop {
             let s = self.shared.lock();
-            if s.error.is_some() {
-                return;
-            }
-            let can = self.episodes_sent as usize >= self.learn.batch_size;
-            let due = ((self.episodes_sent.saturating_sub(self.learn.batch_size as u64)) as f64 * ratio) as u64;
-            if !can || s.updates + 2 >= due {
+            if s.error.is_some() || s.updates + 2 >= due {
                 return;
             }
             drop(s);
             std::thread::sleep(std::time::Duration::from_micros(500));
+        }
+    }
+
+    fn fail(&mut self, e: anyhow::Error) {
+        if self.failed.is_none() {
+            self.failed = Some(format!("{e:#}"));
+        }
+    }
+
+    /// Log the checkpoints the learner wrote since the last call.
+    fn log_checkpoints(&mut self) {
+        let written = std::mem::take(&mut self.shared.lock().checkpoints);
+        for c in &written {
+            if let Err(e) = self.metrics.checkpoint(c) {
+                self.fail(e);
+            }
         }
     }
 
@@ -378,7 +529,7 @@ impl TrainActor {
             t_env: self.t_env,
             episodes: self.episodes,
             updates: s.updates,
-            wall_s: secs,
+            wall_s: self.wall_offset + secs,
             env_steps_per_s: (self.t_env - self.t_env_at_start) as f64 / secs.max(1e-9),
             epsilon: self.epsilon(),
             train_return_mean: (test.is_none() && !self.train_returns.is_empty())
@@ -394,7 +545,7 @@ impl TrainActor {
             self.train_returns.clear();
         }
         if let Err(e) = self.metrics.write(&row) {
-            eprintln!("lmac: trainer: writing metrics failed: {e}");
+            self.fail(e);
         }
     }
 }
@@ -402,8 +553,9 @@ impl TrainActor {
 impl Actor for TrainActor {
     fn act(&mut self, server: usize, slot: &Slot<'_>, obs_width: usize, actions: &mut [i32]) {
         if let Some(agent) = self.shared.lock().agent.take() {
+            // Each env switches to these weights when its next episode starts.
             for c in &mut self.controllers {
-                c.set_agent(agent.clone());
+                c.offer_agent(agent.clone());
             }
         }
         let l = slot.layout();
@@ -487,6 +639,7 @@ impl Actor for TrainActor {
             self.next_checkpoint += self.cfg.run.checkpoint_interval;
             let _ = self.tx.send(ToLearner::Checkpoint);
         }
+        self.log_checkpoints();
         if let Some(b) = &self.bar {
             b.set_position(self.t_env.min(self.cfg.run.steps));
             let upd = self.shared.lock().updates;
@@ -500,7 +653,9 @@ impl Actor for TrainActor {
     }
 
     fn finished(&self) -> bool {
-        (self.t_env >= self.cfg.run.steps && self.dataset.len() >= self.cfg.run.dataset_episodes) || self.shared.lock().error.is_some()
+        (self.t_env >= self.cfg.run.steps && self.dataset.len() >= self.cfg.run.dataset_episodes)
+            || self.failed.is_some()
+            || self.shared.lock().error.is_some()
     }
 }
 
@@ -555,17 +710,37 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     };
     let device = crate::learn::Device::default();
     let ck = checkpoint_dir(run_dir);
-    let learner = if ck.join("state.json").exists() {
-        let l = Learner::load_checkpoint(&ck, device).map_err(|e| anyhow::anyhow!("resuming from {}: {e}", ck.display()))?;
-        if *l.dims() != dims {
-            bail!("checkpoint {} was made for {:?}, this run has {:?}", ck.display(), l.dims(), dims);
+    let resuming = ck.join("state.json").exists() || sibling_old(&ck).join("state.json").exists();
+    let learner = if resuming {
+        let info = crate::learn::checkpoint::peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("resuming: {e}"))?;
+        if info.dims != dims {
+            bail!("checkpoint {} was made for {:?}, this run has {:?}", info.dir.display(), info.dims, dims);
         }
-        eprintln!("lmac: trainer: resuming from {} at t_env {}", ck.display(), l.counters().t_env);
+        let l = Learner::load_checkpoint(&ck, device).map_err(|e| anyhow::anyhow!("resuming from {}: {e}", info.dir.display()))?;
+        let c = l.counters();
+        let buffer_note = if info.has_buffer {
+            format!("with its replay buffer ({} episodes)", l.buffer().len())
+        } else {
+            format!(
+                "without a replay buffer (run.save_buffer = false): the learner refills it with {} episodes before it updates again",
+                learn.batch_size
+            )
+        };
+        eprintln!("lmac: trainer: resuming from {} at t_env {} ({} updates), {buffer_note}", info.dir.display(), c.t_env, c.updates);
         l
     } else {
         Learner::new(dims, learn.clone(), device)?
     };
     let counters = learner.counters();
+    let (metrics, earlier) = Metrics::open(run_dir, counters.t_env)?;
+    if earlier.dropped_rows > 0 {
+        eprintln!(
+            "lmac: trainer: dropped {} metrics rows logged after t_env {} (after the checkpoint, before the run stopped)",
+            earlier.dropped_rows, counters.t_env
+        );
+    }
+    let schedule =
+        UpdateSchedule::new(cfg.run.updates_per_episode, learn.batch_size, counters.episodes, counters.updates, learner.buffer().len());
     // One controller per ring server (sub-batch), each driving that sub-batch's environments.
     // The ring has servers x sub-batches members (`args.n_servers`).
     let envs_per_slab = cfg.run.envs * cfg.run.servers / args.n_servers;
@@ -575,8 +750,8 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     let learner_thread = {
         let shared = shared.clone();
         let ck = ck.clone();
-        let (save_buffer, ratio) = (cfg.run.save_buffer, cfg.run.updates_per_episode);
-        std::thread::Builder::new().name("learner".into()).spawn(move || learner_loop(learner, rx, shared, ck, save_buffer, ratio))?
+        let save_buffer = cfg.run.save_buffer;
+        std::thread::Builder::new().name("learner".into()).spawn(move || learner_loop(learner, rx, shared, ck, save_buffer, schedule))?
     };
     let bar = progress.then(|| {
         let b = indicatif::ProgressBar::new(cfg.run.steps);
@@ -600,8 +775,11 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         tx,
         shared: shared.clone(),
         episodes_sent: counters.episodes,
-        metrics: Metrics::open(run_dir)?,
+        schedule,
+        metrics,
+        failed: None,
         started: Instant::now(),
+        wall_offset: earlier.wall_s,
         t_env_at_start: counters.t_env,
         scratch_first: Vec::new(),
         bar,
@@ -622,10 +800,13 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         save_dataset(run_dir, &actor, args)?;
     }
     // Final checkpoint, whatever happened to the pipeline: the learner thread saves on exit.
-    let TrainActor { tx, shared: sh, .. } = actor;
-    drop(tx);
+    drop(std::mem::replace(&mut actor.tx, mpsc::channel().0));
     let joined = learner_thread.join();
-    let s = sh.lock();
+    actor.log_checkpoints();
+    if let Some(e) = &actor.failed {
+        bail!("{e}");
+    }
+    let s = actor.shared.lock();
     if let Some(e) = &s.error {
         bail!("{e}");
     }
@@ -639,18 +820,38 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     }
 }
 
+/// `<dir>.old`: where a checkpoint interrupted in its final rename is found.
+fn sibling_old(dir: &Path) -> PathBuf {
+    let mut s = dir.as_os_str().to_owned();
+    s.push(".old");
+    PathBuf::from(s)
+}
+
 fn learner_loop(
     mut learner: Learner,
     rx: mpsc::Receiver<ToLearner>,
     shared: Arc<Mutex<Shared>>,
     ck: PathBuf,
     save_buffer: bool,
-    ratio: f64,
+    schedule: UpdateSchedule,
 ) {
-    let save = |learner: &Learner, shared: &Mutex<Shared>| match learner.save_checkpoint(&ck, save_buffer) {
-        Ok(()) => shared.lock().last_checkpoint = Some(ck.clone()),
-        Err(e) => eprintln!("lmac: trainer: checkpoint failed: {e}"),
+    // A checkpoint that cannot be written ends the run (its error names the file).
+    let save = |learner: &Learner, shared: &Mutex<Shared>| -> bool {
+        match learner.save_checkpoint(&ck, save_buffer) {
+            Ok(()) => {
+                let c = learner.counters();
+                let mut s = shared.lock();
+                s.last_checkpoint = Some(ck.clone());
+                s.checkpoints.push(CheckpointWritten { t_env: c.t_env, episodes: c.episodes, updates: c.updates, path: ck.clone() });
+                true
+            }
+            Err(e) => {
+                shared.lock().error.get_or_insert(format!("writing the checkpoint failed: {e}"));
+                false
+            }
+        }
     };
+    let mut saved_at = None;
     let mut disconnected = false;
     while !disconnected {
         // Take everything that arrived; block briefly when idle.
@@ -672,14 +873,17 @@ fn learner_loop(
                         return;
                     }
                 }
-                ToLearner::Checkpoint => save(&learner, &shared),
+                ToLearner::Checkpoint => {
+                    if !save(&learner, &shared) {
+                        return;
+                    }
+                    saved_at = Some(learner.counters());
+                }
             }
         }
-        let c = learner.counters();
-        let bs = learner.config().batch_size as u64;
-        let due = ((c.episodes.saturating_sub(bs)) as f64 * ratio) as u64;
+        let due = schedule.due(learner.counters().episodes);
         let mut did = false;
-        while learner.can_train() && learner.counters().updates < due.max(1) {
+        while learner.can_train() && learner.counters().updates < due {
             match learner.train_step() {
                 Ok(st) => {
                     if !st.loss.is_finite() || !st.grad_norm.is_finite() {
@@ -711,5 +915,8 @@ fn learner_loop(
             shared.lock().agent = Some(learner.acting_net().agent);
         }
     }
-    save(&learner, &shared);
+    // The last checkpoint, unless the one just written already holds this state.
+    if saved_at != Some(learner.counters()) {
+        save(&learner, &shared);
+    }
 }

@@ -1,7 +1,6 @@
 //! Acting: batched greedy / epsilon-greedy action selection for `n_envs` environments with the
 //! agent network (no autodiff), keeping each environment's GRU hidden state between calls.
 
-use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use super::agent::RnnAgent;
@@ -9,7 +8,11 @@ use super::learner::Learner;
 use super::{InputLayout, LearnRng};
 
 pub struct Controller {
-    agent: RnnAgent,
+    /// Acting weights in use, oldest first; the last is the newest. Each env acts with one of
+    /// them for a whole episode (`env_agent`), so new weights take effect between episodes.
+    agents: Vec<RnnAgent>,
+    /// Per env: index into `agents`.
+    env_agent: Vec<usize>,
     layout: InputLayout,
     device: Device,
     n_envs: usize,
@@ -27,7 +30,8 @@ impl Controller {
         let h = learner.config().rnn_hidden_dim;
         let n = layout.dims.n_agents;
         Controller {
-            agent: learner.acting_net().agent,
+            agents: vec![learner.acting_net().agent],
+            env_agent: vec![0; n_envs],
             layout,
             device: learner.device().clone(),
             n_envs,
@@ -38,14 +42,54 @@ impl Controller {
         }
     }
 
-    /// Take the learner's current online weights.
+    /// Take the learner's current online weights, for every env at once.
     pub fn sync_weights(&mut self, learner: &Learner) {
-        self.agent = learner.acting_net().agent;
+        self.set_agent(learner.acting_net().agent);
     }
 
-    /// Take new acting weights (from the learner thread).
+    /// Act with `agent` in every env from the next step on (mid-episode).
     pub fn set_agent(&mut self, agent: RnnAgent) {
-        self.agent = agent;
+        self.agents = vec![agent];
+        self.env_agent.fill(0);
+    }
+
+    /// New weights for the episodes that start from now on; running episodes finish with the
+    /// weights they started with (as pymarl's runners, which load new weights between episodes).
+    pub fn offer_agent(&mut self, agent: RnnAgent) {
+        self.agents.push(agent);
+        self.drop_unused();
+    }
+
+    /// Forget the versions no env acts with (the newest always stays).
+    fn drop_unused(&mut self) {
+        let newest = self.agents.len() - 1;
+        let mut used = vec![false; self.agents.len()];
+        used[newest] = true;
+        for &k in &self.env_agent {
+            used[k] = true;
+        }
+        if used.iter().all(|&u| u) {
+            return;
+        }
+        let mut remap = vec![0; used.len()];
+        let mut kept = 0;
+        for (k, &u) in used.iter().enumerate() {
+            remap[k] = kept;
+            kept += u as usize;
+        }
+        let mut k = 0;
+        self.agents.retain(|_| {
+            k += 1;
+            used[k - 1]
+        });
+        for e in &mut self.env_agent {
+            *e = remap[*e];
+        }
+    }
+
+    /// How many weight versions are acting right now (1 unless episodes straddle an update).
+    pub fn versions_in_use(&self) -> usize {
+        self.agents.len()
     }
 
     pub fn n_envs(&self) -> usize {
@@ -64,10 +108,11 @@ impl Controller {
 
     /// Advance the recurrent state one step and return Q-values [B * n * A] (B = n_envs).
     /// obs: B*n*obs_width; state: B*state_dim (needed only when agents see the state);
-    /// last_actions: B*n (ignored where `first`); first[b]: env b starts an episode (hidden reset).
+    /// last_actions: B*n (ignored where `first`); first[b]: env b starts an episode (hidden reset,
+    /// and it takes the newest weights).
     pub fn q_values(&mut self, obs: &[f32], state: Option<&[f32]>, last_actions: &[i32], first: &[bool]) -> &[f32] {
         let d = self.layout.dims;
-        let (b, n, h, iw) = (self.n_envs, d.n_agents, self.hidden_dim, self.layout.width());
+        let (b, n, h, iw, a) = (self.n_envs, d.n_agents, self.hidden_dim, self.layout.width(), d.n_actions);
         assert_eq!(obs.len(), b * n * d.obs_width, "obs length");
         assert_eq!(last_actions.len(), b * n, "last_actions length");
         assert_eq!(first.len(), b, "first length");
@@ -75,10 +120,12 @@ impl Controller {
             let s = state.expect("agent_sees_state needs the global state");
             assert_eq!(s.len(), b * d.state_dim, "state length");
         }
+        let newest = self.agents.len() - 1;
         self.inputs.resize(b * n * iw, 0.0);
         for e in 0..b {
             if first[e] {
                 self.hidden[e * n * h..(e + 1) * n * h].fill(0.0);
+                self.env_agent[e] = newest;
             }
             let st = state.map(|s| &s[e * d.state_dim..(e + 1) * d.state_dim]);
             for ag in 0..n {
@@ -93,11 +140,37 @@ impl Controller {
                 );
             }
         }
-        let x: Tensor<2> = Tensor::from_data(TensorData::new(self.inputs.clone(), [b * n, iw]), &self.device);
-        let hs: Tensor<2> = Tensor::from_data(TensorData::new(self.hidden.clone(), [b * n, h]), &self.device);
-        let (q, h_new) = self.agent.step(x, hs);
-        self.hidden = h_new.into_data().try_into_vec::<f32>().expect("f32 hidden");
-        self.last_q = q.into_data().try_into_vec::<f32>().expect("f32 q");
+        if self.env_agent.iter().all(|&k| k == newest) {
+            // The usual case: one forward over every env.
+            let x: Tensor<2> = Tensor::from_data(TensorData::new(self.inputs.clone(), [b * n, iw]), &self.device);
+            let hs: Tensor<2> = Tensor::from_data(TensorData::new(self.hidden.clone(), [b * n, h]), &self.device);
+            let (q, h_new) = self.agents[newest].step(x, hs);
+            self.hidden = h_new.into_data().try_into_vec::<f32>().expect("f32 hidden");
+            self.last_q = q.into_data().try_into_vec::<f32>().expect("f32 q");
+        } else {
+            // Episodes that straddle a weight update: one forward per version over its envs.
+            self.last_q.resize(b * n * a, 0.0);
+            for k in 0..self.agents.len() {
+                let envs: Vec<usize> = (0..b).filter(|&e| self.env_agent[e] == k).collect();
+                if envs.is_empty() {
+                    continue;
+                }
+                let gather = |src: &[f32], w: usize| -> Vec<f32> {
+                    envs.iter().flat_map(|&e| src[e * n * w..(e + 1) * n * w].iter().copied()).collect()
+                };
+                let rows = envs.len() * n;
+                let x: Tensor<2> = Tensor::from_data(TensorData::new(gather(&self.inputs, iw), [rows, iw]), &self.device);
+                let hs: Tensor<2> = Tensor::from_data(TensorData::new(gather(&self.hidden, h), [rows, h]), &self.device);
+                let (q, h_new) = self.agents[k].step(x, hs);
+                let (q, h_new) =
+                    (q.into_data().try_into_vec::<f32>().expect("f32 q"), h_new.into_data().try_into_vec::<f32>().expect("f32 hidden"));
+                for (j, &e) in envs.iter().enumerate() {
+                    self.hidden[e * n * h..(e + 1) * n * h].copy_from_slice(&h_new[j * n * h..(j + 1) * n * h]);
+                    self.last_q[e * n * a..(e + 1) * n * a].copy_from_slice(&q[j * n * a..(j + 1) * n * a]);
+                }
+            }
+        }
+        self.drop_unused();
         &self.last_q
     }
 
@@ -158,6 +231,6 @@ impl Controller {
 
 impl std::fmt::Debug for Controller {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Controller").field("n_envs", &self.n_envs).field("params", &self.agent.num_params()).finish()
+        f.debug_struct("Controller").field("n_envs", &self.n_envs).field("versions", &self.agents.len()).finish()
     }
 }

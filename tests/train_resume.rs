@@ -1,0 +1,211 @@
+//! Long runs you can trust: a real `lmac train` through the pipeline, stopped with SIGINT or by
+//! a SIGKILL of its trainer child, resumed with `lmac train --resume`, reaching its step target
+//! with metrics that continue without a step backwards and with no shared memory left behind.
+//! Runs the release `lmac` binary built by `scripts/setup.sh` (or `$LMAC_BIN`).
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// The tests watch /dev/shm and share the two cores; one at a time.
+static SERIAL: Mutex<()> = Mutex::new(());
+
+const STEPS: u64 = 40_000;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+}
+
+fn lmac() -> Command {
+    let bin = std::env::var("LMAC_BIN").map(PathBuf::from).unwrap_or_else(|_| root().join("target/release/lmac"));
+    assert!(bin.exists(), "{} not found: run scripts/setup.sh or set LMAC_BIN", bin.display());
+    let mut c = Command::new(bin);
+    c.current_dir(root());
+    c
+}
+
+fn lmac_shm_files() -> Vec<String> {
+    std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .filter(|n| n.starts_with("lmac-"))
+        .collect()
+}
+
+fn wait_for<T>(timeout: Duration, mut f: impl FnMut() -> Option<T>) -> Option<T> {
+    let t0 = Instant::now();
+    while t0.elapsed() < timeout {
+        if let Some(v) = f() {
+            return Some(v);
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    None
+}
+
+/// Start a small QMIX run on LBF 8x8 (one env server of 8 envs, checkpoints every 5k steps).
+fn start_training(out: &Path) -> Child {
+    lmac()
+        .args(["train", "--env", "lbf:8x8-2p-2f-s1-coop", "--algo", "qmix", "--steps", &STEPS.to_string()])
+        .args(["--set", "run.envs=8", "--set", "run.servers=1", "--set", "run.checkpoint_interval=5000"])
+        .args(["--set", "run.log_interval=1000", "--set", "run.test_interval=10000", "--set", "run.test_episodes=8"])
+        .arg("--out")
+        .arg(out)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn seed_dir(out: &Path) -> PathBuf {
+    let group = wait_for(Duration::from_secs(30), || {
+        let env = std::fs::read_dir(out.join("lbf_8x8-2p-2f-s1-coop/qmix")).ok()?;
+        env.flatten().map(|e| e.path()).next()
+    })
+    .expect("the run directory appears");
+    group.join("seed0")
+}
+
+/// (t_env, checkpoint path) of every checkpoint row in metrics.jsonl.
+fn checkpoint_rows(dir: &Path) -> Vec<(u64, String)> {
+    std::fs::read_to_string(dir.join("metrics.jsonl"))
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| Some((v["t_env"].as_u64()?, v["checkpoint"].as_str()?.to_string())))
+        .collect()
+}
+
+/// Wait until the run has written a checkpoint and logged some rows past it.
+fn wait_past_first_checkpoint(dir: &Path) {
+    wait_for(Duration::from_secs(120), || {
+        let ck = checkpoint_rows(dir);
+        let rows = csv_t_env(dir);
+        (!ck.is_empty() && rows.last().is_some_and(|&t| t > ck[0].0 + 2000)).then_some(())
+    })
+    .expect("a checkpoint and rows after it within 120 s");
+}
+
+fn csv_t_env(dir: &Path) -> Vec<u64> {
+    std::fs::read_to_string(dir.join("metrics.csv"))
+        .unwrap_or_default()
+        .lines()
+        .skip(1)
+        .filter_map(|l| l.split(',').next()?.parse().ok())
+        .collect()
+}
+
+/// The pid of `parent`'s child whose command line contains `needle` (e.g. "child\0trainer").
+fn child_pid(parent: u32, needle: &str) -> Option<i32> {
+    for e in std::fs::read_dir("/proc").ok()?.flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else { continue };
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+        // ppid is the 4th field, after the parenthesised command name.
+        let ppid = stat.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().nth(1)?.parse::<u32>().ok());
+        let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+        if ppid == Some(parent) && String::from_utf8_lossy(&cmd).contains(needle) {
+            return Some(pid);
+        }
+    }
+    None
+}
+
+fn finish(child: Child) -> (bool, String) {
+    let out = child.wait_with_output().unwrap();
+    (out.status.success(), String::from_utf8_lossy(&out.stderr).replace('\r', "\n"))
+}
+
+/// Resume the group and check it reaches the target with continuous metrics.
+fn resume_and_check(dir: &Path, stop_kind: &str) {
+    let before = checkpoint_rows(dir);
+    let resumed_from = before.last().expect("a checkpoint before the stop").0;
+    let out = lmac().arg("train").arg("--resume").arg(dir.parent().unwrap()).output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).replace('\r', "\n");
+    assert!(out.status.success(), "resume after {stop_kind} failed: {stderr}");
+    assert!(stderr.contains(&format!("resuming from {}", dir.join("checkpoint").display())), "{stderr}");
+    assert!(stderr.contains("refills it with 32 episodes"), "the run says the buffer is refilled: {stderr}");
+    let t = csv_t_env(dir);
+    assert!(t.windows(2).all(|w| w[0] <= w[1]), "metrics.csv t_env steps backwards after {stop_kind}: {t:?}");
+    assert!(*t.last().unwrap() >= STEPS, "the resumed run reaches {STEPS} env steps: {t:?}");
+    assert!(t.iter().any(|&x| x > resumed_from), "rows after the resume point");
+    let json_t: Vec<u64> = std::fs::read_to_string(dir.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).expect("every metrics.jsonl line is JSON")["t_env"].as_u64().unwrap())
+        .collect();
+    assert!(json_t.windows(2).all(|w| w[0] <= w[1]), "metrics.jsonl t_env steps backwards after {stop_kind}: {json_t:?}");
+    let after = checkpoint_rows(dir);
+    assert!(after.last().unwrap().0 >= STEPS, "a final checkpoint at the target: {after:?}");
+    assert!(lmac_shm_files().is_empty(), "shared memory left behind: {:?}", lmac_shm_files());
+    // A finished run is not trained again.
+    let again = lmac().arg("train").arg("--resume").arg(dir).output().unwrap();
+    assert!(again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("already finished"), "{}", String::from_utf8_lossy(&again.stderr));
+}
+
+#[test]
+fn a_run_interrupted_with_sigint_resumes_to_its_target() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("lmac-resume-int-{}", std::process::id()));
+    let child = start_training(&out);
+    let dir = seed_dir(&out);
+    wait_past_first_checkpoint(&dir);
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let (ok, stderr) = finish(child);
+    assert!(!ok, "an interrupted run exits non-zero");
+    assert!(stderr.contains("interrupted"), "{stderr}");
+    // Asked to stop, the trainer writes a last checkpoint at the step it reached.
+    let ck = checkpoint_rows(&dir);
+    let last_row = *csv_t_env(&dir).last().unwrap();
+    assert!(ck.last().unwrap().0 >= last_row, "a last checkpoint on SIGINT: {ck:?}, last row at {last_row}");
+    resume_and_check(&dir, "SIGINT");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn a_run_whose_trainer_is_killed_resumes_from_its_last_checkpoint() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("lmac-resume-kill-{}", std::process::id()));
+    let child = start_training(&out);
+    let dir = seed_dir(&out);
+    wait_past_first_checkpoint(&dir);
+    let trainer = child_pid(child.id(), "child\0trainer").expect("the trainer child");
+    unsafe { libc::kill(trainer, libc::SIGKILL) };
+    let (ok, stderr) = finish(child);
+    assert!(!ok);
+    assert!(stderr.contains("trainer") && stderr.contains("SIGKILL"), "the parent names the dead child: {stderr}");
+    assert!(lmac_shm_files().is_empty(), "shared memory left behind after SIGKILL: {:?}", lmac_shm_files());
+    let ck = checkpoint_rows(&dir).last().unwrap().0;
+    assert!(csv_t_env(&dir).last().unwrap() > &ck, "rows were logged after the last checkpoint (they must be dropped)");
+    resume_and_check(&dir, "SIGKILL of the trainer");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn chaos_kills_every_kind_of_process_and_every_resume_continues() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let report = std::env::temp_dir().join(format!("lmac-chaos-{}.json", std::process::id()));
+    let out = lmac()
+        .args(["chaos", "--kills", "4", "--kill-after", "3,6", "--checkpoint-interval", "3000", "--seed", "7", "--report"])
+        .arg(&report)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).expect("the chaos report")).unwrap();
+    let _ = std::fs::remove_file(&report);
+    assert!(out.status.success(), "lmac chaos found a fault: {stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(r["kills"], 4);
+    assert_eq!(r["undetected"], 0, "every death is noticed: {r}");
+    assert_eq!(r["resumes_continued"], 4, "{r}");
+    assert_eq!(r["checkpoint_load_failures"], 0, "{r}");
+    assert_eq!(r["shm_files_left"], 0, "{r}");
+    assert_eq!(r["metrics_monotone"], true);
+    for k in r["runs"].as_array().unwrap() {
+        let lost = k["steps_lost"].as_u64().expect("every kill's loss is measured");
+        assert!(lost <= 2 * 3000, "a crash costs at most about one checkpoint interval: {k}");
+    }
+    assert!(lmac_shm_files().is_empty(), "{:?}", lmac_shm_files());
+}
