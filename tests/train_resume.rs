@@ -209,3 +209,18 @@ fn chaos_kills_every_kind_of_process_and_every_resume_continues() {
     }
     assert!(lmac_shm_files().is_empty(), "{:?}", lmac_shm_files());
 }
+
+#[test]
+fn a_checkpoint_that_cannot_be_written_ends_the_run_naming_the_file() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("lmac-ck-fail-{}", std::process::id()));
+    let child = start_training(&out);
+    let dir = seed_dir(&out);
+    // A file where the checkpoint writer stages its directory: the write must fail.
+    std::fs::write(dir.join("checkpoint.tmp"), b"in the way").unwrap();
+    let (ok, stderr) = finish(child);
+    assert!(!ok, "the run must not go on without checkpoints");
+    assert!(stderr.contains("writing the checkpoint failed") && stderr.contains("checkpoint.tmp"), "{stderr}");
+    assert!(lmac_shm_files().is_empty(), "{:?}", lmac_shm_files());
+    let _ = std::fs::remove_dir_all(&out);
+}

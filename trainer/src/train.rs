@@ -299,6 +299,10 @@ pub struct MetricsResume {
 /// Keep the lines of `path` that `keep` accepts (the first `header` lines always), rewriting
 /// the file atomically when any is dropped; returns (dropped, kept lines).
 fn keep_lines(path: &Path, header: usize, keep: impl Fn(&str) -> bool) -> Result<(usize, Vec<String>)> {
+    // Only regular files are read (a device such as /dev/full would never end).
+    if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
+        return Ok((0, Vec::new()));
+    }
     let text = match std::fs::read(path) {
         Ok(b) => String::from_utf8_lossy(&b).into_owned(),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok((0, Vec::new())),
@@ -918,5 +922,70 @@ fn learner_loop(
     // The last checkpoint, unless the one just written already holds this state.
     if saved_at != Some(learner.counters()) {
         save(&learner, &shared);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_update_schedule_starts_with_a_full_batch_and_refills_after_a_resume_without_buffer() {
+        // EPyMARL's episode runner: an update right after the 32nd episode, then one per episode.
+        let fresh = UpdateSchedule::new(1.0, 32, 0, 0, 0);
+        assert_eq!([fresh.due(31), fresh.due(32), fresh.due(33), fresh.due(232)], [0, 1, 2, 201]);
+        // The default: one update per 8 episodes.
+        let slow = UpdateSchedule::new(0.125, 32, 0, 0, 0);
+        assert_eq!([slow.due(32), slow.due(38), slow.due(39), slow.due(32 + 799)], [0, 0, 1, 100]);
+        // Resumed at 1000 episodes and 969 updates without the buffer: 32 episodes to refill first.
+        let refill = UpdateSchedule::new(1.0, 32, 1000, 969, 0);
+        assert_eq!([refill.due(1000), refill.due(1031), refill.due(1032), refill.due(1033)], [969, 969, 970, 971]);
+        // With the buffer: on from the next episode.
+        let kept = UpdateSchedule::new(1.0, 32, 1000, 969, 5000);
+        assert_eq!([kept.due(1000), kept.due(1001)], [969, 970]);
+    }
+
+    #[test]
+    fn the_epymarl_preset_sets_one_update_per_episode_and_can_be_overridden() {
+        let mut o = preset_overrides("epymarl").unwrap();
+        let c = TrainConfig::resolve(None, &o).unwrap();
+        assert_eq!(c.run.updates_per_episode, 1.0);
+        assert_eq!(c.learn.target_update_interval_episodes, 200);
+        o.push("run.updates_per_episode=0.5".into());
+        assert_eq!(TrainConfig::resolve(None, &o).unwrap().run.updates_per_episode, 0.5, "--set comes after the preset");
+        assert!(preset_overrides("pymarl2").unwrap_err().to_string().contains("known: epymarl"));
+    }
+
+    #[test]
+    fn resuming_drops_the_metrics_rows_after_the_checkpoint_and_a_cut_off_line() {
+        let dir = std::env::temp_dir().join(format!("lmac-metrics-trim-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let row = |t: u64, wall: f64| format!("{t},1,0,{wall:.2},1.0,1.0,,,,,,\n");
+        let csv = format!("{CSV_HEADER}\n{}{}{}12", row(100, 1.0), row(200, 2.0), row(300, 3.0));
+        std::fs::write(dir.join("metrics.csv"), csv).unwrap();
+        std::fs::write(dir.join("metrics.jsonl"), "{\"t_env\":100}\n{\"t_env\":200,\"checkpoint\":\"x\"}\n{\"t_env\":300}\n{\"t_e")
+            .unwrap();
+        let (mut m, r) = Metrics::open(&dir, 200).unwrap();
+        assert_eq!(r, MetricsResume { dropped_rows: 2, wall_s: 2.0 }, "row 300 and the cut-off line go");
+        m.write(&MetricsRow { t_env: 250, ..Default::default() }).unwrap();
+        let csv = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
+        let t: Vec<&str> = csv.lines().skip(1).map(|l| l.split(',').next().unwrap()).collect();
+        assert_eq!(t, ["100", "200", "250"]);
+        let json = std::fs::read_to_string(dir.join("metrics.jsonl")).unwrap();
+        assert_eq!(json.lines().count(), 3, "{json}");
+        assert!(json.lines().all(|l| serde_json::from_str::<serde_json::Value>(l).is_ok()));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_metrics_write_that_fails_names_the_file() {
+        let dir = std::env::temp_dir().join(format!("lmac-metrics-full-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // Every write to /dev/full fails with "no space left on device".
+        std::os::unix::fs::symlink("/dev/full", dir.join("metrics.jsonl")).unwrap();
+        let (mut m, _) = Metrics::open(&dir, 0).unwrap();
+        let err = m.write(&MetricsRow::default()).unwrap_err().to_string();
+        assert!(err.contains("metrics.jsonl") && err.contains("No space left"), "{err}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
