@@ -79,6 +79,13 @@ pub fn pipeline_children(parent: i32) -> Vec<RunProc> {
     out
 }
 
+/// The pipeline run id a child was started with (`--run ID`), from its command line.
+fn run_id_of(pid: i32) -> Option<String> {
+    let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
+    let args: Vec<String> = cmd.split(|&b| b == 0).map(|a| String::from_utf8_lossy(a).into_owned()).collect();
+    args.iter().position(|a| a == "--run").and_then(|i| args.get(i + 1).cloned())
+}
+
 /// Files in /dev/shm that a run can leave: lmac's slabs and iceoryx2's resources (except its
 /// machine-wide node-id counter, kept across runs by design).
 fn shm_files() -> Vec<String> {
@@ -329,6 +336,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         let victim = victims[rng.random_range(0..victims.len())].clone();
         let reached = metrics_t_env(&dir).last().copied().unwrap_or(0);
         let children: Vec<i32> = victims.iter().filter(|p| p.role != Role::Parent).map(|p| p.pid).collect();
+        let run_id = children.iter().find_map(|&p| run_id_of(p)).unwrap_or_default();
         let t_kill = Instant::now();
         unsafe { libc::kill(victim.pid, libc::SIGKILL) };
         let detect_s = if victim.role == Role::Parent {
@@ -348,7 +356,12 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         while children.iter().any(|&p| alive(p)) && t0.elapsed() < Duration::from_secs(90) {
             std::thread::sleep(Duration::from_millis(20));
         }
-        let shm_left: Vec<String> = shm_files().into_iter().filter(|f| !baseline_shm.contains(f)).collect();
+        // This run's slabs by name; iceoryx2's files (hashed names) by what is new since the start
+        // (other iceoryx2 applications running meanwhile would count too).
+        let shm_left: Vec<String> = shm_files()
+            .into_iter()
+            .filter(|f| if f.starts_with("lmac-") { f.starts_with(&format!("lmac-{run_id}-")) } else { !baseline_shm.contains(f) })
+            .collect();
         let kill = Kill {
             victim: victim.role,
             after_s: wait,

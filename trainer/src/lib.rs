@@ -4,6 +4,7 @@ pub mod episode;
 pub mod faults;
 pub mod learn;
 pub mod pipeline;
+pub mod run_dir;
 pub mod supervisor;
 pub mod tensorboard;
 pub mod train;

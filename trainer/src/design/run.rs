@@ -56,22 +56,6 @@ fn write(path: &Path, text: &str) -> Result<()> {
     std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
 }
 
-fn stamp() -> String {
-    let s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
-    let (days, rem) = (s / 86_400, s % 86_400);
-    // Civil date from days since 1970-01-01 (the days-from-civil inverse).
-    let z = days as i64 + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + if m <= 2 { 1 } else { 0 };
-    format!("{y:04}{m:02}{d:02}-{:02}{:02}{:02}", rem / 3600, rem % 3600 / 60, rem % 60)
-}
-
 fn save_phase(dir: &Path, k: usize, p: &PhaseProtocol, ctx: &DesignContext) -> Result<PathBuf> {
     let pd = dir.join(format!("phase{k}"));
     std::fs::create_dir_all(&pd)?;
@@ -100,7 +84,8 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
     }
     let schema = lmac_shm_schema::schema::load_env(&opts.env).map_err(anyhow::Error::msg)?;
     let penv = lmac_protocol_runner::protocol_env(&schema);
-    let dir = opts.out.join(opts.env.replace(':', "_")).join(format!("{}-{}", stamp(), designer.name().replace([':', '/'], "_")));
+    let dir =
+        opts.out.join(opts.env.replace(':', "_")).join(format!("{}-{}", crate::run_dir::stamp(), designer.name().replace([':', '/'], "_")));
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     write(&dir.join("options.json"), &serde_json::to_string_pretty(opts)?)?;
     eprintln!("lmac: design of {} with the {} designer in {}", opts.env, designer.name(), dir.display());

@@ -1,0 +1,133 @@
+//! `lmac child`: the entry points of the processes `lmac` starts (protocol runner, trainer).
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use lmac_protocol_runner::runner::{self as prunner, RunnerArgs};
+use lmac_shm_schema::schema::load_env;
+use lmac_trainer::pipeline::{self, MessageCheck, RandomActor, TrainerArgs};
+use std::io::Write;
+use std::time::Duration;
+
+#[derive(Args, Clone)]
+pub(crate) struct ChildOpts {
+    #[arg(long)]
+    run: String,
+    #[arg(long)]
+    env: String,
+    #[arg(long)]
+    servers: usize,
+    #[arg(long)]
+    slots: usize,
+    #[arg(long)]
+    protocol: String,
+    #[arg(long, default_value_t = 60.0)]
+    startup_timeout: f64,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum ChildCmd {
+    Runner(ChildOpts),
+    Trainer {
+        #[command(flatten)]
+        o: ChildOpts,
+        #[arg(long)]
+        steps: u64,
+        #[arg(long, default_value_t = 10)]
+        warmup: u64,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(long)]
+        verify: bool,
+        #[arg(long)]
+        episodes_out: Option<std::path::PathBuf>,
+        #[arg(long)]
+        progress: bool,
+        /// Train with the run directory's config (instead of acting randomly).
+        #[arg(long)]
+        train_dir: Option<std::path::PathBuf>,
+    },
+}
+
+pub(crate) fn child(c: ChildCmd) -> Result<i32> {
+    // Stop gracefully on SIGTERM/SIGINT: the waits return and the process cleans up.
+    let _ = ctrlc::set_handler(lmac_shm_schema::ring::request_stop);
+    let code = match c {
+        ChildCmd::Runner(o) => {
+            let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
+            let mut plans = (0..o.servers)
+                .map(|_| lmac_protocol_runner::plan_for(&o.protocol, &schema))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(anyhow::Error::msg)?;
+            let args = RunnerArgs {
+                run: o.run,
+                schema,
+                n_servers: o.servers,
+                n_slots: o.slots,
+                startup_timeout: Duration::from_secs_f64(o.startup_timeout),
+            };
+            match prunner::run(&args, &mut plans) {
+                Ok(_) => 0,
+                Err(prunner::RunnerError::Ring(lmac_shm_schema::RingError::Stopped)) => 0,
+                Err(e) => {
+                    eprintln!("lmac: {e}");
+                    3
+                }
+            }
+        }
+        ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress, train_dir } => {
+            let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
+            let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
+            let check = match o.protocol.as_str() {
+                "fullcomm" => MessageCheck::FullComm,
+                "none" => MessageCheck::None,
+                _ => MessageCheck::Recompute,
+            };
+            let args = TrainerArgs {
+                run: o.run,
+                schema,
+                n_servers: o.servers,
+                n_slots: o.slots,
+                msg_used: plan.msg_dim(),
+                env_steps: steps,
+                warmup_slots: warmup,
+                startup_timeout: Duration::from_secs_f64(o.startup_timeout),
+                verify: verify.then_some(check),
+                protocol: o.protocol.clone(),
+                progress,
+            };
+            if let Some(dir) = train_dir {
+                return match lmac_trainer::train::train_in_child(&dir, &args, progress) {
+                    Ok(report) => {
+                        println!("{}", serde_json::to_string(&report)?);
+                        Ok(0)
+                    }
+                    Err(e) if e.to_string().contains("stopped by request") => Ok(0),
+                    Err(e) => {
+                        eprintln!("lmac: trainer: {e:#}");
+                        Ok(4)
+                    }
+                };
+            }
+            let mut actor = RandomActor::new(seed);
+            match pipeline::run(&args, &mut actor) {
+                Ok(report) => {
+                    if let Some(path) = episodes_out {
+                        let mut f =
+                            std::io::BufWriter::new(std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?);
+                        for e in &report.episode_log {
+                            writeln!(f, "{}", serde_json::to_string(e)?)?;
+                        }
+                    }
+                    println!("{}", serde_json::to_string(&report)?);
+                    0
+                }
+                Err(pipeline::PipelineError::Ring(lmac_shm_schema::RingError::Stopped)) => 0,
+                Err(e) => {
+                    eprintln!("lmac: {e}");
+                    3
+                }
+            }
+        }
+    };
+    Ok(code)
+}

@@ -1,0 +1,119 @@
+//! `lmac design`: the three-phase protocol design loop.
+
+use super::train::train_dirs;
+use super::{interrupt_flag, parse_steps};
+use anyhow::{Context, Result};
+use clap::Args;
+use lmac_trainer::supervisor;
+
+#[derive(Args)]
+pub(crate) struct DesignArgs {
+    /// Environment, e.g. lbf:8x8-2p-2f-s1-coop.
+    #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
+    env: String,
+    /// Designer: `offline` (embedded, no network: builds each phase from the meta-information),
+    /// or an LLM: `openai:MODEL` (any OpenAI-compatible server: OpenAI, vLLM, llama.cpp,
+    /// Ollama; key from OPENAI_API_KEY), `anthropic:MODEL` (key from ANTHROPIC_API_KEY).
+    #[arg(long, default_value = "offline")]
+    llm: String,
+    /// Base URL of an OpenAI-compatible server, e.g. http://127.0.0.1:8080/v1.
+    #[arg(long)]
+    base_url: Option<String>,
+    /// live: ask the LLM (recording every exchange); replay: answer from the recordings only
+    /// (offline, exact); replay-or-live: recordings first, then the LLM.
+    #[arg(long, default_value = "live")]
+    llm_mode: String,
+    /// Where LLM exchanges are recorded and replayed from (default: <out>/llm-recordings).
+    #[arg(long)]
+    recordings: Option<std::path::PathBuf>,
+    /// Corrections the LLM gets per reply (invalid JSON, validation errors) before the design fails.
+    #[arg(long, default_value_t = 3)]
+    max_retries: usize,
+    /// Env steps of the QMIX run whose epsilon-greedy policy collects the dataset (paper: 200k).
+    #[arg(long, default_value = "50k", value_parser = parse_steps)]
+    pretrain_steps: u64,
+    /// Episodes in the dataset (paper: 5000).
+    #[arg(long, default_value_t = 1000)]
+    dataset_episodes: usize,
+    /// Epsilon while collecting (default: the schedule's value at the end of the QMIX run).
+    #[arg(long)]
+    dataset_epsilon: Option<f32>,
+    /// Reuse a dataset directory (e.g. <design>/collect/dataset) instead of collecting one.
+    #[arg(long)]
+    dataset: Option<std::path::PathBuf>,
+    /// Environments per env server and env servers for the collection run.
+    #[arg(long, default_value_t = 16)]
+    envs: usize,
+    #[arg(long, default_value_t = 2)]
+    servers: usize,
+    /// Discriminator updates per training (paper: 1000 epochs x 10 iterations).
+    #[arg(long)]
+    disc_updates: Option<usize>,
+    /// Design phases (paper: 3).
+    #[arg(long, default_value_t = 3)]
+    phases: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Where design directories go.
+    #[arg(long, default_value = "designs")]
+    out: std::path::PathBuf,
+}
+
+pub(crate) fn design(a: DesignArgs) -> Result<i32> {
+    use lmac_trainer::design::llm::LlmMode;
+    use lmac_trainer::design::llm_designer::{LlmDesigner, LlmDesignerOptions};
+    use lmac_trainer::design::meta::{self, MetaConfig};
+    use lmac_trainer::design::offline::{OfflineConfig, OfflineDesigner};
+    use lmac_trainer::design::run::{run_design, DesignOptions};
+    use lmac_trainer::design::Designer;
+    let interrupted = interrupt_flag();
+    let opts = DesignOptions {
+        env: a.env.clone(),
+        out: a.out.clone(),
+        seed: a.seed,
+        pretrain_steps: a.pretrain_steps,
+        dataset_episodes: a.dataset_episodes,
+        dataset_epsilon: a.dataset_epsilon,
+        envs: a.envs,
+        servers: a.servers,
+        dataset: a.dataset.clone(),
+        phases: a.phases,
+    };
+    // One discriminator configuration for the offline designer's phase-0 measurement and for
+    // every phase's meta-information.
+    let mut meta_cfg = MetaConfig::default();
+    if let Some(u) = a.disc_updates {
+        meta_cfg.discriminator.updates = u;
+    }
+    meta_cfg.discriminator.validate()?;
+    let mut designer: Box<dyn Designer> = if a.llm == "offline" {
+        let cfg = OfflineConfig { discriminator: meta_cfg.discriminator.clone(), phases: a.phases, ..Default::default() };
+        Box::new(OfflineDesigner::new(cfg))
+    } else {
+        let mode: LlmMode = a.llm_mode.parse().map_err(anyhow::Error::msg)?;
+        let rec = a.recordings.clone().unwrap_or_else(|| a.out.join("llm-recordings"));
+        std::fs::create_dir_all(&rec).with_context(|| format!("creating {}", rec.display()))?;
+        let options = LlmDesignerOptions { max_retries: a.max_retries, ..Default::default() };
+        Box::new(LlmDesigner::from_spec(&a.llm, a.base_url.as_deref(), mode, Some(rec), options)?)
+    };
+    let train = |dir: &std::path::Path| train_dirs(&[dir.to_path_buf()], interrupted.clone());
+    let evaluate = |ctx: &lmac_trainer::design::DesignContext, phases: &[lmac_protocol_runner::protocol::ValidatedProtocol]| {
+        meta::evaluate(ctx, phases, &meta_cfg)
+    };
+    let dir = run_design(&opts, designer.as_mut(), &train, &evaluate)?;
+    plot_design(&dir);
+    println!("design written to {}", dir.display());
+    println!("final protocol: {}", std::fs::read_to_string(dir.join("final_protocol.txt"))?.trim());
+    Ok(0)
+}
+
+/// The design's Figure 3 (matplotlib, in the project's Python).
+pub(crate) fn plot_design(dir: &std::path::Path) {
+    let script = supervisor::repo_root().map(|r| r.join("trainer/plot_design.py"));
+    let out = script.and_then(|s| Ok(supervisor::python_command()?.arg(s).arg(dir).output()?));
+    match out {
+        Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
+        Ok(o) => eprintln!("lmac: plotting the design failed: {}", String::from_utf8_lossy(&o.stderr)),
+        Err(e) => eprintln!("lmac: plotting the design failed: {e}"),
+    }
+}

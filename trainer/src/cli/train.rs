@@ -1,0 +1,178 @@
+//! `lmac train`: resolve the configs, create or resume the run directories, train each seed
+//! through the pipeline, plot.
+
+use super::{interrupt_flag, parse_steps, pipeline_report, PipelineOpts};
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use lmac_trainer::supervisor;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+pub(crate) const TRAIN_AFTER_HELP: &str = "\
+Update ratio: by default the learner does run.updates_per_episode = 0.125 gradient updates (of
+learn.batch_size = 32 episodes) per collected episode, pymarl's parallel runner with 8
+environments. That is 8x fewer updates per episode than EPyMARL's episode runner (1 per
+episode), and the target network, copied every 200 episodes, is then copied every 25 updates.
+--preset epymarl reproduces the episode runner's schedule: 1 update per episode from the 32nd
+episode on, a target copy every 200 updates. Each environment switches to new weights when its
+next episode starts.
+
+Resuming: --resume DIR continues every unfinished seed in DIR (a group or one seed) from its
+last checkpoint (run.checkpoint_interval env steps apart, and one at the end). Without the saved
+replay buffer (run.save_buffer = false) the learner refills learn.batch_size episodes before it
+updates again. Metrics rows logged after that checkpoint are dropped, so curves continue
+without a step backwards; each checkpoint is logged in metrics.jsonl.";
+
+#[derive(Args)]
+pub(crate) struct TrainArgs {
+    /// Environment (overrides run.env).
+    #[arg(long)]
+    env: Option<String>,
+    /// qmix | vdn | qplex | fullcomm | qmix-state (overrides run.algo).
+    #[arg(long)]
+    algo: Option<String>,
+    /// Seeds, comma separated: one run directory each, run one after the other.
+    #[arg(long, default_value = "0", value_delimiter = ',')]
+    seeds: Vec<u64>,
+    /// Env steps per seed, e.g. 2M, 500k (overrides run.steps).
+    #[arg(long, value_parser = parse_steps)]
+    steps: Option<u64>,
+    /// Config file (TOML with [run] and [learn] sections).
+    #[arg(long)]
+    config: Option<std::path::PathBuf>,
+    /// Override a config value: --set learn.lr=0.001 --set run.envs=8
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// A named bundle of settings, applied before --set: epymarl (EPyMARL's episode-runner
+    /// learning schedule: 1 update per collected episode, target copy every 200 updates).
+    #[arg(long)]
+    preset: Option<String>,
+    /// Where run directories go.
+    #[arg(long, default_value = "runs")]
+    out: std::path::PathBuf,
+    /// Continue the runs in this directory (a seed's directory or a group of seeds).
+    #[arg(long, conflicts_with_all = ["env", "algo", "config", "set", "steps", "preset"])]
+    resume: Option<std::path::PathBuf>,
+}
+
+pub(crate) fn train(a: TrainArgs) -> Result<i32> {
+    use lmac_trainer::train::TrainConfig;
+    let interrupted = interrupt_flag();
+    // The seed directories to run, each with its resolved config.toml.
+    let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
+        if r.join("config.toml").exists() {
+            (r.parent().unwrap_or(r).to_path_buf(), vec![r.clone()])
+        } else {
+            let mut d: Vec<_> = std::fs::read_dir(r)
+                .with_context(|| format!("reading {}", r.display()))?
+                .flatten()
+                .map(|e| e.path())
+                .filter(|p| p.join("config.toml").exists())
+                .collect();
+            d.sort();
+            if d.is_empty() {
+                bail!("{} holds no run (no config.toml in it or its subfolders)", r.display());
+            }
+            (r.clone(), d)
+        }
+    } else {
+        let mut overrides = match &a.preset {
+            Some(p) => lmac_trainer::train::preset_overrides(p)?,
+            None => Vec::new(),
+        };
+        overrides.extend(a.set.iter().cloned());
+        if let Some(e) = &a.env {
+            overrides.push(format!("run.env={e:?}"));
+        }
+        if let Some(al) = &a.algo {
+            overrides.push(format!("run.algo={al:?}"));
+        }
+        if let Some(st) = a.steps {
+            overrides.push(format!("run.steps={st}"));
+        }
+        let mut cfg = TrainConfig::resolve(a.config.as_deref(), &overrides)?;
+        // Protocol files by absolute path, so a resumed run finds them from anywhere.
+        if !cfg.run.protocol.is_empty() {
+            let files: Result<Vec<String>> = cfg
+                .run
+                .protocol
+                .split('+')
+                .map(|f| Ok(std::fs::canonicalize(f).with_context(|| format!("run.protocol: {f}"))?.display().to_string()))
+                .collect();
+            cfg.run.protocol = files?.join("+");
+        }
+        let stamp = lmac_trainer::run_dir::stamp();
+        let group = a.out.join(cfg.run.env.replace(':', "_")).join(&cfg.run.algo).join(stamp);
+        let mut dirs = Vec::new();
+        for &seed in &a.seeds {
+            let mut c = cfg.clone();
+            c.learn.seed = seed;
+            let d = group.join(format!("seed{seed}"));
+            std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
+            std::fs::write(d.join("config.toml"), toml::to_string_pretty(&c)?)?;
+            dirs.push(d);
+        }
+        (group, dirs)
+    };
+    eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
+    train_dirs(&dirs, interrupted)?;
+    plot_runs(&group);
+    Ok(0)
+}
+
+/// Train each run directory (a resolved `config.toml` inside) in turn through the pipeline.
+pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
+    use lmac_trainer::train::TrainConfig;
+    for d in dirs {
+        let cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(d.join("config.toml"))?)
+            .map_err(|e| anyhow::anyhow!("{}: {}", d.join("config.toml").display(), e.message()))?;
+        cfg.check()?;
+        // Where the run stands: a checkpoint's step, or 0 for a fresh start.
+        let ck = lmac_trainer::train::checkpoint_dir(d);
+        let done_t_env = match lmac_trainer::learn::checkpoint::peek_checkpoint(&ck) {
+            Ok(info) => info.counters.t_env,
+            Err(_) if !ck.exists() && !ck.with_extension("old").exists() => 0,
+            Err(e) => bail!("{}: {e}", d.display()),
+        };
+        let dataset_done = cfg.run.dataset_episodes == 0 || lmac_trainer::train::dataset_dir(d).exists();
+        if done_t_env >= cfg.run.steps && dataset_done {
+            eprintln!("lmac: {} seed {}: already finished (t_env {done_t_env} of {})", d.display(), cfg.learn.seed, cfg.run.steps);
+            continue;
+        }
+        eprintln!("lmac: {} {} seed {} -> {}", cfg.run.env, cfg.run.algo, cfg.learn.seed, d.display());
+        let p = PipelineOpts {
+            env: cfg.run.env.clone(),
+            envs: cfg.run.envs,
+            servers: cfg.run.servers,
+            // 0 = the default for the environment's schema (pipeline_report applies it).
+            sub_batches: (cfg.run.sub_batches != 0).then_some(cfg.run.sub_batches),
+            slots: 4,
+            protocol: cfg.protocol()?,
+            steps: u64::MAX / 4,
+            // A resumed segment's environments start from other seeds than the first segment's
+            // (else it would replay the same episodes).
+            seed: cfg.learn.seed + done_t_env,
+            startup_timeout: 60.0,
+        };
+        let extra = vec![
+            "--train-dir".to_string(),
+            std::fs::canonicalize(d)?.display().to_string(),
+            "--progress".into(),
+            "--warmup".into(),
+            "1".into(),
+        ];
+        pipeline_report(&p, extra, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
+    }
+    Ok(())
+}
+
+/// Plots and the multi-seed summary (matplotlib, in the project's Python).
+pub(crate) fn plot_runs(group: &std::path::Path) {
+    let script = supervisor::repo_root().map(|r| r.join("trainer/plot_runs.py"));
+    let out = script.and_then(|s| Ok(supervisor::python_command()?.arg(s).arg(group).output()?));
+    match out {
+        Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
+        Ok(o) => eprintln!("lmac: plotting failed: {}", String::from_utf8_lossy(&o.stderr)),
+        Err(e) => eprintln!("lmac: plotting failed: {e}"),
+    }
+}
