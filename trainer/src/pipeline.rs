@@ -7,7 +7,7 @@ use lmac_shm_schema::ring::{Port, RingError, RingSpec, KIND_SLOT};
 use lmac_shm_schema::{EnvSchema, Slab, Slot, Stage, FLAG_FINAL, FLAG_FIRST, FLAG_PREV_WON};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::time::{Duration, Instant};
 
 /// Chooses the actions of one batched step. The learner's epsilon-greedy controller implements
@@ -79,7 +79,7 @@ pub struct TrainerArgs {
     pub progress: bool,
 }
 
-#[derive(Debug, Default, Serialize)]
+#[derive(Debug, Default, Serialize, Deserialize)]
 pub struct EpisodeSummary {
     pub server: usize,
     pub env: usize,
@@ -91,7 +91,8 @@ pub struct EpisodeSummary {
     pub won: bool,
 }
 
-#[derive(Debug, Default, Serialize)]
+/// What the trainer child reports to the parent when its run ends (a JSON file, `--report`).
+#[derive(Debug, Default, Serialize, Deserialize)]
 pub struct TrainerReport {
     pub env: String,
     pub servers: usize,

@@ -122,9 +122,14 @@ pub fn cleanup_run(run: &str, servers: usize) {
     lmac_shm_schema::ring::cleanup_dead_nodes();
 }
 
-/// The outcome of a run: the trainer's stdout (its JSON report) when everything ended well.
+/// The outcome of a run that ended well: the trainer's report.
 pub struct RunOutcome {
-    pub trainer_stdout: String,
+    pub report: crate::pipeline::TrainerReport,
+}
+
+/// Where the trainer of run `run` writes its report (a file of its own, not its stdout).
+fn report_path(run: &str) -> PathBuf {
+    std::env::temp_dir().join(format!("lmac-{run}-report.json"))
 }
 
 /// Ask the kernel to send the child SIGTERM when this process dies (even by SIGKILL), so a dead
@@ -189,28 +194,25 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
         let mut t = Command::new(&exe);
         t.args(["child", "trainer"]);
         common(&mut t);
-        t.args(["--seed", &plan.seed.to_string()]).args(&plan.trainer_args).stdout(Stdio::piped());
+        t.args(["--seed", &plan.seed.to_string()]).arg("--report").arg(report_path(&plan.run)).args(&plan.trainer_args);
         procs.push(Proc { name: TRAINER.into(), child: t.spawn().context("starting the trainer")?, status: None });
         Ok(())
     };
     let started = spawn_all(&mut procs);
     let trainer_idx = procs.len().saturating_sub(1);
-    // Read the trainer's stdout on a thread so a full pipe never blocks it.
-    let stdout_reader = procs.last_mut().and_then(|p| p.child.stdout.take()).map(|mut out| {
-        std::thread::spawn(move || {
-            let mut s = String::new();
-            let _ = std::io::Read::read_to_string(&mut out, &mut s);
-            s
-        })
-    });
     let result = match started {
         Err(e) => Err(e),
         Ok(()) => supervise(&mut procs, trainer_idx, &interrupted),
     };
     stop_all(&mut procs);
     cleanup_run(&plan.run, plan.ring_servers());
-    let out = stdout_reader.map(|h| h.join().unwrap_or_default()).unwrap_or_default();
-    result.map(|()| RunOutcome { trainer_stdout: out })
+    let path = report_path(&plan.run);
+    let report = std::fs::read(&path);
+    let _ = std::fs::remove_file(&path);
+    result?;
+    let report = report.with_context(|| format!("the trainer wrote no report ({})", path.display()))?;
+    let report = serde_json::from_slice(&report).with_context(|| format!("the trainer's report {}", path.display()))?;
+    Ok(RunOutcome { report })
 }
 
 fn supervise(procs: &mut [Proc], trainer_idx: usize, interrupted: &AtomicBool) -> Result<()> {

@@ -255,7 +255,7 @@ impl TrainConfig {
 }
 
 /// One metrics row; empty fields are written as blanks in the CSV.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct MetricsRow {
     pub t_env: u64,
     pub episodes: u64,
@@ -284,6 +284,20 @@ pub struct Metrics {
 
 fn opt<T: std::fmt::Display>(v: &Option<T>) -> String {
     v.as_ref().map(|x| x.to_string()).unwrap_or_default()
+}
+
+/// The metrics rows of a run directory, from `metrics.jsonl` (checkpoint lines skipped).
+pub fn read_metrics(dir: &Path) -> Result<Vec<MetricsRow>> {
+    let path = dir.join("metrics.jsonl");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let mut rows = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let v: serde_json::Value = serde_json::from_str(line).with_context(|| format!("{} line {}", path.display(), i + 1))?;
+        if v.get("checkpoint").is_none() {
+            rows.push(serde_json::from_value(v).with_context(|| format!("{} line {}", path.display(), i + 1))?);
+        }
+    }
+    Ok(rows)
 }
 
 /// What [`Metrics::open`] found of an earlier segment of the run.

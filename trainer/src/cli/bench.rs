@@ -164,7 +164,7 @@ pub(crate) fn bench_interleaved(p: &PipelineOpts, repeat: usize, interrupted: Ar
         "stepping_vs_raw": step_s / raw_s,
         "handover_share": 1.0 - step_s / pipe_s,
     });
-    let trainer_us = report["trainer_us_per_slot"].as_f64().unwrap_or(0.0);
+    let trainer_us = report.trainer_us_per_slot;
     Ok(Alternations { raws, pipes, trainer_us, method: "interleaved block pairs", split: Some(split) })
 }
 
@@ -186,8 +186,8 @@ pub(crate) fn bench_separate_runs(p: &PipelineOpts, repeat: usize, interrupted: 
         raws.push(raw["env_steps_per_s"].as_f64().unwrap_or(0.0));
         // 2. The full pipeline on the same number of env steps.
         let pipe = pipeline_report(p, vec![], vec![], interrupted.clone())?;
-        pipes.push(pipe["env_steps_per_s"].as_f64().unwrap_or(0.0));
-        trainer_us.push(pipe["trainer_us_per_slot"].as_f64().unwrap_or(0.0));
+        pipes.push(pipe.env_steps_per_s);
+        trainer_us.push(pipe.trainer_us_per_slot);
     }
     Ok(Alternations { raws, pipes, trainer_us: median(trainer_us), method: "separate runs", split: None })
 }
@@ -255,11 +255,8 @@ pub(crate) fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64
         )?;
         std::fs::write(d.join("config.toml"), toml::to_string_pretty(&c)?)?;
         train_dirs(std::slice::from_ref(&d), interrupted.clone())?;
-        let csv = std::fs::read_to_string(d.join("metrics.csv"))?;
-        let last = csv.lines().last().context("no metrics written")?;
-        let cols: Vec<&str> = last.split(',').collect();
-        let (t_env, wall): (f64, f64) = (cols[0].parse()?, cols[3].parse()?);
-        let updates_done: f64 = cols[2].parse()?;
+        let last = lmac_trainer::train::read_metrics(&d)?.pop().context("no metrics written")?;
+        let (t_env, wall, updates_done) = (last.t_env as f64, last.wall_s, last.updates);
         let train_rate = t_env / wall.max(1e-9);
         let p = PipelineOpts {
             env: env.into(),
@@ -272,7 +269,7 @@ pub(crate) fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64
             seed: 0,
             startup_timeout: 60.0,
         };
-        let rand_rate = pipeline_report(&p, vec![], vec![], interrupted.clone())?["env_steps_per_s"].as_f64().unwrap_or(0.0);
+        let rand_rate = pipeline_report(&p, vec![], vec![], interrupted.clone())?.env_steps_per_s;
         eprintln!(
             "lmac: {n} envs: training {train_rate:.0} env-steps/s ({updates_done} updates), random acting {rand_rate:.0} env-steps/s"
         );

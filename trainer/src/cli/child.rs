@@ -4,7 +4,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use lmac_protocol_runner::runner::{self as prunner, RunnerArgs};
 use lmac_shm_schema::schema::load_env;
-use lmac_trainer::pipeline::{self, MessageCheck, RandomActor, TrainerArgs};
+use lmac_trainer::pipeline::{self, MessageCheck, RandomActor, TrainerArgs, TrainerReport};
 use std::io::Write;
 use std::time::Duration;
 
@@ -45,6 +45,9 @@ pub(crate) enum ChildCmd {
         /// Train with the run directory's config (instead of acting randomly).
         #[arg(long)]
         train_dir: Option<std::path::PathBuf>,
+        /// Write the report (JSON) here for the parent.
+        #[arg(long)]
+        report: std::path::PathBuf,
     },
 }
 
@@ -74,7 +77,7 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                 }
             }
         }
-        ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress, train_dir } => {
+        ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress, train_dir, report: report_to } => {
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
             let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
             let check = match o.protocol.as_str() {
@@ -98,7 +101,7 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
             if let Some(dir) = train_dir {
                 return match lmac_trainer::train::train_in_child(&dir, &args, progress) {
                     Ok(report) => {
-                        println!("{}", serde_json::to_string(&report)?);
+                        write_report(&report_to, &report)?;
                         Ok(0)
                     }
                     Err(e) if e.to_string().contains("stopped by request") => Ok(0),
@@ -118,7 +121,7 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                             writeln!(f, "{}", serde_json::to_string(e)?)?;
                         }
                     }
-                    println!("{}", serde_json::to_string(&report)?);
+                    write_report(&report_to, &report)?;
                     0
                 }
                 Err(pipeline::PipelineError::Ring(lmac_shm_schema::RingError::Stopped)) => 0,
@@ -130,4 +133,11 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
         }
     };
     Ok(code)
+}
+
+/// Write the report atomically (the parent reads it once this process has exited).
+fn write_report(path: &std::path::Path, report: &TrainerReport) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, serde_json::to_vec(report)?).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }

@@ -10,9 +10,10 @@ pub(crate) mod protocol;
 pub(crate) mod run;
 pub(crate) mod train;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use clap::Args;
 use lmac_shm_schema::schema::load_env;
+use lmac_trainer::pipeline::TrainerReport;
 use lmac_trainer::supervisor::{self, RunPlan};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -77,14 +78,14 @@ pub(crate) fn interrupt_flag() -> Arc<AtomicBool> {
     flag
 }
 
-/// Start the processes of one pipeline run and return the trainer's JSON report. `extra` goes to
-/// the trainer, `env_extra` to the env servers.
+/// Start the processes of one pipeline run and return the trainer's report. `extra` goes to the
+/// trainer, `env_extra` to the env servers.
 pub(crate) fn pipeline_report(
     p: &PipelineOpts,
     extra: Vec<String>,
     env_extra: Vec<String>,
     interrupted: Arc<AtomicBool>,
-) -> Result<serde_json::Value> {
+) -> Result<TrainerReport> {
     let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
     let plan = lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?;
     if plan.msg_dim() > schema.message_columns {
@@ -117,7 +118,5 @@ pub(crate) fn pipeline_report(
         trainer_args: [vec!["--steps".into(), p.steps.to_string()], extra].concat(),
         env_server_args: env_extra,
     };
-    let out = supervisor::run_pipeline(&rp, interrupted)?;
-    let line = out.trainer_stdout.lines().rev().find(|l| l.starts_with('{')).context("the trainer printed no report")?;
-    Ok(serde_json::from_str(line)?)
+    Ok(supervisor::run_pipeline(&rp, interrupted)?.report)
 }

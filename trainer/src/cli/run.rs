@@ -39,10 +39,10 @@ pub(crate) fn run(a: RunArgs) -> Result<i32> {
     } else {
         println!(
             "{}: {} env steps in {:.2} s = {:.0} env-steps/s through the pipeline ({} servers x {} envs, protocol {}); {} episodes, mean team return {:.3}{}",
-            a.p.env, report["env_steps"], report["seconds"].as_f64().unwrap_or(0.0), report["env_steps_per_s"].as_f64().unwrap_or(0.0),
-            a.p.servers, a.p.envs, a.p.protocol, report["episodes"], report["mean_return"].as_f64().unwrap_or(0.0),
-            if a.verify { format!("; {} invariant violations", report["violation_count"]) } else { String::new() }
+            a.p.env, report.env_steps, report.seconds, report.env_steps_per_s,
+            a.p.servers, a.p.envs, a.p.protocol, report.episodes, report.mean_return,
+            if a.verify { format!("; {} invariant violations", report.violation_count) } else { String::new() }
         );
     }
-    Ok(if report["violation_count"].as_u64().unwrap_or(0) > 0 { 1 } else { 0 })
+    Ok(if report.violation_count > 0 { 1 } else { 0 })
 }
