@@ -43,7 +43,7 @@ impl Actor for RandomActor {
                 0
             } else {
                 let pick = self.rng.random_range(0..n_avail);
-                av.iter().enumerate().filter(|(_, &a)| a != 0).nth(pick).map_or(0, |(i, _)| i as i32)
+                crate::learn::controller::nth_available(av, pick).map_or(0, |i| i as i32)
             };
         }
     }

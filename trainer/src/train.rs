@@ -610,8 +610,7 @@ impl Actor for TrainActor {
             for ag in 0..n {
                 let r = e * n + ag;
                 let (qs, av) = (&q[r * a..(r + 1) * a], &avail[r * a..(r + 1) * a]);
-                let best = (0..a).filter(|&i| av[i] != 0).max_by(|&i, &j| qs[i].total_cmp(&qs[j]).then(j.cmp(&i)));
-                actions[r] = best.unwrap_or(0) as i32;
+                actions[r] = crate::learn::controller::greedy_available(qs, av).unwrap_or(0) as i32;
             }
         }
     }

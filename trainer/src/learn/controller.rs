@@ -202,22 +202,29 @@ impl Controller {
                 continue;
             }
             let explore = epsilon > 0.0 && rng.uniform() < epsilon;
-            let act = if explore {
-                let k = rng.below(n_av);
-                av.iter().enumerate().filter(|(_, &x)| x != 0).nth(k).map(|(i, _)| i).unwrap()
-            } else {
-                let mut best = usize::MAX;
-                for i in 0..a {
-                    if av[i] != 0 && (best == usize::MAX || q[i] > q[best]) {
-                        best = i;
-                    }
-                }
-                best
-            };
-            out.push(act as i32);
+            let act = if explore { nth_available(av, rng.below(n_av)) } else { greedy_available(q, av) };
+            out.push(act.unwrap_or(0) as i32);
         }
         out
     }
+}
+
+/// The available action with the highest value, the first of equal ones (pymarl's argmax over
+/// Q with unavailable actions masked); None when no action is available.
+pub fn greedy_available(q: &[f32], avail: &[u8]) -> Option<usize> {
+    let mut best: Option<usize> = None;
+    for (i, (&v, &ok)) in q.iter().zip(avail).enumerate() {
+        if ok != 0 && best.is_none_or(|b| v > q[b]) {
+            best = Some(i);
+        }
+    }
+    best
+}
+
+/// The `k`-th available action (0-based); None when fewer than k + 1 are available. With k
+/// uniform over the count of available actions this is a uniformly random available action.
+pub fn nth_available(avail: &[u8], k: usize) -> Option<usize> {
+    avail.iter().enumerate().filter(|(_, &x)| x != 0).nth(k).map(|(i, _)| i)
 }
 
 impl Controller {
