@@ -34,6 +34,12 @@ fn lmac_shm_files() -> Vec<String> {
         .collect()
 }
 
+/// The lmac slabs in /dev/shm that were not there at `before` (other runs on the machine,
+/// started before the test, keep theirs).
+fn new_shm_files(before: &[String]) -> Vec<String> {
+    lmac_shm_files().into_iter().filter(|f| !before.contains(f)).collect()
+}
+
 fn wait_for<T>(timeout: Duration, mut f: impl FnMut() -> Option<T>) -> Option<T> {
     let t0 = Instant::now();
     while t0.elapsed() < timeout {
@@ -46,11 +52,12 @@ fn wait_for<T>(timeout: Duration, mut f: impl FnMut() -> Option<T>) -> Option<T>
 }
 
 /// Start a small QMIX run on LBF 8x8 (one env server of 8 envs, checkpoints every 5k steps).
-fn start_training(out: &Path) -> Child {
+fn start_training(out: &Path, save_buffer: bool) -> Child {
     lmac()
         .args(["train", "--env", "lbf:8x8-2p-2f-s1-coop", "--algo", "qmix", "--steps", &STEPS.to_string()])
         .args(["--set", "run.envs=8", "--set", "run.servers=1", "--set", "run.checkpoint_interval=5000"])
         .args(["--set", "run.log_interval=1000", "--set", "run.test_interval=10000", "--set", "run.test_episodes=8"])
+        .args(["--set", &format!("run.save_buffer={save_buffer}")])
         .arg("--out")
         .arg(out)
         .stdin(Stdio::null())
@@ -119,14 +126,18 @@ fn finish(child: Child) -> (bool, String) {
 }
 
 /// Resume the group and check it reaches the target with continuous metrics.
-fn resume_and_check(dir: &Path, stop_kind: &str) {
+fn resume_and_check(dir: &Path, stop_kind: &str, save_buffer: bool, shm_before: &[String]) {
     let before = checkpoint_rows(dir);
     let resumed_from = before.last().expect("a checkpoint before the stop").0;
     let out = lmac().arg("train").arg("--resume").arg(dir.parent().unwrap()).output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr).replace('\r', "\n");
     assert!(out.status.success(), "resume after {stop_kind} failed: {stderr}");
     assert!(stderr.contains(&format!("resuming from {}", dir.join("checkpoint").display())), "{stderr}");
-    assert!(stderr.contains("refills it with 32 episodes"), "the run says the buffer is refilled: {stderr}");
+    if save_buffer {
+        assert!(stderr.contains("with its replay buffer ("), "the run says it has its buffer: {stderr}");
+    } else {
+        assert!(stderr.contains("refills it with 32 episodes"), "the run says the buffer is refilled: {stderr}");
+    }
     let t = csv_t_env(dir);
     assert!(t.windows(2).all(|w| w[0] <= w[1]), "metrics.csv t_env steps backwards after {stop_kind}: {t:?}");
     assert!(*t.last().unwrap() >= STEPS, "the resumed run reaches {STEPS} env steps: {t:?}");
@@ -139,7 +150,7 @@ fn resume_and_check(dir: &Path, stop_kind: &str) {
     assert!(json_t.windows(2).all(|w| w[0] <= w[1]), "metrics.jsonl t_env steps backwards after {stop_kind}: {json_t:?}");
     let after = checkpoint_rows(dir);
     assert!(after.last().unwrap().0 >= STEPS, "a final checkpoint at the target: {after:?}");
-    assert!(lmac_shm_files().is_empty(), "shared memory left behind: {:?}", lmac_shm_files());
+    assert!(new_shm_files(shm_before).is_empty(), "shared memory left behind: {:?}", new_shm_files(shm_before));
     // A finished run is not trained again.
     let again = lmac().arg("train").arg("--resume").arg(dir).output().unwrap();
     assert!(again.status.success());
@@ -149,8 +160,9 @@ fn resume_and_check(dir: &Path, stop_kind: &str) {
 #[test]
 fn a_run_interrupted_with_sigint_resumes_to_its_target() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let shm_before = lmac_shm_files();
     let out = std::env::temp_dir().join(format!("lmac-resume-int-{}", std::process::id()));
-    let child = start_training(&out);
+    let child = start_training(&out, false);
     let dir = seed_dir(&out);
     wait_past_first_checkpoint(&dir);
     unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
@@ -161,15 +173,17 @@ fn a_run_interrupted_with_sigint_resumes_to_its_target() {
     let ck = checkpoint_rows(&dir);
     let last_row = *csv_t_env(&dir).last().unwrap();
     assert!(ck.last().unwrap().0 >= last_row, "a last checkpoint on SIGINT: {ck:?}, last row at {last_row}");
-    resume_and_check(&dir, "SIGINT");
+    resume_and_check(&dir, "SIGINT", false, &shm_before);
     let _ = std::fs::remove_dir_all(&out);
 }
 
 #[test]
 fn a_run_whose_trainer_is_killed_resumes_from_its_last_checkpoint() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let shm_before = lmac_shm_files();
     let out = std::env::temp_dir().join(format!("lmac-resume-kill-{}", std::process::id()));
-    let child = start_training(&out);
+    // With the replay buffer in its checkpoints: the resume samples from the same data.
+    let child = start_training(&out, true);
     let dir = seed_dir(&out);
     wait_past_first_checkpoint(&dir);
     let trainer = child_pid(child.id(), "child\0trainer").expect("the trainer child");
@@ -177,16 +191,17 @@ fn a_run_whose_trainer_is_killed_resumes_from_its_last_checkpoint() {
     let (ok, stderr) = finish(child);
     assert!(!ok);
     assert!(stderr.contains("trainer") && stderr.contains("SIGKILL"), "the parent names the dead child: {stderr}");
-    assert!(lmac_shm_files().is_empty(), "shared memory left behind after SIGKILL: {:?}", lmac_shm_files());
+    assert!(new_shm_files(&shm_before).is_empty(), "shared memory left behind after SIGKILL: {:?}", new_shm_files(&shm_before));
     let ck = checkpoint_rows(&dir).last().unwrap().0;
     assert!(csv_t_env(&dir).last().unwrap() > &ck, "rows were logged after the last checkpoint (they must be dropped)");
-    resume_and_check(&dir, "SIGKILL of the trainer");
+    resume_and_check(&dir, "SIGKILL of the trainer", true, &shm_before);
     let _ = std::fs::remove_dir_all(&out);
 }
 
 #[test]
 fn chaos_kills_every_kind_of_process_and_every_resume_continues() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let shm_before = lmac_shm_files();
     let report = std::env::temp_dir().join(format!("lmac-chaos-{}.json", std::process::id()));
     let out = lmac()
         .args(["chaos", "--kills", "4", "--kill-after", "3,6", "--checkpoint-interval", "3000", "--seed", "7", "--report"])
@@ -207,20 +222,21 @@ fn chaos_kills_every_kind_of_process_and_every_resume_continues() {
         let lost = k["steps_lost"].as_u64().expect("every kill's loss is measured");
         assert!(lost <= 2 * 3000, "a crash costs at most about one checkpoint interval: {k}");
     }
-    assert!(lmac_shm_files().is_empty(), "{:?}", lmac_shm_files());
+    assert!(new_shm_files(&shm_before).is_empty(), "{:?}", new_shm_files(&shm_before));
 }
 
 #[test]
 fn a_checkpoint_that_cannot_be_written_ends_the_run_naming_the_file() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let shm_before = lmac_shm_files();
     let out = std::env::temp_dir().join(format!("lmac-ck-fail-{}", std::process::id()));
-    let child = start_training(&out);
+    let child = start_training(&out, false);
     let dir = seed_dir(&out);
     // A file where the checkpoint writer stages its directory: the write must fail.
     std::fs::write(dir.join("checkpoint.tmp"), b"in the way").unwrap();
     let (ok, stderr) = finish(child);
     assert!(!ok, "the run must not go on without checkpoints");
     assert!(stderr.contains("writing the checkpoint failed") && stderr.contains("checkpoint.tmp"), "{stderr}");
-    assert!(lmac_shm_files().is_empty(), "{:?}", lmac_shm_files());
+    assert!(new_shm_files(&shm_before).is_empty(), "{:?}", new_shm_files(&shm_before));
     let _ = std::fs::remove_dir_all(&out);
 }
