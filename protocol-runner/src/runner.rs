@@ -28,6 +28,8 @@ pub enum RunnerError {
     Slab(#[from] lmac_shm_schema::SlabError),
     #[error("protocol runner: plan {plan} writes {need} message columns but the slab reserves {have}")]
     Width { plan: String, need: usize, have: usize },
+    #[error("protocol runner: slab {slab} has {found} slots but the ring has {ring}: the env server and the runner disagree")]
+    Slots { slab: String, found: usize, ring: usize },
 }
 
 /// Name of env server `s`'s slab in run `run` (the env server creates it).
@@ -53,6 +55,10 @@ pub fn run(args: &RunnerArgs, plans: &mut [Box<dyn MessagePlan>]) -> Result<Runn
     let mut slabs = Vec::new();
     for (s, plan) in plans.iter().enumerate() {
         let slab = Slab::open(&slab_name(&args.run, s), &args.schema, args.startup_timeout)?;
+        // Ring messages are checked against the ring's slot count; the slab must have as many.
+        if slab.layout().n_slots != args.n_slots {
+            return Err(RunnerError::Slots { slab: slab.name().to_string(), found: slab.layout().n_slots, ring: args.n_slots });
+        }
         if plan.msg_dim() > slab.layout().msg_dim {
             return Err(RunnerError::Width { plan: plan.name(), need: plan.msg_dim(), have: slab.layout().msg_dim });
         }
@@ -67,6 +73,7 @@ pub fn run(args: &RunnerArgs, plans: &mut [Box<dyn MessagePlan>]) -> Result<Runn
         let Some(m) = port.recv(Duration::from_millis(500))? else { continue };
         match m.kind {
             KIND_SLOT => {
+                // `Port::recv` has checked server and slot against the ring's sizes.
                 let t0 = Instant::now();
                 let (server, slot) = (m.server as usize, m.slot as usize);
                 apply_to_slot(plans[server].as_mut(), &slabs[server], slot)?;

@@ -78,35 +78,54 @@ pub struct SlotLayout {
     pub hash: [u8; 32],
 }
 
-fn align(x: usize) -> usize {
-    x.div_ceil(ALIGN) * ALIGN
-}
-
 impl SlotLayout {
+    /// The layout of `schema` with `p`. Panics only if the sizes do not fit in memory, which
+    /// [`SlotLayout::try_new`] reports instead (for parameters read from another process).
     pub fn new(schema: &EnvSchema, p: LayoutParams) -> SlotLayout {
+        Self::try_new(schema, p).expect("the slab layout's size overflows usize")
+    }
+
+    /// The layout of `schema` with `p`, or None when a size overflows: every product is checked
+    /// because the parameters may come from a slab header written by another process.
+    pub fn try_new(schema: &EnvSchema, p: LayoutParams) -> Option<SlotLayout> {
         let (b, n) = (p.num_envs, schema.n_agents);
-        let row_width = schema.obs_dim + p.msg_dim;
+        let row_width = schema.obs_dim.checked_add(p.msg_dim)?;
         let mut at = SLOT_HEADER_BYTES;
-        let mut section = |bytes: usize| {
-            let s = Section { offset: at, bytes };
-            at = align(at + bytes);
-            s
+        let mut overflow = false;
+        let mut section = |dims: &[usize]| {
+            let bytes = dims.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+            let end = bytes.and_then(|x| at.checked_add(x)).and_then(|e| e.checked_next_multiple_of(ALIGN));
+            match (bytes, end) {
+                (Some(bytes), Some(end)) => {
+                    let s = Section { offset: at, bytes };
+                    at = end;
+                    s
+                }
+                _ => {
+                    overflow = true;
+                    Section { offset: 0, bytes: 0 }
+                }
+            }
         };
-        let env_meta = section(b * ENV_META_BYTES);
-        let obs = section(b * n * row_width * 4);
-        let state = section(b * schema.state_dim * 4);
-        let avail = section(b * n * schema.n_actions);
-        let reward = section(b * 4);
-        let terminated = section(b);
-        let truncated = section(b);
-        let last_actions = section(b * n * 4);
-        let actions = section(b * n * 4);
-        let slot_stride = align(at);
+        let env_meta = section(&[b, ENV_META_BYTES]);
+        let obs = section(&[b, n, row_width, 4]);
+        let state = section(&[b, schema.state_dim, 4]);
+        let avail = section(&[b, n, schema.n_actions]);
+        let reward = section(&[b, 4]);
+        let terminated = section(&[b]);
+        let truncated = section(&[b]);
+        let last_actions = section(&[b, n, 4]);
+        let actions = section(&[b, n, 4]);
+        if overflow {
+            return None;
+        }
+        let slot_stride = at.checked_next_multiple_of(ALIGN)?;
+        let slab_bytes = p.n_slots.checked_mul(slot_stride)?.checked_add(SLAB_HEADER_BYTES)?;
         let mut h = Sha256::new();
         h.update(LAYOUT_VERSION.to_le_bytes());
         h.update(serde_json::to_vec(schema).expect("schema serializes"));
         h.update(serde_json::to_vec(&p).expect("params serialize"));
-        SlotLayout {
+        Some(SlotLayout {
             num_envs: b,
             n_agents: n,
             obs_dim: schema.obs_dim,
@@ -125,9 +144,9 @@ impl SlotLayout {
             last_actions,
             actions,
             slot_stride,
-            slab_bytes: SLAB_HEADER_BYTES + p.n_slots * slot_stride,
+            slab_bytes,
             hash: h.finalize().into(),
-        }
+        })
     }
 
     pub fn params(&self) -> LayoutParams {

@@ -6,9 +6,16 @@
 //! Ownership of a slot travels env server -> protocol runner -> trainer -> env server. Per env
 //! server `s` there are three publish-subscribe services `lmac/<run>/s<s>/to_<stage>`; each
 //! process has one event service `lmac/<run>/wake/<process>` it sleeps on.
+//!
+//! Hostile input is refused, never trusted: every slot message read from the ring is checked
+//! against the ring's sizes (kind, server, slot) before anyone indexes with it, and an
+//! out-of-range message is a [`RingError::BadMessage`] naming the sending node. Clean-up of dead
+//! iceoryx2 nodes touches only this run's nodes (see [`is_run_node`]), never another
+//! application's on the same machine.
 
 use crate::slab::Stage;
-use iceoryx2::node::NodeView;
+use iceoryx2::identifiers::{UniqueNodeId, UniquePublisherId};
+use iceoryx2::node::{NodeDetails, NodeView};
 use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -67,6 +74,12 @@ pub enum RingError {
     Ipc(String),
     #[error("the start-up handshake of env server {server} did not complete within {waited:?}")]
     Handshake { server: usize, waited: Duration },
+    /// A slot message whose fields do not fit the ring: the peer is broken or hostile.
+    #[error("bad ring message from {peer} on {service}: {field} = {value} {problem}")]
+    BadMessage { peer: String, service: String, field: &'static str, value: u64, problem: String },
+    /// This process asked for something the ring cannot do (a bad spec, an out-of-range send).
+    #[error("ring: {0}")]
+    Usage(String),
 }
 
 fn ipc<E: std::fmt::Debug>(what: &str) -> impl FnOnce(E) -> RingError + '_ {
@@ -81,6 +94,33 @@ pub fn node_name(run: &str, role: Stage, server: usize) -> String {
         Stage::Trainer => format!("lmac-{run}-trainer"),
     }
 }
+
+/// Whether `name` is the node name of a process of run `run`, exactly as [`node_name`] spells it.
+/// A prefix test is not enough: run ids need not be prefix-free (run `ab` must not claim the nodes
+/// of run `ab-2`), and other applications may name their nodes anything.
+pub fn is_run_node(run: &str, name: &str) -> bool {
+    let Some(role) = name.strip_prefix("lmac-").and_then(|r| r.strip_prefix(run)).and_then(|r| r.strip_prefix('-')) else {
+        return false;
+    };
+    match role {
+        "runner" | "trainer" => true,
+        _ => role.strip_prefix("env").and_then(|d| d.parse::<usize>().ok().map(|s| s.to_string() == d)).unwrap_or(false),
+    }
+}
+
+/// The iceoryx2 configuration of lmac's nodes: the global one, except that creating or dropping a
+/// node does not clean up every dead node on the machine (iceoryx2's default), which would remove
+/// other applications' stale resources too. This run's dead nodes are cleaned by
+/// [`Port::check_peers`] and [`cleanup_dead_nodes`]; opening a service still cleans the dead
+/// nodes attached to that service, which are all participants of this run's services.
+fn ring_config() -> Config {
+    let mut config = Config::global_config().clone();
+    config.global.node.cleanup_dead_nodes_on_creation = false;
+    config.global.node.cleanup_dead_nodes_on_destruction = false;
+    config
+}
+
+type SlotService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, SlotMsg, ()>;
 
 /// Where this process sits in the ring.
 #[derive(Clone, Debug)]
@@ -99,6 +139,8 @@ pub struct Port {
     node: Node<ipc::Service>,
     /// Indexed by server (an env server has one, its own).
     inbox: Vec<Subscriber<ipc::Service, SlotMsg, ()>>,
+    /// The service of each inbox and its name: to find who sent a bad message.
+    inbox_services: Vec<(String, SlotService)>,
     outbox: Vec<Publisher<ipc::Service, SlotMsg, ()>>,
     listener: Listener<ipc::Service>,
     /// Env server: [runner]; runner: [trainer]; trainer: one per env server.
@@ -116,11 +158,7 @@ pub struct Port {
     dead_notified: bool,
 }
 
-fn pubsub(
-    node: &Node<ipc::Service>,
-    name: &str,
-    n_slots: usize,
-) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, SlotMsg, ()>, RingError> {
+fn pubsub(node: &Node<ipc::Service>, name: &str, n_slots: usize) -> Result<SlotService, RingError> {
     let sname = ServiceName::new(name).map_err(ipc("service name"))?;
     node.service_builder(&sname)
         .publish_subscribe::<SlotMsg>()
@@ -144,11 +182,22 @@ fn event(node: &Node<ipc::Service>, name: &str) -> Result<iceoryx2::service::por
 impl Port {
     /// Create this process's node and ports. Nothing is sent yet.
     pub fn new(spec: RingSpec) -> Result<Port, RingError> {
+        // Slot messages carry server and slot as u32; at least one of each makes a ring.
+        if spec.n_servers == 0 || spec.n_servers > u32::MAX as usize {
+            return Err(RingError::Usage(format!("n_servers = {} must be between 1 and {}", spec.n_servers, u32::MAX)));
+        }
+        if spec.n_slots == 0 || spec.n_slots > u32::MAX as usize {
+            return Err(RingError::Usage(format!("n_slots = {} must be between 1 and {}", spec.n_slots, u32::MAX)));
+        }
+        if spec.role == Stage::Env && spec.server >= spec.n_servers {
+            return Err(RingError::Usage(format!("env server {} does not exist in a ring of {} env servers", spec.server, spec.n_servers)));
+        }
         // iceoryx2 warns on stderr that it runs on its default config; that is intended here.
         set_log_level(LogLevel::Error);
         let run = spec.run.clone();
         let me = node_name(&run, spec.role, spec.server);
         let node = NodeBuilder::new()
+            .config(&ring_config())
             .name(&NodeName::new(&me).map_err(ipc("node name"))?)
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
@@ -167,10 +216,13 @@ impl Port {
             Stage::Trainer => ("trainer", "env"),
         };
         let mut inbox = Vec::new();
+        let mut inbox_services = Vec::new();
         let mut outbox = Vec::new();
         for &s in &servers {
-            let f = pubsub(&node, &svc(s, me_to), spec.n_slots)?;
+            let name = svc(s, me_to);
+            let f = pubsub(&node, &name, spec.n_slots)?;
             inbox.push(f.subscriber_builder().create().map_err(ipc("subscriber"))?);
+            inbox_services.push((name, f));
         }
         for &s in &servers {
             let f = pubsub(&node, &svc(s, next_to), spec.n_slots)?;
@@ -209,6 +261,7 @@ impl Port {
             spec,
             node,
             inbox,
+            inbox_services,
             outbox,
             listener,
             notifiers,
@@ -241,7 +294,19 @@ impl Port {
     }
 
     fn post(&self, msg: SlotMsg) -> Result<(), RingError> {
-        let i = self.out_index(msg.server as usize);
+        // The receiver refuses out-of-range messages; refusing them here names the culprit.
+        let (server, slot) = (msg.server as usize, msg.slot as usize);
+        if server >= self.spec.n_servers || (self.spec.role == Stage::Env && server != self.spec.server) {
+            return Err(RingError::Usage(format!(
+                "the {} cannot send for env server {server} (ring of {} env servers)",
+                self.spec.role.name(),
+                self.spec.n_servers
+            )));
+        }
+        if slot >= self.spec.n_slots {
+            return Err(RingError::Usage(format!("cannot send slot {slot}: each env server has {} slots", self.spec.n_slots)));
+        }
+        let i = self.out_index(server);
         self.outbox[i].send_copy(msg).map_err(ipc("send"))?;
         let n = if self.spec.role == Stage::Trainer { i } else { 0 };
         self.notifiers[n].notify().map_err(ipc("notify"))?;
@@ -263,7 +328,9 @@ impl Port {
     /// Env servers: send start-up tokens until one comes back around the ring, which proves
     /// every hop of this server's ring is connected and listening.
     pub fn handshake(&mut self, timeout: Duration) -> Result<(), RingError> {
-        assert_eq!(self.spec.role, Stage::Env, "only env servers start the handshake");
+        if self.spec.role != Stage::Env {
+            return Err(RingError::Usage(format!("the {} cannot start the handshake: only env servers do", self.spec.role.name())));
+        }
         let t0 = Instant::now();
         let s = self.spec.server as u32;
         loop {
@@ -323,7 +390,19 @@ impl Port {
                 let i = (self.next_inbox + k) % n;
                 if let Some(sample) = self.inbox[i].receive().map_err(ipc("receive"))? {
                     self.next_inbox = (i + 1) % n;
-                    return Ok(Some(*sample));
+                    let (msg, origin) = (*sample, sample.origin());
+                    drop(sample);
+                    if let Err((field, value, problem)) = self.check_message(i, &msg) {
+                        let (service, _) = &self.inbox_services[i];
+                        return Err(RingError::BadMessage {
+                            peer: self.sender(i, origin),
+                            service: service.clone(),
+                            field,
+                            value,
+                            problem,
+                        });
+                    }
+                    return Ok(Some(msg));
                 }
             }
             if stop_requested() {
@@ -350,12 +429,74 @@ impl Port {
         }
     }
 
+    /// Check a message taken from inbox `i` against the ring's sizes before anyone indexes with
+    /// it: (field, value, what is wrong) for the first field that does not fit.
+    fn check_message(&self, i: usize, m: &SlotMsg) -> Result<(), (&'static str, u64, String)> {
+        if !matches!(m.kind, KIND_SLOT | KIND_HELLO | KIND_BYE) {
+            return Err((
+                "kind",
+                m.kind as u64,
+                format!("is not a message kind (slot {KIND_SLOT}, hello {KIND_HELLO}, goodbye {KIND_BYE})"),
+            ));
+        }
+        let n_servers = self.spec.n_servers;
+        if m.server as usize >= n_servers {
+            return Err(("server", m.server as u64, format!("is out of range: the ring has {n_servers} env server(s)")));
+        }
+        // Inbox i is the service of one env server; a message there speaks of that server only.
+        let expect = if self.spec.role == Stage::Env { self.spec.server } else { i };
+        if m.server as usize != expect {
+            return Err(("server", m.server as u64, format!("does not match the service it came on, which is env server {expect}'s")));
+        }
+        if m.slot as usize >= self.spec.n_slots {
+            return Err(("slot", m.slot as u64, format!("is out of range: each env server has {} slot(s)", self.spec.n_slots)));
+        }
+        Ok(())
+    }
+
+    /// Who published `origin` on inbox `i`'s service: node name and pid, found through the
+    /// service's publisher list and iceoryx2's node list (only on the error path).
+    fn sender(&self, i: usize, origin: UniquePublisherId) -> String {
+        let expected = match self.spec.role {
+            Stage::Env => node_name(&self.spec.run, Stage::Trainer, 0),
+            Stage::Runner => node_name(&self.spec.run, Stage::Env, i),
+            Stage::Trainer => node_name(&self.spec.run, Stage::Runner, 0),
+        };
+        let (_, service) = &self.inbox_services[i];
+        let mut node_id = None;
+        service.dynamic_config().list_publishers(|p| {
+            if p.publisher_id == origin {
+                node_id = Some(p.node_id);
+                return CallbackProgression::Stop;
+            }
+            CallbackProgression::Continue
+        });
+        let mut found = None;
+        if let Some(id) = node_id {
+            let _ = Node::<ipc::Service>::list(self.node.config(), |state| {
+                let view: Option<(&UniqueNodeId, &Option<NodeDetails>)> = match &state {
+                    NodeState::Alive(v) => Some((v.id(), v.details())),
+                    NodeState::Dead(v) => Some((v.id(), v.details())),
+                    _ => None,
+                };
+                if let Some((vid, Some(d))) = view {
+                    if *vid == id {
+                        found = Some(format!("node {} (pid {})", d.name(), d.process_id().value()));
+                        return CallbackProgression::Stop;
+                    }
+                }
+                CallbackProgression::Continue
+            });
+        }
+        found.unwrap_or_else(|| format!("an unknown publisher (the sender there should be {expected})"))
+    }
+
     /// Look for dead or vanished peers of this run; report the first by name.
     pub fn check_peers(&mut self) -> Result<(), RingError> {
-        let prefix = format!("lmac-{}-", self.spec.run);
+        let run = &self.spec.run;
         let mut alive = HashSet::new();
         let mut dead = Vec::new();
-        let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+        let _ = Node::<ipc::Service>::list(self.node.config(), |state| {
             match &state {
                 NodeState::Alive(v) => {
                     if let Some(d) = v.details() {
@@ -365,7 +506,7 @@ impl Port {
                 NodeState::Dead(v) => {
                     if let Some(d) = v.details() {
                         let name = d.name().to_string();
-                        if name.starts_with(&prefix) {
+                        if is_run_node(run, &name) {
                             dead.push((name, d.process_id().value() as u32, v.clone()));
                         }
                     }
@@ -406,7 +547,7 @@ impl Port {
         loop {
             let mut any = false;
             let peers = &self.peers;
-            let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+            let _ = Node::<ipc::Service>::list(self.node.config(), |state| {
                 if let NodeState::Alive(v) = &state {
                     if let Some(d) = v.details() {
                         if peers.contains_key(&d.name().to_string()) {
@@ -435,13 +576,16 @@ impl Port {
     }
 }
 
-/// Remove the iceoryx2 resources of dead nodes (after a crash); returns how many were cleaned.
-pub fn cleanup_dead_nodes() -> usize {
+/// Remove the iceoryx2 resources of run `run`'s dead nodes (after a crash); returns how many
+/// were cleaned. Dead nodes of other runs and other applications are left alone: they are not
+/// ours to judge (their owner may still want to inspect or clean them itself).
+pub fn cleanup_dead_nodes(run: &str) -> usize {
     set_log_level(LogLevel::Error);
     let mut n = 0;
-    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+    let _ = Node::<ipc::Service>::list(&ring_config(), |state| {
         if let NodeState::Dead(v) = state {
-            if v.try_remove_stale_resources().is_ok() {
+            let ours = v.details().as_ref().is_some_and(|d| is_run_node(run, &d.name().to_string()));
+            if ours && v.try_remove_stale_resources().is_ok() {
                 n += 1;
             }
         }

@@ -87,22 +87,53 @@ impl fmt::Display for SchemaErrors {
 }
 impl std::error::Error for SchemaErrors {}
 
+/// Largest schema file read (the biggest real one is a few KiB): a bigger file is refused before
+/// it is read into memory.
+pub const MAX_FILE_BYTES: u64 = 1 << 20;
+/// Largest obs_dim, state_dim and n_actions accepted: every dimension gets a description string
+/// and a column in every slot, so a corrupt size must not turn into a huge allocation.
+pub const MAX_DIM: usize = 1 << 16;
+/// Largest episode_limit accepted (the trainer reserves episode buffers of that many steps).
+pub const MAX_EPISODE_LIMIT: usize = 1 << 20;
+/// Largest message_columns accepted (reserved after every observation row).
+pub const MAX_MESSAGE_COLUMNS: usize = 1 << 20;
+
 impl EnvSchema {
     /// Read and validate a schema file.
     pub fn load(path: &Path) -> Result<EnvSchema, SchemaErrors> {
         let err = |field: &str, problem: String| SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field: field.into(), problem }]);
-        let text = std::fs::read_to_string(path).map_err(|e| err("", format!("cannot read the file: {e}")))?;
+        let size = std::fs::metadata(path).map_err(|e| err("", format!("cannot read the file: {e}")))?.len();
+        if size > MAX_FILE_BYTES {
+            return Err(err("", format!("the file is {size} bytes; a schema file is at most {MAX_FILE_BYTES}")));
+        }
+        let bytes = std::fs::read(path).map_err(|e| err("", format!("cannot read the file: {e}")))?;
+        let text =
+            String::from_utf8(bytes).map_err(|e| err("", format!("the file is not UTF-8 text (byte {})", e.utf8_error().valid_up_to())))?;
         Self::parse(&text, path)
     }
 
     /// Parse and validate schema text; `path` is only used in error messages.
     pub fn parse(text: &str, path: &Path) -> Result<EnvSchema, SchemaErrors> {
-        let schema: EnvSchema = toml::from_str(text).map_err(|e| {
-            // toml's message names the key ("missing field `n_agents`") and the line.
-            let msg = e.message().to_string();
-            let field = msg.split('`').nth(1).filter(|_| msg.contains("field")).unwrap_or("").to_string();
-            let at = e.span().map(|s| format!(" (line {})", text[..s.start.min(text.len())].lines().count().max(1))).unwrap_or_default();
-            SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field, problem: format!("{msg}{at}") }])
+        let one = |field: String, problem: String| SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field, problem }]);
+        let line = |span: Option<std::ops::Range<usize>>| {
+            span.map(|s| format!(" (line {})", text[..s.start.min(text.len())].lines().count().max(1))).unwrap_or_default()
+        };
+        // Syntax first (a truncated file usually ends inside a string, array or table), then the
+        // fields, with the path of the one that does not fit ("obs_dims[1].count").
+        let de = toml::Deserializer::parse(text)
+            .map_err(|e| one(String::new(), format!("not valid TOML: {}{}", e.message(), line(e.span()))))?;
+        let schema: EnvSchema = serde_path_to_error::deserialize(de).map_err(|e| {
+            let path_text = e.path().to_string();
+            let inner = e.inner();
+            let msg = inner.message().to_string();
+            // At the top level the path is "." and the message names the key instead
+            // ("missing field `n_agents`").
+            let field = if path_text.is_empty() || path_text == "." {
+                msg.split('`').nth(1).filter(|_| msg.contains("field")).unwrap_or("").to_string()
+            } else {
+                path_text
+            };
+            one(field, format!("{msg}{}", line(inner.span())))
         })?;
         schema.validate(path)?;
         Ok(schema)
@@ -132,6 +163,17 @@ impl EnvSchema {
         if self.n_agents > 64 {
             bad("n_agents", format!("{} agents is more than the supported 64", self.n_agents));
         }
+        for (field, v, max) in [
+            ("obs_dim", self.obs_dim, MAX_DIM),
+            ("state_dim", self.state_dim, MAX_DIM),
+            ("n_actions", self.n_actions, MAX_DIM),
+            ("episode_limit", self.episode_limit, MAX_EPISODE_LIMIT),
+            ("message_columns", self.message_columns, MAX_MESSAGE_COLUMNS),
+        ] {
+            if v > max {
+                bad(field, format!("{v} is more than the supported {max}"));
+            }
+        }
         if !(self.alpha.is_finite() && self.alpha > 0.0) {
             bad("alpha", format!("must be a positive number, got {}", self.alpha));
         }
@@ -145,13 +187,18 @@ impl EnvSchema {
                 if g.count == 0 {
                     bad(&at, "count must be at least 1".into());
                 }
+                if g.count > MAX_DIM {
+                    // Checked before anything expands the group into one description per dim.
+                    bad(&format!("{at}.count"), format!("{} is more than the supported {MAX_DIM}", g.count));
+                }
                 if g.meaning.trim().is_empty() {
                     bad(&at, "meaning is empty: every dimension needs a description".into());
                 }
                 if let Some(shape) = &g.shape {
-                    let prod: usize = shape.iter().product();
-                    if prod != g.count {
-                        bad(&at, format!("shape {shape:?} holds {prod} dimensions but count = {}", g.count));
+                    match shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)) {
+                        Some(prod) if prod == g.count => {}
+                        Some(prod) => bad(&at, format!("shape {shape:?} holds {prod} dimensions but count = {}", g.count)),
+                        None => bad(&at, format!("shape {shape:?} holds more dimensions than fit in memory; count = {}", g.count)),
                     }
                 }
                 if let Some(labels) = &g.labels {
@@ -161,7 +208,7 @@ impl EnvSchema {
                 } else if g.meaning.contains("{label}") {
                     bad(&at, "meaning uses {label} but the group has no labels".into());
                 }
-                total += g.count;
+                total = total.saturating_add(g.count);
             }
             let dim_field = if field == "obs_dims" { "obs_dim" } else { "state_dim" };
             if total != dim {
@@ -186,9 +233,10 @@ impl EnvSchema {
     }
 
     /// Message columns the built-in full-communication protocol needs per agent:
-    /// every other agent's observation plus its one-hot id.
+    /// every other agent's observation plus its one-hot id. 0 with one agent (no one to talk to),
+    /// and 0 rather than an underflow for zero agents (a schema that failed validation).
     pub fn fullcomm_columns(&self) -> usize {
-        (self.n_agents - 1) * (self.obs_dim + self.n_agents)
+        self.n_agents.saturating_sub(1).saturating_mul(self.obs_dim.saturating_add(self.n_agents))
     }
 }
 

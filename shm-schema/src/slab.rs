@@ -4,7 +4,7 @@
 //! synchronisation; who that writer is travels with the slot messages of the ring (`ring.rs`)
 //! and is recorded in each slot's `stage` word so a misuse is caught instead of racing.
 
-use crate::layout::{LayoutParams, SlotLayout, LAYOUT_VERSION, SLAB_HEADER_BYTES};
+use crate::layout::{LayoutParams, SlotLayout, ENV_META_BYTES, LAYOUT_VERSION, SLAB_HEADER_BYTES, SLOT_HEADER_BYTES};
 use crate::schema::EnvSchema;
 use std::ffi::CString;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -12,6 +12,20 @@ use std::time::{Duration, Instant};
 
 const MAGIC: u64 = u64::from_le_bytes(*b"LMACSLAB");
 const STATE_READY: u32 = 1;
+
+/// Byte offsets of the slab header's fields (the `SlabHeader` below), for tools and tests that
+/// look at a slab from outside.
+pub mod header_offsets {
+    pub const MAGIC: usize = 0;
+    pub const LAYOUT_VERSION: usize = 8;
+    pub const STATE: usize = 12;
+    pub const HASH: usize = 16;
+    pub const NUM_ENVS: usize = 48;
+    pub const MSG_DIM: usize = 52;
+    pub const N_SLOTS: usize = 56;
+    pub const OWNER_PID: usize = 60;
+    pub const ENV_NAME: usize = 64;
+}
 
 /// Who may write a slot right now.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -61,6 +75,30 @@ struct SlabHeader {
     env_name: [u8; 128],
 }
 
+// The header is read by other processes (and the Python extension): keep its bytes where
+// `header_offsets` says they are.
+const _: () = {
+    assert!(std::mem::offset_of!(SlabHeader, magic) == header_offsets::MAGIC);
+    assert!(std::mem::offset_of!(SlabHeader, layout_version) == header_offsets::LAYOUT_VERSION);
+    assert!(std::mem::offset_of!(SlabHeader, state) == header_offsets::STATE);
+    assert!(std::mem::offset_of!(SlabHeader, hash) == header_offsets::HASH);
+    assert!(std::mem::offset_of!(SlabHeader, num_envs) == header_offsets::NUM_ENVS);
+    assert!(std::mem::offset_of!(SlabHeader, msg_dim) == header_offsets::MSG_DIM);
+    assert!(std::mem::offset_of!(SlabHeader, n_slots) == header_offsets::N_SLOTS);
+    assert!(std::mem::offset_of!(SlabHeader, owner_pid) == header_offsets::OWNER_PID);
+    assert!(std::mem::offset_of!(SlabHeader, env_name) == header_offsets::ENV_NAME);
+    assert!(std::mem::size_of::<SlabHeader>() <= SLAB_HEADER_BYTES);
+};
+
+/// The fields of a slab header as read once from shared memory.
+struct HeaderCopy {
+    magic: u64,
+    version: u32,
+    params: LayoutParams,
+    hash: [u8; 32],
+    env_name: String,
+}
+
 /// Per-slot header at the start of every slot.
 #[repr(C)]
 pub struct SlotHeader {
@@ -92,6 +130,11 @@ pub enum SlabError {
     NotOwner { name: String, slot: usize, owner: &'static str, me: &'static str },
     #[error("invalid shared memory name {0:?}: use letters, digits, '-', '_' and '.' only")]
     BadName(String),
+    /// A header field written by another process that cannot be right.
+    #[error("shared memory {name}: header field {field} {problem}")]
+    Corrupt { name: String, field: &'static str, problem: String },
+    #[error("slot {slot} of {name} is out of range: the slab has {n_slots} slots")]
+    SlotRange { name: String, slot: usize, n_slots: usize },
 }
 
 /// A mapped slab. The creator (`Slab::create`) unlinks the name when dropped.
@@ -215,34 +258,27 @@ impl Slab {
             if st.st_size as usize >= SLAB_HEADER_BYTES {
                 let hdr = map(fd, SLAB_HEADER_BYTES, name)?;
                 let h = &*(hdr as *const SlabHeader);
-                let ready = h.state.load(Ordering::Acquire) == STATE_READY;
-                let (magic, version) = (h.magic, h.layout_version);
-                let params = LayoutParams { num_envs: h.num_envs as usize, msg_dim: h.msg_dim as usize, n_slots: h.n_slots as usize };
-                let hash = h.hash;
-                let env_name = String::from_utf8_lossy(&h.env_name).trim_end_matches('\0').to_string();
+                let state = h.state.load(Ordering::Acquire);
+                let ready = state == STATE_READY;
+                // Copy the fields out: the other process may change them while we look.
+                let copy = HeaderCopy {
+                    magic: h.magic,
+                    version: h.layout_version,
+                    params: LayoutParams { num_envs: h.num_envs as usize, msg_dim: h.msg_dim as usize, n_slots: h.n_slots as usize },
+                    hash: h.hash,
+                    env_name: String::from_utf8_lossy(&h.env_name).trim_end_matches('\0').to_string(),
+                };
                 libc::munmap(hdr as *mut _, SLAB_HEADER_BYTES);
                 if ready {
-                    if magic != MAGIC {
-                        return Err(SlabError::BadMagic { name: name.into() });
-                    }
-                    if version != LAYOUT_VERSION {
-                        return Err(SlabError::Version { name: name.into(), found: version, ours: LAYOUT_VERSION });
-                    }
-                    let layout = SlotLayout::new(schema, params);
-                    if layout.hash != hash {
-                        return Err(SlabError::SchemaMismatch {
-                            name: name.into(),
-                            theirs_env: env_name,
-                            theirs: hash.iter().map(|b| format!("{b:02x}")).collect::<String>()[..16].into(),
-                            ours_env: schema.name.clone(),
-                            ours: layout.hash_hex()[..16].into(),
-                        });
-                    }
-                    if (st.st_size as usize) < layout.slab_bytes {
-                        return Err(SlabError::Size { name: name.into(), found: st.st_size as usize, need: layout.slab_bytes });
-                    }
-                    let base = map(fd, layout.slab_bytes, name)?;
-                    return Ok(Slab { name: name.into(), base, len: layout.slab_bytes, layout, owner: false });
+                    return Self::check_header(fd, name, schema, st.st_size as usize, copy);
+                }
+                if state != 0 {
+                    // The owner writes 0 (zeroed memory) until it is done, then STATE_READY.
+                    return Err(SlabError::Corrupt {
+                        name: name.into(),
+                        field: "state",
+                        problem: format!("is {state}: neither 0 (initialising) nor {STATE_READY} (ready)"),
+                    });
                 }
             }
             if t0.elapsed() >= wait {
@@ -250,6 +286,63 @@ impl Slab {
             }
             std::thread::sleep(Duration::from_millis(5));
         }
+    }
+
+    /// Check a ready header read from another process's slab against `schema` and the file
+    /// size before computing offsets from it or mapping it whole; every refusal names the field.
+    unsafe fn check_header(fd: i32, name: &str, schema: &EnvSchema, file_bytes: usize, h: HeaderCopy) -> Result<Slab, SlabError> {
+        let HeaderCopy { magic, version, params, hash, env_name } = h;
+        let corrupt = |field: &'static str, problem: String| SlabError::Corrupt { name: name.into(), field, problem };
+        if magic != MAGIC {
+            return Err(SlabError::BadMagic { name: name.into() });
+        }
+        if version != LAYOUT_VERSION {
+            return Err(SlabError::Version { name: name.into(), found: version, ours: LAYOUT_VERSION });
+        }
+        if params.num_envs == 0 {
+            return Err(corrupt("num_envs", "is 0: a slab holds at least one environment".into()));
+        }
+        if params.n_slots == 0 {
+            return Err(corrupt("n_slots", "is 0: a slab holds at least one slot".into()));
+        }
+        // A parameter beyond what the file can hold (a slot is at least its header, an env at
+        // least its metadata, a message column 4 bytes per agent and env) is named as the culprit
+        // when the layout cannot be computed or its hash does not match.
+        let room = (file_bytes.saturating_sub(SLAB_HEADER_BYTES)) as u128;
+        let (slots, envs, msg) = (params.n_slots as u128, params.num_envs as u128, params.msg_dim as u128);
+        let beyond_file = || {
+            if slots * SLOT_HEADER_BYTES as u128 > room {
+                Some(corrupt("n_slots", format!("is {slots}, more than the {file_bytes} bytes of the file can hold")))
+            } else if slots * envs * ENV_META_BYTES as u128 > room {
+                Some(corrupt("num_envs", format!("is {envs}, more than {slots} slots of the {file_bytes}-byte file can hold")))
+            } else if slots * envs * schema.n_agents as u128 * msg * 4 > room {
+                Some(corrupt("msg_dim", format!("is {msg}, more than the {file_bytes}-byte file can hold")))
+            } else {
+                None
+            }
+        };
+        let Some(layout) = SlotLayout::try_new(schema, params) else {
+            return Err(beyond_file()
+                .unwrap_or_else(|| corrupt("num_envs", format!("with msg_dim {msg} and n_slots {slots}: the layout's size overflows"))));
+        };
+        if layout.hash != hash {
+            if let Some(e) = beyond_file() {
+                return Err(e);
+            }
+            return Err(SlabError::SchemaMismatch {
+                name: name.into(),
+                theirs_env: env_name,
+                theirs: hash.iter().map(|b| format!("{b:02x}")).collect::<String>()[..16].into(),
+                ours_env: schema.name.clone(),
+                ours: layout.hash_hex()[..16].into(),
+            });
+        }
+        // The owner sizes the file exactly; another size means another writer.
+        if file_bytes != layout.slab_bytes {
+            return Err(SlabError::Size { name: name.into(), found: file_bytes, need: layout.slab_bytes });
+        }
+        let base = map(fd, layout.slab_bytes, name)?;
+        Ok(Slab { name: name.into(), base, len: layout.slab_bytes, layout, owner: false })
     }
 
     pub fn name(&self) -> &str {
@@ -280,8 +373,12 @@ impl Slab {
         h.stage.store(to as u32, Ordering::Release);
     }
 
-    /// Check that `me` owns slot `i` and give typed access to it.
+    /// Check that `i` is a slot of this slab and `me` owns it, and give typed access to it.
+    /// `i` usually comes from a ring message, so out of range is an error, not a panic.
     pub fn slot(&self, i: usize, me: Stage) -> Result<Slot<'_>, SlabError> {
+        if i >= self.layout.n_slots {
+            return Err(SlabError::SlotRange { name: self.name.clone(), slot: i, n_slots: self.layout.n_slots });
+        }
         let owner = self.stage(i);
         if owner != Some(me) {
             return Err(SlabError::NotOwner {

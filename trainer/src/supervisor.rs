@@ -119,7 +119,7 @@ pub fn cleanup_run(run: &str, servers: usize) {
     for s in 0..servers {
         lmac_shm_schema::slab::unlink(&lmac_protocol_runner::runner::slab_name(run, s));
     }
-    lmac_shm_schema::ring::cleanup_dead_nodes();
+    lmac_shm_schema::ring::cleanup_dead_nodes(run);
 }
 
 /// The outcome of a run that ended well: the trainer's report.

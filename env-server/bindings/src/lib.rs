@@ -42,7 +42,11 @@ fn load_schema(path: &str) -> PyResult<EnvSchema> {
 fn ring_err(e: RingError) -> PyErr {
     match e {
         RingError::Stopped => StoppedError::new_err(e.to_string()),
-        RingError::PeerDied { .. } | RingError::PeerGone { .. } | RingError::PeerMissing { .. } => PeerError::new_err(e.to_string()),
+        // A peer that sends a message that does not fit the ring is as broken as a dead one.
+        RingError::PeerDied { .. } | RingError::PeerGone { .. } | RingError::PeerMissing { .. } | RingError::BadMessage { .. } => {
+            PeerError::new_err(e.to_string())
+        }
+        RingError::Usage(_) => PyValueError::new_err(e.to_string()),
         _ => PyRuntimeError::new_err(e.to_string()),
     }
 }

@@ -301,6 +301,9 @@ pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProt
     let used: usize = previous.iter().map(|q| q.width).fold(0usize, |a, b| a.saturating_add(b));
     let available = env.message_budget.saturating_sub(used);
     if width > available {
+        // A width above zero means at least one other agent (message_width is 0 with one), but
+        // keep the arithmetic safe on its own.
+        let senders = n.saturating_sub(1);
         let onehot = if p.sender_one_hot { n } else { 0 };
         let parts: Vec<String> = p.fields.iter().zip(&widths).map(|(f, w)| format!("{}={w}", f.name)).collect();
         let prev = if previous.is_empty() {
@@ -316,10 +319,10 @@ pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProt
                 "the message is {width} columns per receiving agent but only {available} are available{prev}: \
                  width = (n_agents - 1 = {}) sender blocks x ({onehot} sender one-hot + {} field columns: {}). \
                  Remove or narrow fields (e.g. aggregate with reduce, or pick fewer obs dims) by at least {} columns per block",
-                n - 1,
+                senders,
                 block_width(p, env, &widths) - onehot,
                 parts.join(", "),
-                (width - available).div_ceil(n - 1)
+                (width - available).div_ceil(senders.max(1))
             ),
         );
         return Err(v.errors);
@@ -352,7 +355,10 @@ impl Validator<'_> {
     }
 
     fn agent_range(&self) -> String {
-        format!("n_agents is {}, so agents are 0..={}", self.env.n_agents, self.env.n_agents - 1)
+        match self.env.n_agents {
+            0 => "n_agents is 0, so there are no agents".to_string(),
+            n => format!("n_agents is {n}, so agents are 0..={}", n - 1),
+        }
     }
 
     fn critical_dims(&mut self, p: &Protocol) {

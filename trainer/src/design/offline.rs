@@ -791,6 +791,10 @@ impl OfflineDesigner {
     ) -> Result<PhaseProtocol> {
         let env = ctx.env;
         let n = env.n_agents;
+        if n < 2 {
+            // Every width below is per other agent; with one agent there is no one to talk to.
+            bail!("offline designer: {} has {n} agent(s); a communication protocol needs at least 2", ctx.env_name);
+        }
         let prev: Vec<ValidatedProtocol> = previous.iter().map(|p| p.validated.clone()).collect();
         let left = super::prompts::budget_left(env, &prev);
         let phases_left = self.cfg.phases.saturating_sub(phase).max(1);
