@@ -138,7 +138,17 @@ impl TrainConfig {
             }
         }
         let text = toml::to_string(&v).map_err(|e| anyhow::anyhow!("config: cannot re-serialize after the overrides: {e}"))?;
-        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| anyhow::anyhow!("config: {}", e.message()))?;
+        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| {
+            // toml's message does not name the key of a mistyped value; its span does: the key
+            // is on the span's line, under the last [section] above it.
+            let before = e.span().and_then(|s| text.get(..s.start)).unwrap_or("");
+            let key = before.lines().last().and_then(|l| l.split_once('=')).map(|(k, _)| k.trim().trim_matches('"'));
+            let section = before.lines().rev().find_map(|l| l.trim().strip_prefix('[').and_then(|l| l.strip_suffix(']')));
+            match (section, key) {
+                (Some(s), Some(k)) => anyhow::anyhow!("config: {s}.{k}: {}", e.message()),
+                _ => anyhow::anyhow!("config: {}", e.message()),
+            }
+        })?;
         cfg.check()?;
         Ok(cfg)
     }

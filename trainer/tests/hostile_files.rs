@@ -99,3 +99,17 @@ fn hostile_dataset_payloads_are_errors() {
         assert!(e.contains("episodes.bin"), "cut at {cut}: {e}");
     }
 }
+
+#[test]
+fn config_override_values_cannot_smuggle_in_other_keys() {
+    use lmac_trainer::train::TrainConfig;
+    // One TOML value: taken as it is.
+    let cfg = TrainConfig::resolve(None, &["run.steps=1234".to_string()]).unwrap();
+    assert_eq!(cfg.run.steps, 1234);
+    // A value followed by another key is not a value: it stays text, and text is no step count.
+    let e = format!("{:#}", TrainConfig::resolve(None, &["run.steps=1\nenvs = 0".to_string()]).unwrap_err());
+    assert!(e.contains("config") && e.contains("steps"), "{e}");
+    for bad in ["run.steps.deeper=1", "=1", "run.steps"] {
+        assert!(TrainConfig::resolve(None, &[bad.to_string()]).is_err(), "{bad}");
+    }
+}
