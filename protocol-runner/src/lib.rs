@@ -23,7 +23,7 @@ pub fn protocol_env(schema: &EnvSchema) -> ProtocolEnv {
 pub fn load_phases(files: &[&str], env: &ProtocolEnv) -> Result<Vec<ValidatedProtocol>, String> {
     let mut phases: Vec<ValidatedProtocol> = Vec::new();
     for f in files {
-        let text = std::fs::read_to_string(f).map_err(|e| format!("{f}: cannot read: {e}"))?;
+        let text = protocol::read_protocol_file(std::path::Path::new(f)).map_err(|e| format!("{f}: {e}"))?;
         let p = protocol::parse_str(&text).map_err(|e| format!("{f}:\n{}", protocol::errors_to_text(&e)))?;
         let v = protocol::validate_phase(&p, env, &phases).map_err(|e| format!("{f}:\n{}", protocol::errors_to_text(&e)))?;
         phases.push(v);

@@ -166,9 +166,13 @@ impl TrainConfig {
         };
         for o in overrides {
             let (key, val) = o.split_once('=').with_context(|| format!("override {o:?} must look like section.key=value"))?;
+            // A TOML value, else the text as a string. Exactly one key: a value with a newline
+            // cannot smuggle in other keys (`1\nother = 2`) or leave `x` out.
             let parsed: toml::Value = toml::from_str::<toml::Table>(&format!("x = {val}"))
-                .map(|mut t| t.remove("x").expect("x"))
-                .unwrap_or_else(|_| toml::Value::String(val.to_string()));
+                .ok()
+                .filter(|t| t.len() == 1)
+                .and_then(|mut t| t.remove("x"))
+                .unwrap_or_else(|| toml::Value::String(val.to_string()));
             let mut cur = &mut v;
             let parts: Vec<&str> = key.split('.').collect();
             for (i, part) in parts.iter().enumerate() {
@@ -180,8 +184,18 @@ impl TrainConfig {
                 cur = table.entry(part.to_string()).or_insert(toml::Value::Table(Default::default()));
             }
         }
-        let text = toml::to_string(&v)?;
-        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| anyhow::anyhow!("config: {}", e.message()))?;
+        let text = toml::to_string(&v).map_err(|e| anyhow::anyhow!("config: cannot re-serialize after the overrides: {e}"))?;
+        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| {
+            // toml's message does not name the key of a mistyped value; its span does: the key
+            // is on the span's line, under the last [section] above it.
+            let before = e.span().and_then(|s| text.get(..s.start)).unwrap_or("");
+            let key = before.lines().last().and_then(|l| l.split_once('=')).map(|(k, _)| k.trim().trim_matches('"'));
+            let section = before.lines().rev().find_map(|l| l.trim().strip_prefix('[').and_then(|l| l.strip_suffix(']')));
+            match (section, key) {
+                (Some(s), Some(k)) => anyhow::anyhow!("config: {s}.{k}: {}", e.message()),
+                _ => anyhow::anyhow!("config: {}", e.message()),
+            }
+        })?;
         cfg.check()?;
         Ok(cfg)
     }

@@ -196,7 +196,11 @@ fn feedback_json(tag: &str) -> String {
 }
 
 fn quiet_designer(client: Box<dyn LlmClient>) -> LlmDesigner {
-    LlmDesigner::with_templates(client, Templates::embedded(), LlmDesignerOptions { max_retries: 3, meta_max_chars: 20_000 })
+    LlmDesigner::with_templates(
+        client,
+        Templates::embedded(),
+        LlmDesignerOptions { max_retries: 3, meta_max_chars: 20_000, ..Default::default() },
+    )
 }
 
 /// Phase 0, feedback + phase 1, feedback + phase 2, as `run_design` calls them.
@@ -452,4 +456,103 @@ fn anthropic_wire_format_and_errors() {
         assert!(!std::fs::read_to_string(&f).unwrap().contains(KEY));
     }
     let _ = std::fs::remove_dir_all(&rec_dir);
+}
+
+/// Environment variables are process-wide: the key tests take turns.
+static ENV_LOCK: Mutex<()> = Mutex::new(());
+
+fn one_reply_server() -> Server {
+    Server::start(vec![Reply::Chat("hello".into())])
+}
+
+#[test]
+fn openai_key_is_not_sent_to_a_local_server_unless_a_variable_is_named() {
+    let _guard = ENV_LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    std::env::set_var("OPENAI_API_KEY", KEY);
+    std::env::remove_var("LMAC_TEST_LOCAL_KEY");
+
+    // OPENAI_API_KEY is set, but the request goes to a custom (local) base URL: no key on it.
+    let server = one_reply_server();
+    let mut c = HttpLlm::new(config("openai:m", &server.url)).unwrap();
+    assert_eq!(c.complete(&[ChatMessage::user("hi")]).unwrap(), "hello");
+    let r = &server.requests()[0];
+    assert_eq!(r.header("authorization"), None, "OPENAI_API_KEY leaked to a local server: {:?}", r.headers);
+    assert_eq!(r.header("x-api-key"), None);
+    assert!(!format!("{:?}", r.headers).contains(KEY));
+
+    // The same for the local providers' own default ports (vllm:, ollama:, llamacpp:).
+    for spec in ["vllm:m", "ollama:m", "llamacpp:m"] {
+        assert_eq!(LlmConfig::from_spec(spec, None).unwrap().api_key_env, None, "{spec}");
+    }
+
+    // Naming a variable sends its value, and only its value.
+    std::env::set_var("LMAC_TEST_LOCAL_KEY", "local-secret-42");
+    let server = one_reply_server();
+    let cfg = config("openai:m", &server.url).with_api_key_env(Some("LMAC_TEST_LOCAL_KEY"));
+    let mut c = HttpLlm::new(cfg).unwrap();
+    assert_eq!(c.complete(&[ChatMessage::user("hi")]).unwrap(), "hello");
+    let r = &server.requests()[0];
+    assert_eq!(r.header("authorization"), Some("Bearer local-secret-42"));
+
+    // Naming OPENAI_API_KEY itself is how a user sends that key to a local server on purpose.
+    let server = one_reply_server();
+    let mut c = HttpLlm::new(config("openai:m", &server.url).with_api_key_env(Some("OPENAI_API_KEY"))).unwrap();
+    c.complete(&[ChatMessage::user("hi")]).unwrap();
+    assert_eq!(server.requests()[0].header("authorization"), Some(format!("Bearer {KEY}").as_str()));
+
+    // A named variable that is unset is an error naming it, before any request.
+    std::env::remove_var("LMAC_TEST_LOCAL_KEY");
+    let server = one_reply_server();
+    let e = HttpLlm::new(config("openai:m", &server.url).with_api_key_env(Some("LMAC_TEST_LOCAL_KEY"))).unwrap_err().to_string();
+    assert!(e.contains("LMAC_TEST_LOCAL_KEY"), "{e}");
+    assert!(server.requests().is_empty());
+    std::env::remove_var("OPENAI_API_KEY");
+}
+
+#[test]
+fn anthropic_reads_its_own_variable_and_sends_it_only_when_named_for_a_custom_url() {
+    let _guard = ENV_LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    std::env::set_var("OPENAI_API_KEY", "sk-openai-must-not-go-to-anthropic");
+    std::env::set_var("ANTHROPIC_API_KEY", "sk-ant-test-77");
+    assert_eq!(LlmConfig::from_spec("anthropic:claude", None).unwrap().api_key_env.as_deref(), Some("ANTHROPIC_API_KEY"));
+    let server = Server::start(vec![Reply::Anthropic("a".into()), Reply::Anthropic("b".into())]);
+    let mut c = HttpLlm::new(config("anthropic:claude", &server.url)).unwrap();
+    c.complete(&[ChatMessage::user("hi")]).unwrap();
+    let mut c = HttpLlm::new(config("anthropic:claude", &server.url).with_api_key_env(Some("ANTHROPIC_API_KEY"))).unwrap();
+    c.complete(&[ChatMessage::user("hi")]).unwrap();
+    let r = server.requests();
+    assert_eq!((r[0].header("x-api-key"), r[0].header("authorization")), (None, None), "{:?}", r[0].headers);
+    assert_eq!((r[1].header("x-api-key"), r[1].header("authorization")), (Some("sk-ant-test-77"), None), "{:?}", r[1].headers);
+    std::env::remove_var("OPENAI_API_KEY");
+    std::env::remove_var("ANTHROPIC_API_KEY");
+}
+
+#[test]
+fn a_key_over_plain_http_to_another_host_is_refused_before_connecting() {
+    let _guard = ENV_LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    std::env::set_var("LMAC_TEST_REMOTE_KEY", "remote-secret");
+    // 192.0.2.0/24 is reserved for documentation: nothing answers there, and nothing is tried,
+    // because the refusal comes before the HTTP client is even built.
+    let cfg = LlmConfig::from_spec("openai:m", Some("http://192.0.2.1:8000/v1")).unwrap().with_api_key_env(Some("LMAC_TEST_REMOTE_KEY"));
+    let started = std::time::Instant::now();
+    let e = HttpLlm::new(cfg.clone()).unwrap_err();
+    assert!(matches!(e, LlmError::InsecureKeyTransport { .. }), "{e}");
+    let text = e.to_string();
+    assert!(text.contains("https") && text.contains("192.0.2.1") && !text.contains("remote-secret"), "{text}");
+    // A key handed in directly is refused the same way.
+    assert!(matches!(HttpLlm::with_api_key(cfg, ApiKey::new("k")), Err(LlmError::InsecureKeyTransport { .. })));
+    let by_name =
+        LlmConfig::from_spec("openai:m", Some("http://llm.example:8000/v1")).unwrap().with_api_key_env(Some("LMAC_TEST_REMOTE_KEY"));
+    assert!(matches!(HttpLlm::new(by_name), Err(LlmError::InsecureKeyTransport { .. })));
+    assert!(started.elapsed() < Duration::from_secs(1), "it failed fast, without a connection attempt");
+    // https to the same host, and http to loopback, are fine (no request is made here).
+    let https = LlmConfig::from_spec("openai:m", Some("https://192.0.2.1:8000/v1")).unwrap().with_api_key_env(Some("LMAC_TEST_REMOTE_KEY"));
+    assert!(HttpLlm::new(https).is_ok());
+    let loopback = LlmConfig::from_spec("openai:m", Some("http://127.0.0.1:9/v1")).unwrap().with_api_key_env(Some("LMAC_TEST_REMOTE_KEY"));
+    assert!(HttpLlm::new(loopback).is_ok());
+    // Without a key, plain http to another host is not refused by this check (nothing to leak);
+    // it needs a named variable or a local URL.
+    let keyless = LlmConfig::from_spec("openai:m", Some("http://192.0.2.1:8000/v1")).unwrap();
+    assert!(matches!(HttpLlm::new(keyless), Err(LlmError::NoKeyVariable { .. })));
+    std::env::remove_var("LMAC_TEST_REMOTE_KEY");
 }

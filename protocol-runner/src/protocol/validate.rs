@@ -218,11 +218,25 @@ pub fn check_str(text: &str, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec
     validate(&parse_str(text)?, env)
 }
 
+/// The largest protocol file read: protocols are a few KiB; the cap keeps a wrong path (a device,
+/// a huge log) from being read into memory whole.
+pub const MAX_FILE_BYTES: u64 = 16 << 20;
+
+/// A protocol file's text, at most [`MAX_FILE_BYTES`]; the error names the file.
+pub fn read_protocol_file(path: &std::path::Path) -> Result<String, String> {
+    use std::io::Read;
+    let file = std::fs::File::open(path).map_err(|e| format!("cannot read protocol file {}: {e}", path.display()))?;
+    let mut text = String::new();
+    file.take(MAX_FILE_BYTES + 1).read_to_string(&mut text).map_err(|e| format!("cannot read protocol file {}: {e}", path.display()))?;
+    if text.len() as u64 > MAX_FILE_BYTES {
+        return Err(format!("protocol file {} is larger than {MAX_FILE_BYTES} bytes: not a protocol", path.display()));
+    }
+    Ok(text)
+}
+
 /// Read, parse and validate a protocol file.
 pub fn check_file(path: impl AsRef<std::path::Path>, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec<ValidationError>> {
-    let path = path.as_ref();
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| vec![ValidationError::new(ErrorKind::Io, "", format!("cannot read protocol file {}: {e}", path.display()))])?;
+    let text = read_protocol_file(path.as_ref()).map_err(|e| vec![ValidationError::new(ErrorKind::Io, "", e)])?;
     check_str(&text, env)
 }
 

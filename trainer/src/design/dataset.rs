@@ -167,41 +167,88 @@ impl Dataset {
             bail!("{}: dataset format version {} (this lmac reads {VERSION})", hp.display(), v["version"]);
         }
         let header: DatasetHeader = serde_json::from_value(v.clone()).with_context(|| format!("{}: bad header", hp.display()))?;
-        let n_eps = v["episodes"].as_u64().with_context(|| format!("{}: no episode count", hp.display()))? as usize;
+        let n_eps = v["episodes"].as_u64().with_context(|| format!("{}: episodes: missing or not a count", hp.display()))?;
         let bp = dir.join("episodes.bin");
         let mut data = Vec::new();
         std::fs::File::open(&bp).and_then(|mut f| f.read_to_end(&mut data)).with_context(|| format!("{}: cannot read", bp.display()))?;
         if data.len() < 8 || &data[..8] != MAGIC {
             bail!("{}: does not start with the dataset magic {:?}", bp.display(), std::str::from_utf8(MAGIC).unwrap_or_default());
         }
-        let mut at = 8usize;
-        let mut take = |n: usize, k: usize| -> Result<&[u8]> {
-            if at + n > data.len() {
-                bail!("{}: truncated in episode {k} (needs {} bytes at offset {at}, file has {})", bp.display(), n, data.len());
-            }
-            at += n;
-            Ok(&data[at - n..at])
-        };
-        let f32s = |b: &[u8]| b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>();
         let h = &header;
+        // Far above any environment's sizes, far below what would overflow the products that
+        // readers of the dataset form (e.g. n_agents * (obs_dim + msg_dim) message rows).
+        const MAX_DIM: usize = 1 << 20;
+        for (field, value) in [("n_agents", h.n_agents), ("obs_dim", h.obs_dim), ("state_dim", h.state_dim), ("n_actions", h.n_actions)] {
+            if value > MAX_DIM {
+                bail!("{}: {field}: {value} is not a plausible size (at most {MAX_DIM})", hp.display());
+            }
+        }
+        // Every header number is hostile until checked: sizes are computed with checked
+        // arithmetic and compared with the file before anything is allocated, so a corrupt
+        // header gives an error naming the field, never an overflow or a huge allocation.
+        // An episode record is at least 8 bytes, so the count cannot exceed the file either.
+        if n_eps > (data.len() as u64 - 8) / 8 {
+            bail!("{}: episodes: {n_eps} episodes cannot fit in the {} bytes of {}", hp.display(), data.len(), bp.display());
+        }
+        let n_eps = n_eps as usize;
+        let per_step = [h.n_agents.checked_mul(h.obs_dim), Some(h.state_dim), Some(h.n_agents), Some(1)]
+            .into_iter()
+            .try_fold(0usize, |acc, x| x.and_then(|x| acc.checked_add(x)))
+            .and_then(|values| values.checked_mul(4))
+            .with_context(|| format!("{}: n_agents, obs_dim, state_dim: a step's size overflows", hp.display()))?;
+        let mut at = 8usize;
         let mut episodes = Vec::with_capacity(n_eps);
         for k in 0..n_eps {
-            let rec = take(8, k)?;
+            if data.len() - at < 8 {
+                bail!(
+                    "{}: truncated in episode {k}: its 8-byte record header at offset {at} is cut off (file has {} bytes)",
+                    bp.display(),
+                    data.len()
+                );
+            }
+            let rec = &data[at..at + 8];
+            at += 8;
             let len = u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]]) as usize;
             let (terminated, truncated) = (rec[4] != 0, rec[5] != 0);
             if len == 0 || len > h.episode_limit {
-                bail!("{}: episode {k} has {len} steps (limit {})", bp.display(), h.episode_limit);
+                bail!("{}: episode {k}: len {len} steps (header episode_limit {})", bp.display(), h.episode_limit);
             }
-            let obs = f32s(take(4 * len * h.n_agents * h.obs_dim, k)?);
-            let state = f32s(take(4 * len * h.state_dim, k)?);
-            let actions = take(4 * len * h.n_agents, k)?.chunks_exact(4).map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-            let reward = f32s(take(4 * len, k)?);
-            episodes.push(Trajectory { len, obs, state, actions, reward, terminated, truncated });
+            let need = len.checked_mul(per_step).filter(|&n| n <= data.len() - at).with_context(|| {
+                format!(
+                    "{}: truncated in episode {k}: {len} steps of {per_step} bytes need more than the {} bytes left at offset {at}",
+                    bp.display(),
+                    data.len() - at
+                )
+            })?;
+            let body = &data[at..at + need];
+            at += need;
+            // All four products are at most `len * per_step / 4`, checked above.
+            let (n_obs, n_state, n_act) = (len * h.n_agents * h.obs_dim, len * h.state_dim, len * h.n_agents);
+            let (obs_b, rest) = body.split_at(4 * n_obs);
+            let (state_b, rest) = rest.split_at(4 * n_state);
+            let (act_b, reward_b) = rest.split_at(4 * n_act);
+            let f32s = |b: &[u8]| b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>();
+            let actions = act_b.chunks_exact(4).map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+            episodes.push(Trajectory {
+                len,
+                obs: f32s(obs_b),
+                state: f32s(state_b),
+                actions,
+                reward: f32s(reward_b),
+                terminated,
+                truncated,
+            });
         }
         if at != data.len() {
             bail!("{}: {} bytes after the {n_eps} episodes the header announces", bp.display(), data.len() - at);
         }
-        Ok(Dataset { header, episodes })
+        let dataset = Dataset { header, episodes };
+        if let Some(steps) = v.get("steps").filter(|s| !s.is_null()) {
+            if steps.as_u64() != Some(dataset.steps() as u64) {
+                bail!("{}: steps: the header says {steps} but {} holds {} steps", hp.display(), bp.display(), dataset.steps());
+            }
+        }
+        Ok(dataset)
     }
 
     /// Each episode's received messages (`len * n_agents * plan.msg_dim()`, by step then agent)

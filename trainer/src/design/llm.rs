@@ -4,7 +4,11 @@
 //! replayed exactly, offline and for free.
 //!
 //! Keys come from the environment (or are handed in by the caller) and live only in memory:
-//! they are never part of a recording, an error text or a log line.
+//! they are never part of a recording, an error text or a log line. Each provider reads its own
+//! variable (`OPENAI_API_KEY`, `ANTHROPIC_API_KEY`) and only for its own server: a custom base
+//! URL (a local llama.cpp, vLLM or Ollama server, a proxy) gets a key only from a variable the
+//! user names for it ([`LlmConfig::with_api_key_env`]). A key travels only over https, or over
+//! plain http to this machine (loopback); anything else is refused before any request.
 //!
 //! Recordings: `<dir>/<sha256 of the canonical request>.json`, one file per distinct request
 //! holding every response it got, in order. The canonical request is the wire format, the model,
@@ -55,6 +59,10 @@ pub enum LlmError {
     Spec { spec: String, problem: String },
     #[error("{endpoint}: no API key: set the environment variable {var} (keys are read from the environment, never from files or flags)")]
     MissingKey { endpoint: String, var: String },
+    #[error("{endpoint}: this server is not the provider's own and not on this machine, and no key variable was named for it: name the environment variable holding its key (api_key_env, the CLI's --api-key-env VAR)")]
+    NoKeyVariable { endpoint: String },
+    #[error("{endpoint}: refusing to send an API key over plain http to a host that is not this machine: use https (plain http is allowed only to loopback: 127.0.0.0/8, ::1, localhost)")]
+    InsecureKeyTransport { endpoint: String },
     #[error("{endpoint}: HTTP {status} after {attempts} attempt(s); response body begins: {body}")]
     Status { endpoint: String, status: u16, attempts: u32, body: String },
     #[error("{endpoint}: {problem} (after {attempts} attempt(s))")]
@@ -121,9 +129,13 @@ pub struct LlmConfig {
     /// OpenAI style includes the version (`https://api.openai.com/v1`); Anthropic style does not
     /// (`https://api.anthropic.com`), as in the vendors' own SDKs.
     pub base_url: String,
-    /// The environment variable holding the key. When it is unset, a local base URL (loopback)
-    /// works without a key; a remote one is an error.
-    pub api_key_env: String,
+    /// The environment variable holding the key; None sends no key. [`LlmConfig::from_spec`]
+    /// names the provider's own variable only when requests go to the provider's own server; a
+    /// custom base URL gets a key only through [`LlmConfig::with_api_key_env`], so an OpenAI key
+    /// is never handed to a local or third-party server by accident. A named variable must be
+    /// set; with none named, a local base URL (loopback) works without a key and a remote one is
+    /// an error.
+    pub api_key_env: Option<String>,
     /// Sampling temperature (the paper: 0.6).
     pub temperature: f64,
     /// Reply token limit. Anthropic requires one (default 8192 there); OpenAI-style requests omit
@@ -165,6 +177,10 @@ impl LlmConfig {
             _ => return Err(err(&format!("unknown provider {prov:?}: use openai, anthropic, vllm, ollama or llamacpp"))),
         };
         let base = base_url.unwrap_or(default_base).trim_end_matches('/').to_string();
+        // The provider's own key goes to the provider's own server only.
+        let own_server =
+            base == default_base && matches!(provider, Provider::OpenAi | Provider::Anthropic) && !default_base.starts_with("http:");
+        let key_env = own_server.then(|| key_env.to_string());
         let parsed = reqwest::Url::parse(&base).map_err(|e| err(&format!("base URL {base:?} is not a URL: {e}")))?;
         if !matches!(parsed.scheme(), "http" | "https") {
             return Err(err(&format!("base URL {base:?} must be http or https")));
@@ -178,7 +194,7 @@ impl LlmConfig {
             provider,
             model: model.to_string(),
             base_url: base,
-            api_key_env: key_env.to_string(),
+            api_key_env: key_env,
             temperature: 0.6,
             max_tokens: match provider {
                 Provider::Anthropic => Some(8192),
@@ -192,6 +208,20 @@ impl LlmConfig {
             mode: LlmMode::Live,
             record_dir: None,
         })
+    }
+
+    /// Read the key from `var` (None: send no key), e.g. for a local or third-party server that
+    /// needs one; the variable must then be set.
+    pub fn with_api_key_env(mut self, var: Option<&str>) -> Self {
+        if let Some(v) = var {
+            self.api_key_env = Some(v.to_string());
+        }
+        self
+    }
+
+    /// Whether a key may travel to the base URL: https anywhere, plain http only to loopback.
+    pub fn key_transport_ok(&self) -> bool {
+        reqwest::Url::parse(&self.base_url).is_ok_and(|u| u.scheme() == "https") || self.is_local()
     }
 
     /// The URL requests go to.
@@ -227,13 +257,22 @@ impl std::fmt::Debug for ApiKey {
     }
 }
 
-/// The key to use: the variable's value, none for a local server without one, else an error.
+/// The key to use, given the value of `cfg.api_key_env` (when one is named): that value (it must
+/// be set), none for a local server when no variable is named, else an error. A key that would
+/// travel over plain http to another host is refused.
 pub fn resolve_key(var_value: Option<String>, cfg: &LlmConfig) -> Result<Option<ApiKey>, LlmError> {
-    match var_value.filter(|v| !v.trim().is_empty()) {
-        Some(v) => Ok(Some(ApiKey(v.trim().to_string()))),
-        None if cfg.is_local() => Ok(None),
-        None => Err(LlmError::MissingKey { endpoint: cfg.endpoint(), var: cfg.api_key_env.clone() }),
+    let key = match &cfg.api_key_env {
+        Some(var) => match var_value.filter(|v| !v.trim().is_empty()) {
+            Some(v) => Some(ApiKey(v.trim().to_string())),
+            None => return Err(LlmError::MissingKey { endpoint: cfg.endpoint(), var: var.clone() }),
+        },
+        None if cfg.is_local() => None,
+        None => return Err(LlmError::NoKeyVariable { endpoint: cfg.endpoint() }),
+    };
+    if key.is_some() && !cfg.key_transport_ok() {
+        return Err(LlmError::InsecureKeyTransport { endpoint: cfg.endpoint() });
     }
+    Ok(key)
 }
 
 /// The request as it is hashed and recorded: everything that decides the answer, nothing secret.
@@ -387,7 +426,7 @@ impl HttpLlm {
     pub fn new(cfg: LlmConfig) -> Result<Self, LlmError> {
         let key = match cfg.mode {
             LlmMode::Replay => None,
-            _ => resolve_key(std::env::var(&cfg.api_key_env).ok(), &cfg)?,
+            _ => resolve_key(cfg.api_key_env.as_ref().and_then(|v| std::env::var(v).ok()), &cfg)?,
         };
         Self::build(cfg, key)
     }
@@ -398,6 +437,10 @@ impl HttpLlm {
     }
 
     fn build(cfg: LlmConfig, key: Option<ApiKey>) -> Result<Self, LlmError> {
+        // Checked here too, for keys handed in by the caller: before any connection is made.
+        if key.is_some() && !cfg.key_transport_ok() {
+            return Err(LlmError::InsecureKeyTransport { endpoint: cfg.endpoint() });
+        }
         let recorder = cfg.record_dir.as_ref().map(Recorder::new);
         if cfg.mode != LlmMode::Live && recorder.is_none() {
             return Err(LlmError::Spec { spec: cfg.spec.clone(), problem: format!("{:?} mode needs a recording directory", cfg.mode) });
@@ -502,7 +545,7 @@ impl HttpLlm {
                 Ok(resp) => {
                     let status = resp.status();
                     let retry_after = retry_after(resp.headers());
-                    match resp.text() {
+                    match read_body(resp) {
                         Ok(text) if status.is_success() => return Ok(text),
                         Ok(text) => {
                             let retryable = status.as_u16() == 429 || status.is_server_error();
@@ -514,7 +557,29 @@ impl HttpLlm {
                             };
                             (retryable, retry_after, e)
                         }
-                        Err(e) => (true, None, self.transport_error(&endpoint, &e, attempt, "reading the response")),
+                        Err(BodyError::TooLarge) => {
+                            return Err(LlmError::Response {
+                                endpoint: endpoint.clone(),
+                                problem: format!("the response body is over {MAX_BODY_BYTES} bytes"),
+                                body: String::new(),
+                            })
+                        }
+                        Err(BodyError::Read(e)) => {
+                            let timed_out = e.kind() == std::io::ErrorKind::TimedOut
+                                || e.get_ref().and_then(|i| i.downcast_ref::<reqwest::Error>()).is_some_and(|r| r.is_timeout());
+                            let problem = if timed_out {
+                                format!("timed out after {:.1}s reading the response", self.cfg.timeout.as_secs_f64())
+                            } else {
+                                format!("failed reading the response: {e}")
+                            };
+                            let e = LlmError::Transport {
+                                endpoint: endpoint.clone(),
+                                problem: self.redact(&problem),
+                                attempts: attempt,
+                                timed_out,
+                            };
+                            (true, None, e)
+                        }
                     }
                 }
                 Err(e) => (
@@ -552,50 +617,93 @@ impl HttpLlm {
         let endpoint = self.cfg.endpoint();
         let started = Instant::now();
         let raw = self.post(&self.body(messages))?;
-        let bad = |problem: String| LlmError::Response { endpoint: endpoint.clone(), problem, body: self.redact(&excerpt(&raw, 600)) };
-        let v: serde_json::Value = serde_json::from_str(&raw).map_err(|e| bad(format!("not JSON ({e})")))?;
-        if let Some(err) = v.get("error").filter(|e| !e.is_null()) {
-            return Err(bad(format!("the server reported an error: {}", excerpt(&err.to_string(), 300))));
-        }
-        let (text, finish) = match self.cfg.provider {
-            Provider::OpenAi => {
-                let choice = v.get("choices").and_then(|c| c.get(0)).ok_or_else(|| bad("no choices[0]".into()))?;
-                let content = &choice["message"]["content"];
-                let text = match content {
-                    serde_json::Value::String(s) => s.clone(),
-                    // Some servers answer with content parts.
-                    serde_json::Value::Array(parts) => {
-                        parts.iter().filter_map(|p| p.get("text").and_then(|t| t.as_str())).collect::<Vec<_>>().join("")
-                    }
-                    _ => {
-                        let refusal = choice["message"]["refusal"].as_str().unwrap_or("");
-                        return Err(bad(format!(
-                            "choices[0].message.content is missing{}",
-                            if refusal.is_empty() { String::new() } else { format!(" (refusal: {refusal})") }
-                        )));
-                    }
-                };
-                (text, choice["finish_reason"].as_str().map(str::to_string))
-            }
-            Provider::Anthropic => {
-                let blocks = v.get("content").and_then(|c| c.as_array()).ok_or_else(|| bad("no content array".into()))?;
-                let text = blocks.iter().filter(|b| b["type"] == "text").filter_map(|b| b["text"].as_str()).collect::<Vec<_>>().join("");
-                (text, v["stop_reason"].as_str().map(str::to_string))
-            }
-        };
-        if text.trim().is_empty() {
-            return Err(bad(format!("the reply text is empty (finish reason {:?})", finish.as_deref().unwrap_or("unknown"))));
-        }
+        let reply = parse_response(self.cfg.provider, &raw).map_err(|problem| LlmError::Response {
+            endpoint: endpoint.clone(),
+            problem,
+            body: self.redact(&excerpt(&raw, 600)),
+        })?;
         let unix_time = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
         Ok(RecordedResponse {
-            text,
+            text: reply.text,
             endpoint,
-            served_model: v["model"].as_str().map(str::to_string),
-            usage: v.get("usage").cloned().unwrap_or(serde_json::Value::Null),
-            finish_reason: finish,
+            served_model: reply.served_model,
+            usage: reply.usage,
+            finish_reason: reply.finish_reason,
             elapsed_ms: started.elapsed().as_millis() as u64,
             unix_time,
         })
+    }
+}
+
+/// What a 2xx response body says.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParsedResponse {
+    /// The reply text (never empty).
+    pub text: String,
+    pub finish_reason: Option<String>,
+    pub served_model: Option<String>,
+    pub usage: serde_json::Value,
+}
+
+/// Read a 2xx response body of the given wire format. The body is untrusted: anything that is
+/// not a JSON object of the expected shape is an error naming the missing or mistyped field.
+pub fn parse_response(provider: Provider, raw: &str) -> Result<ParsedResponse, String> {
+    let v: serde_json::Value = serde_json::from_str(raw).map_err(|e| format!("not JSON ({e})"))?;
+    if !v.is_object() {
+        return Err(format!("the body is JSON but not an object (it is {})", json_kind(&v)));
+    }
+    if let Some(err) = v.get("error").filter(|e| !e.is_null()) {
+        return Err(format!("the server reported an error: {}", excerpt(&err.to_string(), 300)));
+    }
+    let (text, finish) = match provider {
+        Provider::OpenAi => {
+            let choice = v.get("choices").and_then(|c| c.get(0)).ok_or("no choices[0]")?;
+            let content = &choice["message"]["content"];
+            let text = match content {
+                serde_json::Value::String(s) => s.clone(),
+                // Some servers answer with content parts.
+                serde_json::Value::Array(parts) => {
+                    parts.iter().filter_map(|p| p.get("text").and_then(|t| t.as_str())).collect::<Vec<_>>().join("")
+                }
+                serde_json::Value::Null => {
+                    let refusal = choice["message"]["refusal"].as_str().unwrap_or("");
+                    return Err(format!(
+                        "choices[0].message.content is missing{}",
+                        if refusal.is_empty() { String::new() } else { format!(" (refusal: {})", excerpt(refusal, 300)) }
+                    ));
+                }
+                other => return Err(format!("choices[0].message.content is {}, not text", json_kind(other))),
+            };
+            (text, choice["finish_reason"].as_str().map(str::to_string))
+        }
+        Provider::Anthropic => {
+            let blocks = v.get("content").and_then(|c| c.as_array()).ok_or("no content array")?;
+            let text = blocks.iter().filter(|b| b["type"] == "text").filter_map(|b| b["text"].as_str()).collect::<Vec<_>>().join("");
+            (text, v["stop_reason"].as_str().map(str::to_string))
+        }
+    };
+    if text.trim().is_empty() {
+        return Err(format!(
+            "the reply text is empty (finish reason {:?})",
+            finish.as_deref().map_or("unknown".into(), |f| excerpt(f, 80))
+        ));
+    }
+    Ok(ParsedResponse {
+        text,
+        finish_reason: finish,
+        served_model: v["model"].as_str().map(str::to_string),
+        usage: v.get("usage").cloned().unwrap_or(serde_json::Value::Null),
+    })
+}
+
+fn json_kind(v: &serde_json::Value) -> &'static str {
+    match v {
+        serde_json::Value::Null => "null",
+        serde_json::Value::Bool(_) => "a boolean",
+        serde_json::Value::Number(_) => "a number",
+        serde_json::Value::String(_) => "a string",
+        serde_json::Value::Array(_) => "an array",
+        serde_json::Value::Object(_) => "an object",
     }
 }
 
@@ -638,6 +746,28 @@ impl LlmClient for HttpLlm {
         }
         Ok(text)
     }
+}
+
+/// The most bytes of a response body read: far above any chat reply, small enough that a hostile
+/// or broken server cannot make the client buffer gigabytes.
+pub const MAX_BODY_BYTES: u64 = 32 << 20;
+
+/// Why a body could not be had.
+enum BodyError {
+    TooLarge,
+    Read(std::io::Error),
+}
+
+/// The body as text (invalid UTF-8 replaced), at most [`MAX_BODY_BYTES`]; a longer body is an
+/// error rather than silently cut JSON.
+fn read_body(resp: reqwest::blocking::Response) -> Result<String, BodyError> {
+    use std::io::Read;
+    let mut raw = Vec::new();
+    resp.take(MAX_BODY_BYTES + 1).read_to_end(&mut raw).map_err(BodyError::Read)?;
+    if raw.len() as u64 > MAX_BODY_BYTES {
+        return Err(BodyError::TooLarge);
+    }
+    Ok(String::from_utf8(raw).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned()))
 }
 
 /// `Retry-After` (seconds or an HTTP date) or `retry-after-ms` (OpenAI sends it), if present.
@@ -684,8 +814,15 @@ fn parse_http_date(s: &str) -> Option<u64> {
 
 /// A client from a spec, for the CLI: `openai:gpt-4.1` with an optional base URL, a mode and a
 /// recording directory.
-pub fn client_from_spec(spec: &str, base_url: Option<&str>, mode: LlmMode, record_dir: Option<PathBuf>) -> Result<HttpLlm, LlmError> {
-    let mut cfg = LlmConfig::from_spec(spec, base_url)?;
+/// `api_key_env` names the key variable for a custom base URL (see [`LlmConfig::api_key_env`]).
+pub fn client_from_spec(
+    spec: &str,
+    base_url: Option<&str>,
+    api_key_env: Option<&str>,
+    mode: LlmMode,
+    record_dir: Option<PathBuf>,
+) -> Result<HttpLlm, LlmError> {
+    let mut cfg = LlmConfig::from_spec(spec, base_url)?.with_api_key_env(api_key_env);
     cfg.mode = mode;
     cfg.record_dir = record_dir;
     HttpLlm::new(cfg)
@@ -705,7 +842,16 @@ mod tests {
         assert!(!c.is_local());
         let c = LlmConfig::from_spec("anthropic:claude-opus-4-1", None).unwrap();
         assert_eq!(c.endpoint(), "https://api.anthropic.com/v1/messages");
-        assert_eq!(c.api_key_env, "ANTHROPIC_API_KEY");
+        assert_eq!(c.api_key_env.as_deref(), Some("ANTHROPIC_API_KEY"));
+        assert_eq!(LlmConfig::from_spec("openai:m", None).unwrap().api_key_env.as_deref(), Some("OPENAI_API_KEY"));
+        // A custom base URL or a local server never gets the provider's key by default.
+        for (spec, base) in
+            [("openai:m", Some("http://127.0.0.1:8080/v1")), ("openai:m", Some("https://proxy.example/v1")), ("vllm:m", None)]
+        {
+            assert_eq!(LlmConfig::from_spec(spec, base).unwrap().api_key_env, None, "{spec} {base:?}");
+        }
+        let named = LlmConfig::from_spec("llamacpp:m", None).unwrap().with_api_key_env(Some("LOCAL_KEY"));
+        assert_eq!(named.api_key_env.as_deref(), Some("LOCAL_KEY"));
         let c = LlmConfig::from_spec("ollama:llama3:8b", Some("http://localhost:11434/v1/")).unwrap();
         assert_eq!(c.model, "llama3:8b");
         assert_eq!(c.endpoint(), "http://localhost:11434/v1/chat/completions");
@@ -727,6 +873,20 @@ mod tests {
         assert!(resolve_key(Some("sk-1".into()), &remote).unwrap().is_some());
         let local = LlmConfig::from_spec("openai:m", Some("http://127.0.0.1:8080/v1")).unwrap();
         assert!(resolve_key(None, &local).unwrap().is_none());
+        // A named variable must be set.
+        let named = local.clone().with_api_key_env(Some("LOCAL_KEY"));
+        assert!(resolve_key(None, &named).unwrap_err().to_string().contains("LOCAL_KEY"));
+        assert!(resolve_key(Some("k".into()), &named).unwrap().is_some());
+        // A custom remote server without a named variable: an error that says what to do.
+        let proxy = LlmConfig::from_spec("openai:m", Some("https://proxy.example/v1")).unwrap();
+        assert!(matches!(resolve_key(None, &proxy), Err(LlmError::NoKeyVariable { .. })));
+        // Plain http with a key: loopback only.
+        let plain = LlmConfig::from_spec("openai:m", Some("http://10.1.2.3:8000/v1")).unwrap().with_api_key_env(Some("K"));
+        assert!(matches!(resolve_key(Some("k".into()), &plain), Err(LlmError::InsecureKeyTransport { .. })));
+        for base in ["http://localhost:1/v1", "http://127.9.9.9:1/v1", "http://[::1]:1/v1"] {
+            let c = LlmConfig::from_spec("openai:m", Some(base)).unwrap().with_api_key_env(Some("K"));
+            assert!(resolve_key(Some("k".into()), &c).unwrap().is_some(), "{base}");
+        }
         assert_eq!(format!("{:?}", ApiKey::new("sk-secret")), "ApiKey(<redacted>)");
     }
 
@@ -744,6 +904,28 @@ mod tests {
         r2.temperature = 0.7;
         assert_ne!(r.key(), r2.key());
         assert_eq!(r.key().len(), 64);
+    }
+
+    #[test]
+    fn hostile_response_bodies_are_errors() {
+        let ok = parse_response(Provider::OpenAi, r#"{"choices": [{"message": {"content": "hi"}, "finish_reason": "stop"}]}"#).unwrap();
+        assert_eq!((ok.text.as_str(), ok.finish_reason.as_deref()), ("hi", Some("stop")));
+        let cases = [
+            (Provider::OpenAi, "[1, 2]", "not an object"),
+            (Provider::OpenAi, "\"text\"", "not an object"),
+            (Provider::OpenAi, "{}", "choices[0]"),
+            (Provider::OpenAi, r#"{"choices": "x"}"#, "choices[0]"),
+            (Provider::OpenAi, r#"{"choices": [7]}"#, "content is missing"),
+            (Provider::OpenAi, r#"{"choices": [{"message": {"content": 5}}]}"#, "a number, not text"),
+            (Provider::OpenAi, r#"{"choices": [{"message": {"content": "  "}}]}"#, "empty"),
+            (Provider::Anthropic, r#"{"content": {"type": "text"}}"#, "no content array"),
+            (Provider::Anthropic, r#"{"content": [{"type": "text", "text": 3}]}"#, "empty"),
+            (Provider::Anthropic, "{\"content\": [", "not JSON"),
+        ];
+        for (p, body, want) in cases {
+            let e = parse_response(p, body).unwrap_err();
+            assert!(e.contains(want), "{body}: {e}");
+        }
     }
 
     #[test]

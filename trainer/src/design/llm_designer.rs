@@ -21,11 +21,15 @@ pub struct LlmDesignerOptions {
     pub max_retries: usize,
     /// Most characters of meta-information JSON in the feedback prompt.
     pub meta_max_chars: usize,
+    /// The environment variable holding the key for a custom base URL (a local llama.cpp, vLLM or
+    /// Ollama server, a proxy): without it no key is sent there, not even `OPENAI_API_KEY`. Used
+    /// by [`LlmDesigner::from_spec`] (the CLI's `--api-key-env VAR`).
+    pub api_key_env: Option<String>,
 }
 
 impl Default for LlmDesignerOptions {
     fn default() -> Self {
-        LlmDesignerOptions { max_retries: 3, meta_max_chars: 60_000 }
+        LlmDesignerOptions { max_retries: 3, meta_max_chars: 60_000, api_key_env: None }
     }
 }
 
@@ -60,7 +64,7 @@ impl LlmDesigner {
         record_dir: Option<PathBuf>,
         options: LlmDesignerOptions,
     ) -> Result<Self> {
-        let client = super::llm::client_from_spec(spec, base_url, mode, record_dir)?;
+        let client = super::llm::client_from_spec(spec, base_url, options.api_key_env.as_deref(), mode, record_dir)?;
         Ok(Self::with_templates(Box::new(client), Templates::from_env()?, options))
     }
 
