@@ -37,11 +37,7 @@ fn dataset_reader_survives_2000_hostile_files() {
     fuzz("dataset", 2000);
 }
 
-// Ignored until trainer/src/learn/checkpoint.rs checks sizes: today a corrupt buffer.bin or
-// state.json makes read_buffer and Learner::new allocate what the file says (capacity overflow
-// panics, multi-GiB allocations that abort). Run with `--ignored` to see the cases.
 #[test]
-#[ignore = "checkpoint.rs allocates from unchecked counts (reported, owned elsewhere)"]
 fn checkpoint_reader_survives_2000_hostile_files() {
     fuzz("checkpoint", 2000);
 }

@@ -104,7 +104,20 @@ fn read_state(dir: &Path) -> Result<(PathBuf, StateJson), LearnError> {
             return Err(ck(format!("dims.{field} is {v}, outside 1..={MAX_DIM}"), "load", &p));
         }
     }
+    st.config.validate().map_err(|e| ck(format!("config: {e}"), "load", &p))?;
     Ok((dir, st))
+}
+
+/// Run a third-party loader that may panic on corrupt bytes (burn's record loaders do), turning
+/// a panic into an error naming the file.
+fn guarded<T>(path: &Path, load: impl FnOnce() -> Result<T, LearnError>) -> Result<T, LearnError> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(load)) {
+        Ok(r) => r,
+        Err(panic) => {
+            let why = panic.downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| panic.downcast_ref::<String>().cloned());
+            Err(ck(format!("corrupt file (its loader failed: {})", why.unwrap_or_else(|| "panic".into())), "load", path))
+        }
+    }
 }
 
 impl Learner {
@@ -170,11 +183,12 @@ impl Learner {
         let ad = l.device.clone().autodiff();
         let mut scratch = LearnRng::seed_from(0); // initial values are overwritten by the load
         let p = dir.join("net.bpk");
-        l.net = QNet::new(&mut scratch, &l.dims, &l.cfg, &ad).try_load_file(&p).map_err(|e| ck(e, "load", &p))?;
+        l.net = guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &ad).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?;
         let p = dir.join("target.bpk");
-        l.target = QNet::new(&mut scratch, &l.dims, &l.cfg, &l.device).try_load_file(&p).map_err(|e| ck(e, "load", &p))?.valid();
+        l.target =
+            guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &l.device).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?.valid();
         let p = dir.join("optim.bpk");
-        l.optim = make_optimizer(&l.cfg).load(&p).map_err(|e| ck(e, "load", &p))?;
+        l.optim = guarded(&p, || make_optimizer(&l.cfg).load(&p).map_err(|e| ck(e, "load", &p)))?;
         l.counters = st.counters;
         l.rng = st.rng;
         if st.has_buffer {
@@ -221,13 +235,14 @@ fn invalid(msg: String) -> std::io::Error {
 /// allocation or a panic. Reads format 2 (with truncated episodes' next steps) and format 1.
 fn read_buffer(path: &Path, d: &EpisodeDims, capacity: usize) -> std::io::Result<ReplayBuffer> {
     let file = File::open(path)?;
-    let mut left = file.metadata()?.len();
+    // Bytes of the file not read yet (a Cell: the reading closure and the checks share it).
+    let left = std::cell::Cell::new(file.metadata()?.len());
     let mut r = BufReader::new(file);
-    let mut take = |r: &mut BufReader<File>, n: u64, field: &str| -> std::io::Result<Vec<u8>> {
-        if n > left {
-            return Err(invalid(format!("{field}: needs {n} bytes but only {left} are left (truncated or corrupt file)")));
+    let take = |r: &mut BufReader<File>, n: u64, field: &str| -> std::io::Result<Vec<u8>> {
+        if n > left.get() {
+            return Err(invalid(format!("{field}: needs {n} bytes but only {} are left (truncated or corrupt file)", left.get())));
         }
-        left -= n;
+        left.set(left.get() - n);
         let mut raw = vec![0u8; n as usize];
         r.read_exact(&mut raw)?;
         Ok(raw)
@@ -249,7 +264,8 @@ fn read_buffer(path: &Path, d: &EpisodeDims, capacity: usize) -> std::io::Result
     }
     let f32s = |raw: Vec<u8>| -> Vec<f32> { raw.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect() };
     let (n, ow, sd, na) = (d.n_agents as u64, d.obs_width as u64, d.state_dim as u64, d.n_actions as u64);
-    let mut episodes = Vec::with_capacity(count as usize);
+    // Every episode takes at least 12 bytes: never reserve more than the file could hold.
+    let mut episodes = Vec::with_capacity(count.min(left.get() / 12) as usize);
     for k in 0..count {
         let len = u64_of(take(&mut r, 8, &format!("episode {k}: length"))?);
         let flags = take(&mut r, if has_next_flag { 3 } else { 2 }, &format!("episode {k}: flags"))?;
@@ -280,8 +296,8 @@ fn read_buffer(path: &Path, d: &EpisodeDims, capacity: usize) -> std::io::Result
         ep.check(d).map_err(|e| invalid(format!("episode {k}: {e}")))?;
         episodes.push(ep);
     }
-    if left != 0 {
-        return Err(invalid(format!("{left} bytes after the last episode (corrupt file)")));
+    if left.get() != 0 {
+        return Err(invalid(format!("{} bytes after the last episode (corrupt file)", left.get())));
     }
     Ok(ReplayBuffer::from_parts(capacity, episodes, next as usize))
 }

@@ -130,9 +130,14 @@ fn err(field: &'static str, reason: impl Into<String>) -> ConfigError {
 impl LearnConfig {
     /// Check every field; the error names the first offending one.
     pub fn validate(&self) -> Result<(), ConfigError> {
+        // Upper bounds far above any sensible run, low enough that a corrupt config or checkpoint
+        // cannot make building the networks or the buffer exhaust memory.
         let pos = |field: &'static str, v: usize| {
+            let max = if field == "buffer_size" || field == "batch_size" { 1 << 24 } else { 1 << 16 };
             if v == 0 {
                 Err(err(field, "must be at least 1"))
+            } else if v > max {
+                Err(err(field, format!("must be at most {max}, got {v}")))
             } else {
                 Ok(())
             }
