@@ -112,8 +112,11 @@ pub fn mutate_json(r: &mut Rng, v: &mut Value, keys: &[&str]) {
                     a.remove(i);
                 }
                 1 => {
+                    // Long arrays of leaves; containers only a few times (repeated edits of
+                    // nested containers would grow the input exponentially).
                     let x = a[i].clone();
-                    a.extend(std::iter::repeat_n(x, 1 + r.index(100)));
+                    let n = if x.is_array() || x.is_object() { 1 + r.index(3) } else { 1 + r.index(100) };
+                    a.extend(std::iter::repeat_n(x, n));
                 }
                 2 => a.push(random_json(r, 2, keys)),
                 _ => mutate_json(r, &mut a[i], keys),

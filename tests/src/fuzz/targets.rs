@@ -481,6 +481,11 @@ impl Target for LlmReplyTarget {
         if r.chance(0.2) {
             note.push_str(&format!(", body {}", mutate_bytes(r, &mut b)));
         }
+        // The client reads at most MAX_BODY_BYTES of a response; it never parses more.
+        if b.len() as u64 > lmac_trainer::design::llm::MAX_BODY_BYTES {
+            b.truncate(lmac_trainer::design::llm::MAX_BODY_BYTES as usize);
+            note.push_str(", cut to the body limit");
+        }
         let mut case = Case::text("body.json", b, note);
         case.files.push(("provider".into(), if anthropic { b"anthropic".to_vec() } else { b"openai".to_vec() }));
         case

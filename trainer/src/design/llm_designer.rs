@@ -233,9 +233,10 @@ fn json_candidates(text: &str) -> Vec<&str> {
     let mut rest = text;
     while let Some(a) = rest.find("```") {
         let body = &rest[a + 3..];
-        let body =
-            body.find('\n')
-                .map_or(body, |nl| if body[..nl].trim().chars().all(|c| c.is_ascii_alphanumeric()) { &body[nl + 1..] } else { body });
+        // The info string (`json`) is short: look for its newline in the first bytes only, so a
+        // reply of many fences and no newline stays linear instead of rescanning to the end.
+        let nl = body.as_bytes().iter().take(40).position(|&b| b == b'\n');
+        let body = nl.map_or(body, |nl| if body[..nl].trim().chars().all(|c| c.is_ascii_alphanumeric()) { &body[nl + 1..] } else { body });
         match body.find("```") {
             Some(b) => {
                 out.push(&body[..b]);
@@ -366,5 +367,14 @@ mod tests {
         assert!(e.contains("no JSON object"), "{e}");
         let e = parse_feedback("{\"Evaluation\": \"e\",}").unwrap_err();
         assert!(e.contains("not valid JSON"), "{e}");
+    }
+
+    #[test]
+    fn many_fences_without_newlines_stay_fast() {
+        // Found by lmac-fuzz: each fence used to rescan the rest of the reply for a newline.
+        let reply = "```".repeat(200_000);
+        let t = std::time::Instant::now();
+        assert!(parse_feedback(&reply).is_err());
+        assert!(t.elapsed() < std::time::Duration::from_millis(500), "{:?}", t.elapsed());
     }
 }
