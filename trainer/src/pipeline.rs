@@ -119,6 +119,8 @@ pub enum PipelineError {
     Slab(#[from] lmac_shm_schema::SlabError),
     #[error("trainer: protocol: {0}")]
     Protocol(String),
+    #[error("trainer: slab {slab}: {problem}")]
+    Layout { slab: String, problem: String },
 }
 
 /// Where an env's rows stand.
@@ -274,7 +276,7 @@ impl Assembler {
             if step != t.expect_step {
                 self.violate(format!("server {server} env {e}: episode {eid} step {step}, expected {}", t.expect_step));
             }
-            t.expect_step = step + 1;
+            t.expect_step = step.wrapping_add(1);
             t.phase = Phase::Open;
             t.ep.obs.extend_from_slice(&rows_of(e));
             t.ep.state.extend_from_slice(&state[e * l.state_dim..(e + 1) * l.state_dim]);
@@ -355,6 +357,23 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
         slabs.push(Slab::open(&lmac_protocol_runner::runner::slab_name(&args.run, s), &args.schema, args.startup_timeout)?);
     }
     let l0 = slabs[0].layout().clone();
+    // Every slab of the run must share one layout (actions and episodes are sized from it), with
+    // the ring's slot count and the protocol's message columns.
+    for (s, slab) in slabs.iter().enumerate() {
+        let p = slab.layout().params();
+        let problem = if p != l0.params() {
+            Some(format!("layout {p:?} differs from server 0's {:?}", l0.params()))
+        } else if p.n_slots != args.n_slots {
+            Some(format!("{} slots, the ring has {}", p.n_slots, args.n_slots))
+        } else if p.msg_dim != args.msg_used {
+            Some(format!("{} message columns, the protocol writes {}", p.msg_dim, args.msg_used))
+        } else {
+            None
+        };
+        if let Some(problem) = problem {
+            return Err(PipelineError::Layout { slab: lmac_protocol_runner::runner::slab_name(&args.run, s), problem });
+        }
+    }
     let dims = EpisodeDims {
         n_agents: args.schema.n_agents,
         obs_width: args.schema.obs_dim + args.msg_used,

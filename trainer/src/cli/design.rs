@@ -19,6 +19,11 @@ pub(crate) struct DesignArgs {
     /// Base URL of an OpenAI-compatible server, e.g. http://127.0.0.1:8080/v1.
     #[arg(long)]
     base_url: Option<String>,
+    /// The environment variable holding the key for a --base-url server. Without it such a
+    /// server gets no key (OPENAI_API_KEY goes only to OpenAI's own API); a key is sent only
+    /// over https, or over http to this machine.
+    #[arg(long, value_name = "VAR")]
+    api_key_env: Option<String>,
     /// live: ask the LLM (recording every exchange); replay: answer from the recordings only
     /// (offline, exact); replay-or-live: recordings first, then the LLM.
     #[arg(long, default_value = "live")]
@@ -93,7 +98,7 @@ pub(crate) fn design(a: DesignArgs) -> Result<i32> {
         let mode: LlmMode = a.llm_mode.parse().map_err(anyhow::Error::msg)?;
         let rec = a.recordings.clone().unwrap_or_else(|| a.out.join("llm-recordings"));
         std::fs::create_dir_all(&rec).with_context(|| format!("creating {}", rec.display()))?;
-        let options = LlmDesignerOptions { max_retries: a.max_retries, ..Default::default() };
+        let options = LlmDesignerOptions { max_retries: a.max_retries, api_key_env: a.api_key_env.clone(), ..Default::default() };
         Box::new(LlmDesigner::from_spec(&a.llm, a.base_url.as_deref(), mode, Some(rec), options)?)
     };
     let train = |dir: &std::path::Path| train_dirs(&[dir.to_path_buf()], interrupted.clone());
