@@ -1,0 +1,459 @@
+//! The offline designer: the embedded default that needs no network. It is not an LLM and
+//! does not pretend to be one; every protocol it writes says "offline designer: ..." and
+//! explains its numbers. It designs from the data, deterministically:
+//!
+//! 1. **Targets and weights.** Phase 0 trains the no-message discriminator on B and takes the
+//!    state dims agents recover worst without messages as the task-critical set: mean E_t[chi]
+//!    over agents relative to a constant guess ([`meta::skill`]) below
+//!    [`OfflineConfig::poor_threshold`] (raw rates mislead on sparse dims: an LBF cell that is
+//!    empty 97% of the time is "recovered" 97% of the time by guessing 0). Phase 1
+//!    (recognition) takes the dims the meta-information shows still poorly recovered *with* the
+//!    messages; phase 2 (sharing) the dims with the largest variance of recovery across agents.
+//!    Each (receiving agent i, dim d) gets a weight: its failure rate 1 - E_t[chi] divided by
+//!    the constant guess's (phases 0, 1), or in phase 2 its gap to the best agent plus a tenth
+//!    of its failure rate, on the same scale (so lagging agents count most).
+//! 2. **Candidate features**, each computed by the runner's own compiled plan on B (a probe
+//!    protocol, so values match what the runner would send exactly): phase 0 the sender's
+//!    current observation dims and its last action; phase 1 also history aggregates of each
+//!    observation dim (max, mean and most recent non-zero over 5 steps, the previous step, the
+//!    change over 3 steps); phase 2 temporal cues over the last 10 steps (max, mean, most recent
+//!    non-zero, and the action histogram), as the paper's reference phase-2 protocol uses.
+//! 3. **Greedy least-squares selection.** On a sample of steps, the covariance of every agent's
+//!    own observation, the messages it already receives, every sender's candidates and the
+//!    target dims is computed once. For each receiver, what it already knows (own observation
+//!    and earlier phases' messages) is partialled out (the sweep operator); a candidate's gain
+//!    is the weighted fraction of target variance the other agents' values of it explain on
+//!    top (linear R^2). The candidate with the best gain per message column is added while it
+//!    fits this phase's share of the budget (the budget left divided by the phases left) and
+//!    gains at least [`OfflineConfig::min_gain`] per column. A candidate is broadcast when every
+//!    sender -> receiver link helps; otherwise only the helping links are kept (peer to peer).
+//!
+//! Feedback is generated from the meta-information as text with the actual numbers.
+
+use super::discriminator::DiscriminatorConfig;
+use super::meta::{self, Recovery};
+use super::{DesignContext, Designer, Feedback, PhaseProtocol, TranscriptEntry};
+use anyhow::{anyhow, bail, Context, Result};
+use lmac_protocol_runner::protocol::{
+    self, ActionEncoding, DimSpec, Expr, Field, HistoryPadding, PeerLink, Protocol, ProtocolEnv, Receivers, Senders, ValidatedProtocol,
+    Window, WindowOp,
+};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use std::collections::BTreeMap;
+
+mod assemble;
+mod candidates;
+mod meta_dims;
+mod select;
+use assemble::*;
+use candidates::*;
+use meta_dims::*;
+use select::*;
+
+/// The offline designer's knobs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OfflineConfig {
+    /// The discriminator that measures no-message recovery for phase 0.
+    pub discriminator: DiscriminatorConfig,
+    /// A dim is poorly recovered when its mean E_t[chi] over agents, relative to a constant
+    /// guess ([`meta::skill`]: 0 = no better than guessing, 1 = always right), is below this.
+    pub poor_threshold: f64,
+    /// Most critical dims phase 0 lists.
+    pub max_critical_dims: usize,
+    /// Most target dims one phase's feature selection aims at (the worst ones).
+    pub max_targets: usize,
+    /// Most steps of B the statistics use (a deterministic spread of episodes).
+    pub max_samples: usize,
+    /// Candidates kept after the marginal-correlation prescreen.
+    pub prescreen: usize,
+    /// Smallest weighted R^2 gain per message column worth sending (0.004: a column must explain
+    /// at least 0.4% of the weighted target variance; below that the picks were artefacts such
+    /// as padding-driven "first step" indicators in the synthetic tests).
+    pub min_gain: f64,
+    /// A sender -> receiver link is kept when it explains at least this fraction of the best
+    /// link's gain for the candidate.
+    pub link_fraction: f64,
+    /// Phases the budget is shared between (the paper's 3).
+    pub phases: usize,
+}
+
+impl Default for OfflineConfig {
+    fn default() -> Self {
+        OfflineConfig {
+            discriminator: DiscriminatorConfig::default(),
+            poor_threshold: 0.8,
+            max_critical_dims: 48,
+            max_targets: 24,
+            max_samples: 20_000,
+            prescreen: 48,
+            min_gain: 0.004,
+            link_fraction: 0.1,
+            phases: 3,
+        }
+    }
+}
+
+/// The embedded designer (see the module doc).
+pub struct OfflineDesigner {
+    cfg: OfflineConfig,
+    transcript: Vec<TranscriptEntry>,
+}
+
+impl OfflineDesigner {
+    pub fn new(cfg: OfflineConfig) -> Self {
+        OfflineDesigner { cfg, transcript: Vec::new() }
+    }
+
+    pub fn config(&self) -> &OfflineConfig {
+        &self.cfg
+    }
+
+    fn log(&mut self, phase: usize, kind: &str, prompt: String, reply: String) {
+        self.transcript.push(TranscriptEntry { phase, kind: kind.into(), prompt, reply });
+    }
+}
+
+impl Default for OfflineDesigner {
+    fn default() -> Self {
+        Self::new(OfflineConfig::default())
+    }
+}
+
+// ------------------------------------------------------------------------------------------
+// The designer
+
+/// Targets with their per-agent rates, ordered as chosen.
+struct Targets {
+    dims: Vec<usize>,
+    /// weights[i][k] for receiver i and target k.
+    weights: Vec<Vec<f64>>,
+    why: String,
+}
+
+impl OfflineDesigner {
+    /// Build, validate and explain one phase's protocol for `targets`.
+    fn design(
+        &mut self,
+        ctx: &DesignContext,
+        phase: usize,
+        previous: &[PhaseProtocol],
+        targets: Targets,
+        critical: &[usize],
+    ) -> Result<PhaseProtocol> {
+        let env = ctx.env;
+        let n = env.n_agents;
+        if n < 2 {
+            // Every width below is per other agent; with one agent there is no one to talk to.
+            bail!("offline designer: {} has {n} agent(s); a communication protocol needs at least 2", ctx.env_name);
+        }
+        let prev: Vec<ValidatedProtocol> = previous.iter().map(|p| p.validated.clone()).collect();
+        let left = super::prompts::budget_left(env, &prev);
+        let phases_left = self.cfg.phases.saturating_sub(phase).max(1);
+        let share = left / phases_left;
+        let per_block = (share / n.saturating_sub(1).max(1)).saturating_sub(n);
+        if per_block == 0 {
+            bail!(
+                "offline designer: no message budget for phase {phase}: {left} of {} columns are left, this phase's share is {share}, and one sender block needs {n} one-hot columns plus at least one value column for each of the {} other agents",
+                env.message_budget,
+                n - 1
+            );
+        }
+        let kinds = kinds_for(phase);
+        let (probe_v, probe_env, cands) = probe(&kinds, env)?;
+        let width = probe_v.width / (n - 1);
+        let s = sample(ctx, &prev, &probe_v, &probe_env, width, &targets.dims, self.cfg.max_samples)?;
+        if s.rows < 2 {
+            bail!("offline designer: the dataset has {} usable steps; it needs at least 2", s.rows);
+        }
+        let kept = prescreen(&s, n, width, &cands, &targets.weights, self.cfg.prescreen);
+        let mut cols: Vec<usize> = kept.iter().flat_map(|&k| cands[k].col..cands[k].col + cands[k].width).collect();
+        cols.sort_unstable();
+        let base_w = s.base.len() / (s.rows * n);
+        let stats = covariance(&s, n, base_w, width, cols);
+        let (picks, steps) = select(&stats, &cands, &kept, &targets.weights, per_block, &self.cfg);
+        if picks.is_empty() {
+            bail!("offline designer: no candidate feature fits the {per_block} value columns per sender block of phase {phase}");
+        }
+        let fields = fields_from(&picks, &cands, env);
+        let total_gain: f64 = picks.iter().map(|p| p.gain).sum();
+        let names = ctx.schema.state_meanings();
+        let target_text: Vec<String> = targets.dims.iter().take(8).map(|&d| meta::dim_label(d, &names)).map(|l| short(&l)).collect();
+        let goal = match phase {
+            0 => "initialization",
+            1 => "recognition enhancement",
+            _ => "sharing enhancement",
+        };
+        let field_text: Vec<String> = fields.iter().map(|f| format!("'{}': {}", f.name, f.description)).collect();
+        let instruction = format!(
+            "offline designer: phase {phase} ({goal}), chosen by greedy least squares on the dataset, not by an LLM. {} Each agent sends: {}. Together these explain an estimated {:.1}% of the weighted variance of the {} target state dims that receivers could not explain from their own observation{} (linear R^2 on {} sampled steps). Every sender block starts with the sender's one-hot id.",
+            targets.why,
+            field_text.join("; "),
+            100.0 * total_gain,
+            targets.dims.len(),
+            if prev.is_empty() { "" } else { " and the earlier phases' messages" },
+            s.rows,
+        );
+        let mut crit: Vec<usize> = critical.to_vec();
+        crit.sort_unstable();
+        crit.dedup();
+        let p = Protocol {
+            name: Some(format!("offline_phase{phase}")),
+            phase: Some(phase as u32),
+            message_design_instruction: instruction,
+            critical_state_dims: crit.iter().map(|&d| DimSpec::Dim(d)).collect(),
+            critical_state_reasoning: Some(format!("offline designer: {} Targets (first 8): {}.", targets.why, target_text.join("; "))),
+            sender_one_hot: true,
+            history_padding: HistoryPadding::default(),
+            fields,
+        };
+        let validated = protocol::validate_phase(&p, env, &prev)
+            .map_err(|e| anyhow!("offline designer: its phase {phase} protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
+        let reasoning = format!(
+            "# Offline designer, phase {phase} ({goal})\n\nThis protocol was built by a deterministic algorithm (greedy least-squares feature selection over the dataset), not by a language model.\n\n## Targets\n{}\n\n{}\n\n## Budget\n{left} message columns left of {}; this phase's share is {share} ({phases_left} phase(s) left), i.e. {per_block} value columns per sender block after the {n}-column sender one-hot.\n\n## Candidates\n{} candidate features ({}), {} kept by the marginal-correlation prescreen, {} sampled steps.\n\n## Selection\n{}\n\nResulting width: {} columns per receiving agent.\n",
+            targets.dims.iter().map(|&d| format!("- {}", meta::dim_label(d, &names))).collect::<Vec<_>>().join("\n"),
+            targets.why,
+            env.message_budget,
+            cands.len(),
+            kinds.iter().map(|k| k.words().0).collect::<Vec<_>>().join(", "),
+            kept.len(),
+            s.rows,
+            steps.iter().map(|l| format!("- {l}")).collect::<Vec<_>>().join("\n"),
+            validated.width,
+        );
+        self.log(
+            phase,
+            "protocol",
+            format!(
+                "offline designer: select features for phase {phase} ({goal}); targets {:?}; {per_block} value columns per sender block",
+                targets.dims
+            ),
+            serde_json::to_string_pretty(&p)?,
+        );
+        Ok(PhaseProtocol { protocol: p, validated, reasoning })
+    }
+}
+
+/// Targets from the worst entries of `scored` (dim, score, per-agent weights), ascending score.
+fn worst(mut scored: Vec<(usize, f64, Vec<f64>)>, max: usize) -> (Vec<usize>, Vec<Vec<f64>>) {
+    scored.sort_by(|a, b| a.1.partial_cmp(&b.1).unwrap_or(std::cmp::Ordering::Equal).then(a.0.cmp(&b.0)));
+    scored.truncate(max);
+    let n = scored.first().map(|s| s.2.len()).unwrap_or(0);
+    let dims = scored.iter().map(|s| s.0).collect();
+    let weights = (0..n).map(|i| scored.iter().map(|s| s.2[i]).collect()).collect();
+    (dims, weights)
+}
+
+impl Designer for OfflineDesigner {
+    fn name(&self) -> String {
+        "offline".into()
+    }
+
+    fn needs_data_for_initial(&self) -> bool {
+        true
+    }
+
+    fn initial(&mut self, ctx: &DesignContext) -> Result<PhaseProtocol> {
+        let m = meta::measure(ctx, &[], &self.cfg.discriminator, &[]).context("offline designer: measuring recovery without messages")?;
+        let r: &Recovery = &m.without;
+        let n = r.n_agents;
+        let thr = self.cfg.poor_threshold;
+        let g = &m.guess;
+        // Constant dims (the guess is always right) can never be critical.
+        let all: Vec<(usize, f64, Vec<f64>)> = (0..r.dims.len())
+            .filter(|&k| g[k] < 1.0 - 1e-9)
+            .map(|k| (r.dims[k], meta::skill(r.mean_rate(k), g[k]), r.rates(k).iter().map(|&x| failure(x, g[k])).collect()))
+            .collect();
+        if all.is_empty() {
+            bail!("offline designer: every state dim is constant on the dataset, so there is nothing for messages to recover");
+        }
+        let poor: Vec<_> = all.iter().filter(|x| x.1 < thr).cloned().collect();
+        let (critical, why) = if poor.is_empty() {
+            let (d, _) = worst(all.clone(), 8.min(all.len()));
+            (d, format!("Without messages every varying state dim is recovered with a skill of at least {thr} over a constant guess (E_t[chi], alpha {}), so the 8 least recovered are targeted.", ctx.schema.alpha))
+        } else {
+            let (d, _) = worst(poor.clone(), self.cfg.max_critical_dims);
+            let why = format!(
+                "Without messages, {} of {} varying state dims are recovered with a skill below {thr} (mean E_t[chi] over agents on held-out steps, alpha {}, relative to always guessing the dim's median: 0 = no better than the guess); the {} worst are taken as task-critical.",
+                poor.len(), all.len(), ctx.schema.alpha, d.len()
+            );
+            (d, why)
+        };
+        let pool: Vec<_> = all.iter().filter(|x| critical.contains(&x.0)).cloned().collect();
+        let (dims, weights) = worst(pool, self.cfg.max_targets);
+        debug_assert_eq!(weights.len(), n);
+        let names = ctx.schema.state_meanings();
+        let listing: Vec<String> = critical
+            .iter()
+            .map(|&d| {
+                let k = r.position(d).unwrap_or(0);
+                format!("{} (mean E_t[chi] without messages {:.3}, constant guess {:.3})", meta::dim_label(d, &names), r.mean_rate(k), g[k])
+            })
+            .collect();
+        self.log(
+            0,
+            "critical_dims",
+            format!("offline designer: train the no-message discriminator on {} training episodes and measure E_t[chi] on {} held-out episodes for every state dim", m.without_report.train_episodes, m.held_out.len()),
+            format!("{why}\n{}", listing.join("\n")),
+        );
+        self.design(ctx, 0, &[], Targets { dims, weights, why }, &critical)
+    }
+
+    fn feedback(&mut self, ctx: &DesignContext, phase: usize, _previous: &[PhaseProtocol], meta_v: &Value) -> Result<Feedback> {
+        let dims = meta_dims(meta_v)?;
+        let names = ctx.schema.state_meanings();
+        let s = &meta_v["summary"];
+        let g = |side: &str, key: &str| s[side][key].as_f64().unwrap_or(f64::NAN);
+        let (rw, ro, vw, vo) = (
+            g("with_communication", "mean_recovery"),
+            g("without_communication", "mean_recovery"),
+            g("with_communication", "mean_variance_across_agents"),
+            g("without_communication", "mean_variance_across_agents"),
+        );
+        let mut by_rate: Vec<&MetaDim> = dims.iter().collect();
+        by_rate.sort_by(|a, b| a.skill().partial_cmp(&b.skill()).unwrap_or(std::cmp::Ordering::Equal));
+        let mut by_gain: Vec<&MetaDim> = dims.iter().collect();
+        let gain = |d: &MetaDim| meta::mean(&d.rates) - meta::mean(&d.rates_without);
+        by_gain.sort_by(|a, b| gain(b).partial_cmp(&gain(a)).unwrap_or(std::cmp::Ordering::Equal));
+        let mut by_var: Vec<&MetaDim> = dims.iter().collect();
+        by_var.sort_by(|a, b| b.variance.partial_cmp(&a.variance).unwrap_or(std::cmp::Ordering::Equal));
+        let label = |d: usize| short(&meta::dim_label(d, &names));
+        let worst3: Vec<String> = by_rate
+            .iter()
+            .take(3)
+            .map(|d| {
+                format!(
+                    "{} with {} / without {} (constant guess {:.2})",
+                    label(d.dim),
+                    fmt_rates(&d.rates),
+                    fmt_rates(&d.rates_without),
+                    d.guess
+                )
+            })
+            .collect();
+        let best3: Vec<String> =
+            by_gain.iter().take(3).filter(|d| gain(d) > 0.0).map(|d| format!("{} (+{:.2})", label(d.dim), gain(d))).collect();
+        let evaluation = format!(
+            "offline designer: over {} target state dims (alpha {}), agents recover {:.3} of held-out steps with the messages against {:.3} without; the variance of recovery across agents is {:.4} with and {:.4} without. Largest gains from the messages: {}. Worst recovered with messages relative to a constant guess: {}.",
+            dims.len(),
+            meta_v["alpha"],
+            rw,
+            ro,
+            vw,
+            vo,
+            if best3.is_empty() { "none (the messages do not raise recovery of any target dim)".into() } else { best3.join("; ") },
+            worst3.join("; ")
+        );
+        let thr = self.cfg.poor_threshold;
+        let poor: Vec<&&MetaDim> = by_rate.iter().filter(|d| d.skill() < thr).collect();
+        let lagging = |d: &MetaDim| -> String {
+            let (i, r) = d.rates.iter().enumerate().fold((0, f64::MAX), |a, (i, &r)| if r < a.1 { (i, r) } else { a });
+            format!("agent {i} at {r:.2}")
+        };
+        let missing = if phase <= 1 {
+            if poor.is_empty() {
+                format!("Every target dim is recovered with a skill of at least {thr} over a constant guess with the messages; what remains is mostly noise in the reconstruction.")
+            } else {
+                let list: Vec<String> = poor.iter().take(6).map(|d| format!("{} (worst: {})", label(d.dim), lagging(d))).collect();
+                format!(
+                    "{} target dims stay below a skill of {} over a constant guess with the messages: {}. The senders' current observation does not carry them; they are likely seen only at some steps (when in view) and need to be remembered, so history aggregates of the observation dims that predict them are missing.",
+                    poor.len(),
+                    thr,
+                    list.join("; ")
+                )
+            }
+        } else {
+            let list: Vec<String> = by_var
+                .iter()
+                .take(6)
+                .map(|d| {
+                    format!(
+                        "{} (variance {:.4}, largest in the {} third at {:.4}; {})",
+                        label(d.dim),
+                        d.variance,
+                        d.worst_third.1,
+                        d.worst_third.0,
+                        lagging(d)
+                    )
+                })
+                .collect();
+            format!("Recovery is uneven across agents on: {}. The lagging agents depend on what their teammates saw earlier, which the current messages do not keep once it leaves the teammate's view.", list.join("; "))
+        };
+        let suggestions = if phase <= 1 {
+            "1. Add, for the still poorly recovered dims, the sender features that best predict them beyond what receivers already know: window aggregates over the last 5 steps (max, mean, most recent non-zero), the previous step and short-term changes. 2. Send each only where it helps (peer to peer when only some senders observe the dim). 3. Keep the message compact: stop adding features once they explain little extra variance.".to_string()
+        } else {
+            "1. Add temporal cues over the last 10 steps (max, mean, most recent non-zero of the observation dims that predict the uneven dims, and the sender's action histogram) so agents that missed an event can still infer it. 2. Weight the choice towards the agents that lag on each dim. 3. Keep the sender one-hot so the receivers know whose history they read.".to_string()
+        };
+        let fb = Feedback { evaluation, missing_information_hypothesis: missing, improvement_suggestions: suggestions };
+        self.log(
+            phase,
+            "feedback",
+            format!("offline designer: feedback from the meta-information of phases 0..={}: {}", phase - 1, meta::summary_line(meta_v)),
+            serde_json::to_string_pretty(&fb)?,
+        );
+        Ok(fb)
+    }
+
+    fn refine(
+        &mut self,
+        ctx: &DesignContext,
+        phase: usize,
+        previous: &[PhaseProtocol],
+        _feedback: &Feedback,
+        meta_v: &Value,
+    ) -> Result<PhaseProtocol> {
+        if phase == 0 {
+            bail!("offline designer: refine is for phases 1 and later (phase 0 is `initial`)");
+        }
+        let dims = meta_dims(meta_v)?;
+        if dims.is_empty() {
+            bail!("offline designer: the meta-information lists no target dims to improve");
+        }
+        let n = ctx.env.n_agents;
+        if let Some(d) = dims.iter().find(|d| d.rates.len() != n) {
+            bail!(
+                "offline designer: the meta-information has {} agent rates for s[{}], the environment has {n} agents",
+                d.rates.len(),
+                d.dim
+            );
+        }
+        let thr = self.cfg.poor_threshold;
+        let targets = if phase == 1 {
+            let scored: Vec<_> = dims.iter().map(|d| (d.dim, d.skill(), d.rates.iter().map(|&r| failure(r, d.guess)).collect())).collect();
+            let poor = scored.iter().filter(|s| s.1 < thr).count();
+            let (t, w) = worst(scored, self.cfg.max_targets);
+            let why = if poor > 0 {
+                format!("Recognition: {poor} target dim(s) are still recovered with a skill below {thr} over a constant guess (held-out steps) with the messages of the earlier phase(s); the {} worst are targeted, each receiver weighted by its failure rate relative to the guess's.", t.len())
+            } else {
+                format!("Recognition: every target dim is already recovered with a skill of at least {thr} over a constant guess; the {} least recovered are targeted for the remaining errors.", t.len())
+            };
+            Targets { dims: t, weights: w, why }
+        } else {
+            // Sharing: largest variance across agents first (score = -variance), weights put on
+            // the agents behind the best one.
+            let scored: Vec<_> = dims
+                .iter()
+                .map(|d| {
+                    let best = d.rates.iter().cloned().fold(0f64, f64::max);
+                    let weights =
+                        d.rates.iter().map(|&r| (failure(r, d.guess) - failure(best, d.guess)) + 0.1 * failure(r, d.guess)).collect();
+                    (d.dim, -d.variance.max(d.worst_third.0), weights)
+                })
+                .collect();
+            let uneven = dims.iter().filter(|d| d.variance.max(d.worst_third.0) > 1e-4).count();
+            let (t, w) = worst(scored, self.cfg.max_targets);
+            let why = format!(
+                "Sharing: {uneven} target dim(s) show a variance of recovery across agents above 1e-4 (overall or in one third of the episodes); the {} most uneven are targeted, each receiver weighted by its gap to the best agent plus a tenth of its failure rate, with temporal cues over the last 10 steps as candidates.",
+                t.len()
+            );
+            Targets { dims: t, weights: w, why }
+        };
+        let critical = targets.dims.clone();
+        self.design(ctx, phase, previous, targets, &critical)
+    }
+
+    fn transcript(&self) -> Vec<TranscriptEntry> {
+        self.transcript.clone()
+    }
+}
