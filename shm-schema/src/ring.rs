@@ -392,7 +392,7 @@ impl Port {
                     self.next_inbox = (i + 1) % n;
                     let (msg, origin) = (*sample, sample.origin());
                     drop(sample);
-                    if let Err((field, value, problem)) = self.check_message(i, &msg) {
+                    if let Err((field, value, problem)) = check_slot_msg(&self.spec, i, &msg) {
                         let (service, _) = &self.inbox_services[i];
                         return Err(RingError::BadMessage {
                             peer: self.sender(i, origin),
@@ -427,31 +427,6 @@ impl Port {
             }
             self.dead_notified |= dead;
         }
-    }
-
-    /// Check a message taken from inbox `i` against the ring's sizes before anyone indexes with
-    /// it: (field, value, what is wrong) for the first field that does not fit.
-    fn check_message(&self, i: usize, m: &SlotMsg) -> Result<(), (&'static str, u64, String)> {
-        if !matches!(m.kind, KIND_SLOT | KIND_HELLO | KIND_BYE) {
-            return Err((
-                "kind",
-                m.kind as u64,
-                format!("is not a message kind (slot {KIND_SLOT}, hello {KIND_HELLO}, goodbye {KIND_BYE})"),
-            ));
-        }
-        let n_servers = self.spec.n_servers;
-        if m.server as usize >= n_servers {
-            return Err(("server", m.server as u64, format!("is out of range: the ring has {n_servers} env server(s)")));
-        }
-        // Inbox i is the service of one env server; a message there speaks of that server only.
-        let expect = if self.spec.role == Stage::Env { self.spec.server } else { i };
-        if m.server as usize != expect {
-            return Err(("server", m.server as u64, format!("does not match the service it came on, which is env server {expect}'s")));
-        }
-        if m.slot as usize >= self.spec.n_slots {
-            return Err(("slot", m.slot as u64, format!("is out of range: each env server has {} slot(s)", self.spec.n_slots)));
-        }
-        Ok(())
     }
 
     /// Who published `origin` on inbox `i`'s service: node name and pid, found through the
@@ -574,6 +549,28 @@ impl Port {
     pub fn node(&self) -> &Node<ipc::Service> {
         &self.node
     }
+}
+
+/// Check a slot message taken from inbox `inbox` of a port with `spec` against the ring's sizes,
+/// before anyone indexes with it: (field, value, what is wrong) for the first field that does
+/// not fit. `Port::recv` applies it to every message; public so it can be fuzzed on its own.
+pub fn check_slot_msg(spec: &RingSpec, inbox: usize, m: &SlotMsg) -> Result<(), (&'static str, u64, String)> {
+    if !matches!(m.kind, KIND_SLOT | KIND_HELLO | KIND_BYE) {
+        return Err(("kind", m.kind as u64, format!("is not a message kind (slot {KIND_SLOT}, hello {KIND_HELLO}, goodbye {KIND_BYE})")));
+    }
+    let n_servers = spec.n_servers;
+    if m.server as usize >= n_servers {
+        return Err(("server", m.server as u64, format!("is out of range: the ring has {n_servers} env server(s)")));
+    }
+    // Each inbox is the service of one env server; a message there speaks of that server only.
+    let expect = if spec.role == Stage::Env { spec.server } else { inbox };
+    if m.server as usize != expect {
+        return Err(("server", m.server as u64, format!("does not match the service it came on, which is env server {expect}'s")));
+    }
+    if m.slot as usize >= spec.n_slots {
+        return Err(("slot", m.slot as u64, format!("is out of range: each env server has {} slot(s)", spec.n_slots)));
+    }
+    Ok(())
 }
 
 /// Remove the iceoryx2 resources of run `run`'s dead nodes (after a crash); returns how many
