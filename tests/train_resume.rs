@@ -3,6 +3,7 @@
 //! with metrics that continue without a step backwards and with no shared memory left behind.
 //! Runs the release `lmac` binary built by `scripts/setup.sh` (or `$LMAC_BIN`).
 
+use lmac_trainer::faults::{metrics_t_env, pipeline_children, Role};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
@@ -90,34 +91,10 @@ fn checkpoint_rows(dir: &Path) -> Vec<(u64, String)> {
 fn wait_past_first_checkpoint(dir: &Path) {
     wait_for(Duration::from_secs(120), || {
         let ck = checkpoint_rows(dir);
-        let rows = csv_t_env(dir);
+        let rows = metrics_t_env(dir);
         (!ck.is_empty() && rows.last().is_some_and(|&t| t > ck[0].0 + 2000)).then_some(())
     })
     .expect("a checkpoint and rows after it within 120 s");
-}
-
-fn csv_t_env(dir: &Path) -> Vec<u64> {
-    std::fs::read_to_string(dir.join("metrics.csv"))
-        .unwrap_or_default()
-        .lines()
-        .skip(1)
-        .filter_map(|l| l.split(',').next()?.parse().ok())
-        .collect()
-}
-
-/// The pid of `parent`'s child whose command line contains `needle` (e.g. "child\0trainer").
-fn child_pid(parent: u32, needle: &str) -> Option<i32> {
-    for e in std::fs::read_dir("/proc").ok()?.flatten() {
-        let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else { continue };
-        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-        // ppid is the 4th field, after the parenthesised command name.
-        let ppid = stat.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().nth(1)?.parse::<u32>().ok());
-        let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
-        if ppid == Some(parent) && String::from_utf8_lossy(&cmd).contains(needle) {
-            return Some(pid);
-        }
-    }
-    None
 }
 
 fn finish(child: Child) -> (bool, String) {
@@ -138,7 +115,7 @@ fn resume_and_check(dir: &Path, stop_kind: &str, save_buffer: bool, shm_before: 
     } else {
         assert!(stderr.contains("refills it with 32 episodes"), "the run says the buffer is refilled: {stderr}");
     }
-    let t = csv_t_env(dir);
+    let t = metrics_t_env(dir);
     assert!(t.windows(2).all(|w| w[0] <= w[1]), "metrics.csv t_env steps backwards after {stop_kind}: {t:?}");
     assert!(*t.last().unwrap() >= STEPS, "the resumed run reaches {STEPS} env steps: {t:?}");
     assert!(t.iter().any(|&x| x > resumed_from), "rows after the resume point");
@@ -171,7 +148,7 @@ fn a_run_interrupted_with_sigint_resumes_to_its_target() {
     assert!(stderr.contains("interrupted"), "{stderr}");
     // Asked to stop, the trainer writes a last checkpoint at the step it reached.
     let ck = checkpoint_rows(&dir);
-    let last_row = *csv_t_env(&dir).last().unwrap();
+    let last_row = *metrics_t_env(&dir).last().unwrap();
     assert!(ck.last().unwrap().0 >= last_row, "a last checkpoint on SIGINT: {ck:?}, last row at {last_row}");
     resume_and_check(&dir, "SIGINT", false, &shm_before);
     let _ = std::fs::remove_dir_all(&out);
@@ -186,14 +163,14 @@ fn a_run_whose_trainer_is_killed_resumes_from_its_last_checkpoint() {
     let child = start_training(&out, true);
     let dir = seed_dir(&out);
     wait_past_first_checkpoint(&dir);
-    let trainer = child_pid(child.id(), "child\0trainer").expect("the trainer child");
-    unsafe { libc::kill(trainer, libc::SIGKILL) };
+    let trainer = pipeline_children(child.id() as i32).into_iter().find(|p| p.role == Role::Trainer).expect("the trainer child");
+    unsafe { libc::kill(trainer.pid, libc::SIGKILL) };
     let (ok, stderr) = finish(child);
     assert!(!ok);
     assert!(stderr.contains("trainer") && stderr.contains("SIGKILL"), "the parent names the dead child: {stderr}");
     assert!(new_shm_files(&shm_before).is_empty(), "shared memory left behind after SIGKILL: {:?}", new_shm_files(&shm_before));
     let ck = checkpoint_rows(&dir).last().unwrap().0;
-    assert!(csv_t_env(&dir).last().unwrap() > &ck, "rows were logged after the last checkpoint (they must be dropped)");
+    assert!(metrics_t_env(&dir).last().unwrap() > &ck, "rows were logged after the last checkpoint (they must be dropped)");
     resume_and_check(&dir, "SIGKILL of the trainer", true, &shm_before);
     let _ = std::fs::remove_dir_all(&out);
 }

@@ -163,7 +163,8 @@ impl Training {
     }
 }
 
-fn metrics_t_env(dir: &Path) -> Vec<u64> {
+/// The `t_env` column of a run's `metrics.csv` (what its plots draw), in file order.
+pub fn metrics_t_env(dir: &Path) -> Vec<u64> {
     std::fs::read_to_string(dir.join("metrics.csv"))
         .unwrap_or_default()
         .lines()
