@@ -130,6 +130,8 @@ fn main() {
         eprintln!("lmac-fuzz: {name}: {} cases in {:.1}s", st.cases, st.seconds);
         all.push(st);
     }
+    // The parent's own targets (kept to rebuild failing cases) made scratch directories too.
+    fuzz::remove_scratch_dirs(std::process::id());
     fuzz::print_table(&mut std::io::stdout(), &all).unwrap();
     // The distinct error kinds travelled from the children for counting; the report keeps counts.
     all.iter_mut().for_each(|s| s.error_kinds.clear());

@@ -318,6 +318,7 @@ pub fn supervise(o: &Supervise, target: &mut dyn Target) -> Stats {
             }
             std::thread::sleep(Duration::from_millis(20));
         };
+        remove_scratch_dirs(child.id());
         let part: Option<Stats> = std::fs::read(&stats_path).ok().and_then(|b| serde_json::from_slice(&b).ok());
         let done_to = part.as_ref().map_or(from, |p| p.next);
         if let Some(p) = part {
@@ -446,7 +447,20 @@ pub fn print_table(out: &mut impl Write, all: &[Stats]) -> std::io::Result<()> {
     Ok(())
 }
 
-/// A scratch directory for one parser's per-case files.
+/// Remove the scratch directories of a (finished or killed) child.
+pub fn remove_scratch_dirs(pid: u32) {
+    let suffix = format!("-{pid}");
+    if let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) {
+        for e in entries.flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            if name.starts_with("lmac-fuzz-") && name.ends_with(&suffix) {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    }
+}
+
+/// A scratch directory for one parser's per-case files (removed by the supervisor).
 pub fn scratch_dir(tag: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("lmac-fuzz-{tag}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
