@@ -29,7 +29,7 @@ fn fuzz(parsers: &str, cases: u64) -> serde_json::Value {
 
 #[test]
 fn text_parsers_survive_2000_hostile_inputs_each() {
-    fuzz("schema,config,protocol,llm_reply", 2000);
+    fuzz("schema,config,protocol,llm_reply,ring_message", 2000);
 }
 
 #[test]

@@ -28,7 +28,7 @@ use lmac_trainer::train::TrainConfig;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
-pub const PARSERS: &[&str] = &["schema", "config", "protocol", "llm_reply", "dataset", "checkpoint"];
+pub const PARSERS: &[&str] = &["schema", "config", "protocol", "llm_reply", "dataset", "checkpoint", "ring_message"];
 
 pub fn make(name: &str) -> Result<Box<dyn Target>, String> {
     Ok(match name {
@@ -38,6 +38,7 @@ pub fn make(name: &str) -> Result<Box<dyn Target>, String> {
         "llm_reply" => Box::new(LlmReplyTarget::new()?),
         "dataset" => Box::new(DatasetTarget::new()?),
         "checkpoint" => Box::new(CheckpointTarget::new()?),
+        "ring_message" => Box::new(RingMessageTarget),
         other => return Err(format!("unknown parser {other:?}: use one of {} or all", PARSERS.join(", "))),
     })
 }
@@ -731,5 +732,57 @@ impl Target for CheckpointTarget {
     }
     fn error_must_name(&self) -> &'static [&'static str] {
         &["lmac-fuzz-checkpoint"]
+    }
+}
+
+/// The 24-byte slot messages a ring member receives from its peers: any bytes, checked by
+/// `ring::check_slot_msg` against a ring of random sizes seen from a random member. A message it
+/// accepts must be safe to index with: its server and slot inside the ring.
+pub struct RingMessageTarget;
+
+fn ring_case(bytes: &[u8]) -> Option<(lmac_shm_schema::ring::RingSpec, usize, lmac_shm_schema::SlotMsg)> {
+    use lmac_shm_schema::{ring::RingSpec, SlotMsg, Stage};
+    if bytes.len() != 32 {
+        return None;
+    }
+    let u32_at = |i: usize| u32::from_le_bytes(bytes[i..i + 4].try_into().expect("4 bytes"));
+    let (n_servers, n_slots) = (1 + (bytes[24] as usize % 8), 1 + (bytes[25] as usize % 8));
+    let role = [Stage::Env, Stage::Runner, Stage::Trainer][bytes[26] as usize % 3];
+    let (server, inbox) = (bytes[27] as usize % n_servers, bytes[28] as usize % n_servers);
+    let spec = RingSpec { run: "fuzz".into(), n_servers, n_slots, role, server };
+    let msg = SlotMsg {
+        kind: u32_at(0),
+        server: u32_at(4),
+        slot: u32_at(8),
+        _pad: u32_at(12),
+        seq: u64::from_le_bytes(bytes[16..24].try_into().ok()?),
+    };
+    Some((spec, inbox, msg))
+}
+
+impl Target for RingMessageTarget {
+    fn name(&self) -> &'static str {
+        "ring_message"
+    }
+    fn generate(&mut self, r: &mut Rng) -> Case {
+        // 24 message bytes + 8 bytes choosing the ring; fields are often near the edges.
+        let mut b: Vec<u8> = (0..32).map(|_| r.below(256) as u8).collect();
+        for field in [0usize, 4, 8] {
+            if r.chance(0.6) {
+                let v = *r.pick(&[0u32, 1, 2, 3, 7, 8, u32::MAX, u32::MAX - 1]);
+                b[field..field + 4].copy_from_slice(&v.to_le_bytes());
+            }
+        }
+        Case { files: vec![("message.bin".into(), b)], note: "slot message and ring sizes".into() }
+    }
+    fn run(&mut self, case: &Case) -> Result<(), String> {
+        let (spec, inbox, msg) = ring_case(&case.files[0].1).ok_or("not 32 bytes")?;
+        match lmac_shm_schema::ring::check_slot_msg(&spec, inbox, &msg) {
+            Ok(()) if msg.server as usize >= spec.n_servers || msg.slot as usize >= spec.n_slots => {
+                panic!("accepted a message outside the ring: {msg:?} for {spec:?}")
+            }
+            Ok(()) => Ok(()),
+            Err((field, value, problem)) => Err(format!("{field} {value} {problem}")),
+        }
     }
 }
