@@ -2,27 +2,16 @@
 //! Level-Based Foraging environment. They run the release `lmac` binary built by
 //! `scripts/setup.sh` (or `$LMAC_BIN`).
 
+use lmac_e2e::harness::{lmac, root, wait_for};
 use std::collections::HashSet;
 use std::os::unix::fs::PermissionsExt;
-use std::path::PathBuf;
+
 use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 /// The tests watch /dev/shm; one at a time.
 static SERIAL: Mutex<()> = Mutex::new(());
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
-}
-
-fn lmac() -> Command {
-    let bin = std::env::var("LMAC_BIN").map(PathBuf::from).unwrap_or_else(|_| root().join("target/release/lmac"));
-    assert!(bin.exists(), "{} not found: run scripts/setup.sh (it builds the release binary) or set LMAC_BIN", bin.display());
-    let mut c = Command::new(bin);
-    c.current_dir(root());
-    c
-}
 
 fn lmac_shm_files() -> HashSet<String> {
     std::fs::read_dir("/dev/shm")
@@ -42,17 +31,6 @@ fn all_shm_files() -> HashSet<String> {
         .map(|e| e.file_name().to_string_lossy().to_string())
         .filter(|n| !n.ends_with("global_mgmt"))
         .collect()
-}
-
-fn wait_for<T>(timeout: Duration, mut f: impl FnMut() -> Option<T>) -> Option<T> {
-    let t0 = Instant::now();
-    while t0.elapsed() < timeout {
-        if let Some(v) = f() {
-            return Some(v);
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    None
 }
 
 fn wait_exit(child: &mut Child, timeout: Duration) -> Option<std::process::ExitStatus> {

@@ -3,53 +3,22 @@
 //! with metrics that continue without a step backwards and with no shared memory left behind.
 //! Runs the release `lmac` binary built by `scripts/setup.sh` (or `$LMAC_BIN`).
 
+use lmac_e2e::harness::{lmac, lmac_shm_files, wait_for};
 use lmac_trainer::faults::{metrics_t_env, pipeline_children, Role};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Stdio};
 use std::sync::Mutex;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// The tests watch /dev/shm and share the two cores; one at a time.
 static SERIAL: Mutex<()> = Mutex::new(());
 
 const STEPS: u64 = 40_000;
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
-}
-
-fn lmac() -> Command {
-    let bin = std::env::var("LMAC_BIN").map(PathBuf::from).unwrap_or_else(|_| root().join("target/release/lmac"));
-    assert!(bin.exists(), "{} not found: run scripts/setup.sh or set LMAC_BIN", bin.display());
-    let mut c = Command::new(bin);
-    c.current_dir(root());
-    c
-}
-
-fn lmac_shm_files() -> Vec<String> {
-    std::fs::read_dir("/dev/shm")
-        .unwrap()
-        .flatten()
-        .map(|e| e.file_name().to_string_lossy().to_string())
-        .filter(|n| n.starts_with("lmac-"))
-        .collect()
-}
-
 /// The lmac slabs in /dev/shm that were not there at `before` (other runs on the machine,
 /// started before the test, keep theirs).
 fn new_shm_files(before: &[String]) -> Vec<String> {
     lmac_shm_files().into_iter().filter(|f| !before.contains(f)).collect()
-}
-
-fn wait_for<T>(timeout: Duration, mut f: impl FnMut() -> Option<T>) -> Option<T> {
-    let t0 = Instant::now();
-    while t0.elapsed() < timeout {
-        if let Some(v) = f() {
-            return Some(v);
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    None
 }
 
 /// Start a small QMIX run on LBF 8x8 (one env server of 8 envs, checkpoints every 5k steps).
