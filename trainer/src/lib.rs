@@ -1,4 +1,5 @@
 //! lmac trainer: episode assembly from shared-memory slots, acting, learning, and the CLI.
+pub mod dataset;
 pub mod design;
 pub mod episode;
 pub mod faults;

@@ -3,7 +3,7 @@
 //! and learning overlap on our two cores. Greedy test episodes, metrics (CSV + JSON lines),
 //! atomic checkpoints and resume live here; the learning itself is `learn/`.
 
-use crate::design::dataset::{Dataset, DatasetHeader, Trajectory};
+use crate::dataset::{Dataset, DatasetHeader, Trajectory};
 use crate::episode::{Episode, EpisodeDims};
 use crate::learn::{Controller, LearnConfig, LearnRng, Learner, MixerKind};
 use crate::pipeline::Actor;

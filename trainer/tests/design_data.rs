@@ -7,7 +7,7 @@ use lmac_protocol_runner::builtin::FullComm;
 use lmac_protocol_runner::plan::{MessagePlan, StepView};
 use lmac_protocol_runner::protocol::{self, ProtocolEnv, ValidatedProtocol};
 use lmac_shm_schema::schema::{DimGroup, EnvSchema};
-use lmac_trainer::design::dataset::{Dataset, DatasetHeader, Trajectory};
+use lmac_trainer::dataset::{Dataset, DatasetHeader, Trajectory};
 use lmac_trainer::design::discriminator::{split_episodes, DiscInput, Discriminator, DiscriminatorConfig};
 use lmac_trainer::design::meta::{self, MetaConfig, Recovery};
 use lmac_trainer::design::offline::{OfflineConfig, OfflineDesigner};

@@ -3,7 +3,7 @@
 //! the field, never a panic or a giant allocation. (The random version of this is the dataset
 //! parser of `lmac-fuzz` in the tests crate.)
 
-use lmac_trainer::design::dataset::{Dataset, DatasetHeader, Trajectory};
+use lmac_trainer::dataset::{Dataset, DatasetHeader, Trajectory};
 use std::path::{Path, PathBuf};
 
 fn tmp_dir(tag: &str) -> PathBuf {

@@ -19,7 +19,7 @@ use super::{scratch_dir, Case, Rng, Target};
 use lmac_protocol_runner::plan::{MessagePlan, StepView};
 use lmac_protocol_runner::protocol::{self, ProtocolEnv};
 use lmac_shm_schema::EnvSchema;
-use lmac_trainer::design::dataset::{Dataset, DatasetHeader, Trajectory};
+use lmac_trainer::dataset::{Dataset, DatasetHeader, Trajectory};
 use lmac_trainer::design::llm::{parse_response, Provider};
 use lmac_trainer::design::llm_designer::parse_feedback;
 use lmac_trainer::episode::{Episode, EpisodeDims};

@@ -37,7 +37,7 @@
 //! Evaluation happens on held-out episodes ([`split_episodes`]): chi measures generalization
 //! to trajectories the discriminator never saw, not memorization.
 
-use super::dataset::Dataset;
+use crate::dataset::Dataset;
 use crate::learn::{init::linear, LearnRng};
 use anyhow::{bail, Result};
 use burn::module::Module;

@@ -27,9 +27,9 @@
 //! recovered with messages relative to a constant guess ([`skill`]; ties: worst without
 //! messages, then lower index); the JSON says so.
 
-use super::dataset::Dataset;
 use super::discriminator::{split_episodes, DiscInput, Discriminator, DiscriminatorConfig, TrainReport};
 use super::DesignContext;
+use crate::dataset::Dataset;
 use anyhow::{bail, Result};
 use burn::tensor::Device;
 use lmac_protocol_runner::protocol::{self, ValidatedProtocol};

@@ -15,7 +15,6 @@
 //! the embedded offline designer ([`offline`]), a deterministic algorithm over the
 //! meta-information that needs no network and is labelled as what it is.
 
-pub mod dataset;
 pub mod discriminator;
 pub mod llm;
 pub mod llm_designer;
@@ -37,7 +36,7 @@ pub struct DesignContext<'a> {
     pub schema: &'a EnvSchema,
     pub env: &'a ProtocolEnv,
     /// The dataset B (None before it is collected).
-    pub dataset: Option<&'a dataset::Dataset>,
+    pub dataset: Option<&'a crate::dataset::Dataset>,
     /// Seed for everything random in the design (discriminator init, batches).
     pub seed: u64,
 }

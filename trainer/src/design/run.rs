@@ -16,8 +16,8 @@
 //!                           without messages; recovery.png plots it (the paper's Figure 3)
 //! ```
 
-use super::dataset::Dataset;
 use super::{DesignContext, Designer, PhaseProtocol};
+use crate::dataset::Dataset;
 use anyhow::{bail, Context, Result};
 use lmac_protocol_runner::protocol::{self, ValidatedProtocol};
 use serde::Serialize;

@@ -105,7 +105,7 @@ pub(super) fn sample(
     let stride = total.div_ceil(max_samples.max(1)).max(1);
     // Whole episodes (message history needs them), every stride-th one.
     let chosen: Vec<usize> = (0..data.episodes.len()).step_by(stride).collect();
-    let sub = crate::design::dataset::Dataset { header: h.clone(), episodes: chosen.iter().map(|&e| data.episodes[e].clone()).collect() };
+    let sub = crate::dataset::Dataset { header: h.clone(), episodes: chosen.iter().map(|&e| data.episodes[e].clone()).collect() };
     let mut prev_plan = if previous.is_empty() {
         None
     } else {
