@@ -111,6 +111,10 @@ fn a_run_interrupted_with_sigint_resumes_to_its_target() {
     let child = start_training(&out, false);
     let dir = seed_dir(&out);
     wait_past_first_checkpoint(&dir);
+    // A second lmac on the same run is refused while the first runs.
+    let second = lmac().arg("train").arg("--resume").arg(&dir).output().unwrap();
+    let text = String::from_utf8_lossy(&second.stderr);
+    assert!(!second.status.success() && text.contains("being trained by another lmac"), "{text}");
     unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
     let (ok, stderr) = finish(child);
     assert!(!ok, "an interrupted run exits non-zero");

@@ -124,6 +124,9 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
 pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
     use lmac_trainer::train::TrainConfig;
     for d in dirs {
+        // One lmac at a time per run directory: a second one would interleave checkpoints and
+        // metrics. The lock goes with the process (also when it is killed).
+        let _lock = lmac_trainer::run_dir::lock(d)?;
         let cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(d.join("config.toml"))?)
             .map_err(|e| anyhow::anyhow!("{}: {}", d.join("config.toml").display(), e.message()))?;
         cfg.check()?;
