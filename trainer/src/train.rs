@@ -741,8 +741,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     };
     let device = crate::learn::Device::default();
     let ck = checkpoint_dir(run_dir);
-    let resuming = ck.join("state.json").exists() || sibling_old(&ck).join("state.json").exists();
-    let learner = if resuming {
+    let learner = if crate::learn::checkpoint::checkpoint_exists(&ck) {
         let info = crate::learn::checkpoint::peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("resuming: {e}"))?;
         if info.dims != dims {
             bail!("checkpoint {} was made for {:?}, this run has {:?}", info.dir.display(), info.dims, dims);
@@ -849,13 +848,6 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         Ok(r) => Ok(r),
         Err(e) => bail!("{e}{ck_note}"),
     }
-}
-
-/// `<dir>.old`: where a checkpoint interrupted in its final rename is found.
-fn sibling_old(dir: &Path) -> PathBuf {
-    let mut s = dir.as_os_str().to_owned();
-    s.push(".old");
-    PathBuf::from(s)
 }
 
 fn learner_loop(

@@ -132,10 +132,11 @@ pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBoo
         cfg.check()?;
         // Where the run stands: a checkpoint's step, or 0 for a fresh start.
         let ck = lmac_trainer::train::checkpoint_dir(d);
-        let done_t_env = match lmac_trainer::learn::checkpoint::peek_checkpoint(&ck) {
-            Ok(info) => info.counters.t_env,
-            Err(_) if !ck.exists() && !ck.with_extension("old").exists() => 0,
-            Err(e) => bail!("{}: {e}", d.display()),
+        use lmac_trainer::learn::checkpoint::{checkpoint_exists, peek_checkpoint};
+        let done_t_env = if checkpoint_exists(&ck) {
+            peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("{}: {e}", d.display()))?.counters.t_env
+        } else {
+            0
         };
         let dataset_done = cfg.run.dataset_episodes == 0 || lmac_trainer::train::dataset_dir(d).exists();
         if done_t_env >= cfg.run.steps && dataset_done {

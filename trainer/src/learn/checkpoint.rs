@@ -69,6 +69,12 @@ pub struct CheckpointInfo {
 /// building the networks it implies cannot exhaust memory on a corrupt file.
 const MAX_DIM: usize = 1 << 16;
 
+/// Whether `dir` holds a checkpoint (or `<dir>.old` does, after a crash in the final rename).
+pub fn checkpoint_exists(dir: impl AsRef<Path>) -> bool {
+    let dir = dir.as_ref();
+    dir.join("state.json").exists() || sibling(dir, ".old").join("state.json").exists()
+}
+
 /// Read and check a checkpoint's `state.json` (falls back to `<dir>.old`, see
 /// [`Learner::load_checkpoint`]). Errors name the file and the field.
 pub fn peek_checkpoint(dir: impl AsRef<Path>) -> Result<CheckpointInfo, LearnError> {
