@@ -4,7 +4,6 @@ use super::train::train_dirs;
 use super::{interrupt_flag, parse_steps};
 use anyhow::{Context, Result};
 use clap::Args;
-use lmac_trainer::supervisor;
 
 #[derive(Args)]
 pub(crate) struct DesignArgs {
@@ -106,19 +105,8 @@ pub(crate) fn design(a: DesignArgs) -> Result<i32> {
         meta::evaluate(ctx, phases, &meta_cfg)
     };
     let dir = run_design(&opts, designer.as_mut(), &train, &evaluate)?;
-    plot_design(&dir);
+    super::plot("plot_design.py", &dir);
     println!("design written to {}", dir.display());
     println!("final protocol: {}", std::fs::read_to_string(dir.join("final_protocol.txt"))?.trim());
     Ok(0)
-}
-
-/// The design's Figure 3 (matplotlib, in the project's Python).
-pub(crate) fn plot_design(dir: &std::path::Path) {
-    let script = supervisor::repo_root().map(|r| r.join("trainer/plot_design.py"));
-    let out = script.and_then(|s| Ok(supervisor::python_command()?.arg(s).arg(dir).output()?));
-    match out {
-        Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
-        Ok(o) => eprintln!("lmac: plotting the design failed: {}", String::from_utf8_lossy(&o.stderr)),
-        Err(e) => eprintln!("lmac: plotting the design failed: {e}"),
-    }
 }

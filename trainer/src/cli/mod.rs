@@ -120,3 +120,15 @@ pub(crate) fn pipeline_report(
     };
     Ok(supervisor::run_pipeline(&rp, interrupted)?.report)
 }
+
+/// Draw a run's or a design's figures with one of the project's matplotlib scripts
+/// (`trainer/<script>`, run by the project's Python on `dir`); a failure is reported, not fatal.
+pub(crate) fn plot(script: &str, dir: &std::path::Path) {
+    let path = supervisor::repo_root().map(|r| r.join("trainer").join(script));
+    let out = path.and_then(|s| Ok(supervisor::python_command()?.arg(s).arg(dir).output()?));
+    match out {
+        Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
+        Ok(o) => eprintln!("lmac: {script} failed: {}", String::from_utf8_lossy(&o.stderr)),
+        Err(e) => eprintln!("lmac: {script} failed: {e}"),
+    }
+}

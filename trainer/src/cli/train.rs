@@ -4,7 +4,6 @@
 use super::{interrupt_flag, parse_steps, pipeline_report, PipelineOpts};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use lmac_trainer::supervisor;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
@@ -116,7 +115,7 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
     };
     eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
     train_dirs(&dirs, interrupted)?;
-    plot_runs(&group);
+    super::plot("plot_runs.py", &group);
     Ok(0)
 }
 
@@ -168,15 +167,4 @@ pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBoo
         pipeline_report(&p, extra, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
     }
     Ok(())
-}
-
-/// Plots and the multi-seed summary (matplotlib, in the project's Python).
-pub(crate) fn plot_runs(group: &std::path::Path) {
-    let script = supervisor::repo_root().map(|r| r.join("trainer/plot_runs.py"));
-    let out = script.and_then(|s| Ok(supervisor::python_command()?.arg(s).arg(group).output()?));
-    match out {
-        Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
-        Ok(o) => eprintln!("lmac: plotting failed: {}", String::from_utf8_lossy(&o.stderr)),
-        Err(e) => eprintln!("lmac: plotting failed: {e}"),
-    }
 }
