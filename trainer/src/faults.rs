@@ -448,6 +448,8 @@ pub struct SoakSample {
     pub t_env: u64,
     pub processes: usize,
     pub rss_mib: f64,
+    /// RSS per role (parent, env server, protocol runner, trainer), summed over its processes.
+    pub rss_mib_by_role: std::collections::BTreeMap<String, f64>,
     pub open_fds: usize,
     /// Mappings of files in /dev/shm (slabs, iceoryx2 segments).
     pub shm_mappings: usize,
@@ -463,7 +465,12 @@ fn rss_kib(pid: i32) -> u64 {
 }
 
 fn sample(parent: i32, dir: Option<&Path>, t0: Instant) -> SoakSample {
-    let pids: Vec<i32> = std::iter::once(parent).chain(pipeline_children(parent).into_iter().map(|p| p.pid)).collect();
+    let procs: Vec<RunProc> = std::iter::once(RunProc { pid: parent, role: Role::Parent }).chain(pipeline_children(parent)).collect();
+    let pids: Vec<i32> = procs.iter().map(|p| p.pid).collect();
+    let mut rss_mib_by_role = std::collections::BTreeMap::new();
+    for p in &procs {
+        *rss_mib_by_role.entry(p.role.name().to_string()).or_insert(0.0) += rss_kib(p.pid) as f64 / 1024.0;
+    }
     let fds = |pid: i32| std::fs::read_dir(format!("/proc/{pid}/fd")).map(|d| d.count()).unwrap_or(0);
     let maps = |pid: i32| {
         std::fs::read_to_string(format!("/proc/{pid}/maps")).unwrap_or_default().lines().filter(|l| l.contains("/dev/shm/")).count()
@@ -472,7 +479,8 @@ fn sample(parent: i32, dir: Option<&Path>, t0: Instant) -> SoakSample {
         wall_s: t0.elapsed().as_secs_f64(),
         t_env: dir.map(|d| metrics_t_env(d).last().copied().unwrap_or(0)).unwrap_or(0),
         processes: pids.len(),
-        rss_mib: pids.iter().map(|&p| rss_kib(p)).sum::<u64>() as f64 / 1024.0,
+        rss_mib: rss_mib_by_role.values().sum(),
+        rss_mib_by_role,
         open_fds: pids.iter().map(|&p| fds(p)).sum(),
         shm_mappings: pids.iter().map(|&p| maps(p)).sum(),
         shm_files: shm_files().len(),
