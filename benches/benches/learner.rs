@@ -16,16 +16,7 @@ fn filled_learner(mixer: MixerKind) -> Learner {
     let mut rng = LearnRng::seed_from(0);
     let d = DIMS;
     for _ in 0..64 {
-        let len = 50;
-        let mut ep = Episode::with_capacity(&d, len);
-        ep.len = len;
-        ep.obs = (0..len * d.n_agents * d.obs_width).map(|_| rng.uniform()).collect();
-        ep.state = (0..len * d.state_dim).map(|_| rng.uniform()).collect();
-        ep.avail = vec![1; len * d.n_agents * d.n_actions];
-        ep.actions = (0..len * d.n_agents).map(|_| rng.below(d.n_actions) as i32).collect();
-        ep.reward = (0..len).map(|_| rng.uniform()).collect();
-        ep.terminated = true;
-        learner.add_episode(ep).unwrap();
+        learner.add_episode(Episode::synthetic(&d, 50, &mut rng, true)).unwrap();
     }
     learner
 }

@@ -62,6 +62,20 @@ impl Episode {
         }
     }
 
+    /// An episode of `len` steps of uniform random values and actions, every action available:
+    /// what the learner benchmarks train on (values do not change the cost of dense math).
+    pub fn synthetic(dims: &EpisodeDims, len: usize, rng: &mut crate::learn::LearnRng, terminated: bool) -> Episode {
+        let mut ep = Episode::with_capacity(dims, len);
+        ep.len = len;
+        ep.obs = (0..len * dims.n_agents * dims.obs_width).map(|_| rng.uniform()).collect();
+        ep.state = (0..len * dims.state_dim).map(|_| rng.uniform()).collect();
+        ep.avail = vec![1; len * dims.n_agents * dims.n_actions];
+        ep.actions = (0..len * dims.n_agents).map(|_| rng.below(dims.n_actions) as i32).collect();
+        ep.reward = (0..len).map(|_| rng.uniform()).collect();
+        (ep.terminated, ep.truncated) = (terminated, !terminated);
+        ep
+    }
+
     pub fn team_return(&self) -> f32 {
         self.reward.iter().sum()
     }

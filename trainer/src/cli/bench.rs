@@ -213,15 +213,7 @@ pub(crate) fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64
     let mut rng = LearnRng::seed_from(0);
     let len = schema.episode_limit;
     for _ in 0..2 * learn.batch_size {
-        let mut ep = Episode::with_capacity(&dims, len);
-        ep.len = len;
-        ep.obs = (0..len * dims.n_agents * dims.obs_width).map(|_| rng.uniform()).collect();
-        ep.state = (0..len * dims.state_dim).map(|_| rng.uniform()).collect();
-        ep.avail = vec![1; len * dims.n_agents * dims.n_actions];
-        ep.actions = (0..len * dims.n_agents).map(|_| rng.below(dims.n_actions) as i32).collect();
-        ep.reward = (0..len).map(|_| rng.uniform()).collect();
-        ep.truncated = true;
-        learner.add_episode(ep)?;
+        learner.add_episode(Episode::synthetic(&dims, len, &mut rng, false))?;
     }
     for _ in 0..3 {
         learner.train_step()?;
