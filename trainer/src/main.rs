@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand};
 use cli::bench::BenchCmd;
 use cli::child::ChildCmd;
 use cli::design::DesignArgs;
+use cli::experiment::ExperimentArgs;
 use cli::faults::{ChaosArgs, SoakArgs};
 use cli::protocol::ProtocolCmd;
 use cli::run::RunArgs;
@@ -28,12 +29,15 @@ struct Cli {
 enum Cmd {
     /// Run the pipeline with a random policy: env servers -> protocol runner -> trainer (throughput, checks).
     Run(RunArgs),
-    /// Train VDN / QMIX / QPLEX and the baselines through the pipeline, over several seeds.
+    /// Train a method (qmix, vdn, qplex, fullcomm, qmix-state, lmac) through the pipeline, over several seeds.
     #[command(after_long_help = TRAIN_AFTER_HELP)]
     Train(TrainArgs),
     /// Design a communication protocol in three phases (initialization, recognition enhancement,
     /// sharing enhancement) with an LLM or the embedded offline designer, checked on real data.
     Design(DesignArgs),
+    /// The paper's Algorithm 1 end to end: one protocol design, then LMAC and the baselines over
+    /// seeds with the same settings, then a comparison table and curves (rerun to resume).
+    Experiment(ExperimentArgs),
     /// Protocols: check a protocol file against an environment, explain it, print the JSON Schema.
     #[command(subcommand)]
     Protocol(ProtocolCmd),
@@ -80,9 +84,10 @@ fn dispatch(cli: Cli) -> Result<i32> {
         Cmd::Train(a) => cli::train::train(a),
         Cmd::Protocol(p) => cli::protocol::protocol_cmd(p),
         Cmd::Design(d) => cli::design::design(d),
+        Cmd::Experiment(e) => cli::experiment::experiment(e),
         Cmd::Bench(BenchCmd::Pipeline { p, repeat, json }) => cli::bench::bench_pipeline(p, repeat, json),
-        Cmd::Bench(BenchCmd::Train { env, algo, envs, steps, updates, json }) => {
-            cli::bench::bench_train(&env, &algo, &envs, steps, updates, json)
+        Cmd::Bench(BenchCmd::Train { env, algo, protocol, envs, steps, updates, json }) => {
+            cli::bench::bench_train(&env, &algo, protocol.as_deref(), &envs, steps, updates, json)
         }
         Cmd::Chaos(a) => cli::faults::chaos(a),
         Cmd::Soak(a) => cli::faults::soak(a),

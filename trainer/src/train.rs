@@ -5,7 +5,8 @@
 
 use crate::dataset::{Dataset, DatasetHeader, Trajectory};
 use crate::episode::{Episode, EpisodeDims};
-use crate::learn::{Controller, LearnConfig, LearnRng, Learner, MixerKind};
+use crate::learn::methods::{self, AgentConfig, AgentNet, Messages, MethodContext};
+use crate::learn::{Controller, LearnConfig, LearnRng, Learner};
 use crate::pipeline::Actor;
 use anyhow::{bail, Context, Result};
 use lmac_shm_schema::{Slot, FLAG_FIRST};
@@ -22,7 +23,7 @@ use std::time::Instant;
 #[serde(default, deny_unknown_fields)]
 pub struct RunSection {
     pub env: String,
-    /// qmix | vdn | qplex | fullcomm | qmix-state (see `Algo`).
+    /// A method of `learn::methods::REGISTRY`: qmix, vdn, qplex, fullcomm, qmix-state, lmac.
     pub algo: String,
     /// Environment steps to train for.
     pub steps: u64,
@@ -50,9 +51,13 @@ pub struct RunSection {
     /// Also store the replay buffer in checkpoints (exact resumption; large).
     pub save_buffer: bool,
     /// Message protocol for the runner: empty = the algorithm's own (`none` for qmix, vdn,
-    /// qplex and qmix-state, `fullcomm` for fullcomm); else protocol files joined by '+'
-    /// (`phase0.json+phase1.json`), for the message-less algorithms only.
+    /// qplex and qmix-state, `fullcomm` for fullcomm); else a design directory (its
+    /// `phase<k>/protocol.json` files) or protocol files joined by '+'
+    /// (`phase0.json+phase1.json`). Required by lmac; not allowed with fullcomm.
     pub protocol: String,
+    /// Use the design's phases 0..=k only (the paper's k: 0, 1 or 2); absent = all of them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub design_k: Option<usize>,
     /// After `steps`, keep acting epsilon-greedy without learning for this many episodes and
     /// store them as the trajectory dataset B in `<run dir>/dataset` (protocol design).
     pub dataset_episodes: usize,
@@ -77,6 +82,7 @@ impl Default for RunSection {
             checkpoint_interval: 100_000,
             save_buffer: false,
             protocol: String::new(),
+            design_k: None,
             dataset_episodes: 0,
             dataset_epsilon: None,
         }
@@ -89,6 +95,10 @@ impl Default for RunSection {
 pub struct TrainConfig {
     pub run: RunSection,
     pub learn: LearnConfig,
+    /// The settings of `run.algo`'s method (see its file in `learn/methods/`); checked by the
+    /// method, unknown keys are errors.
+    #[serde(skip_serializing_if = "toml::Table::is_empty")]
+    pub method: toml::Table,
 }
 
 /// Named bundles of settings (`lmac train --preset NAME`), applied before `--set` overrides.
@@ -136,23 +146,28 @@ impl UpdateSchedule {
     }
 }
 
-/// An algorithm = a protocol for the runner + what the agents see; the backbone (mixer) is
-/// orthogonal (`learn.mixer`).
-pub struct Algo {
-    pub protocol: &'static str,
-    pub sees_state: bool,
-    pub mixer: Option<MixerKind>,
-}
-
-pub fn algo(name: &str) -> Result<Algo> {
-    Ok(match name {
-        "qmix" => Algo { protocol: "none", sees_state: false, mixer: Some(MixerKind::Qmix) },
-        "vdn" => Algo { protocol: "none", sees_state: false, mixer: Some(MixerKind::Vdn) },
-        "qplex" => Algo { protocol: "none", sees_state: false, mixer: Some(MixerKind::Qplex) },
-        "fullcomm" => Algo { protocol: "fullcomm", sees_state: false, mixer: None },
-        "qmix-state" => Algo { protocol: "none", sees_state: true, mixer: None },
-        other => bail!("run.algo: unknown algorithm {other:?}; use qmix, vdn, qplex, fullcomm or qmix-state"),
-    })
+/// The protocol files of `spec`: a design directory gives its `phase<i>/protocol.json` for
+/// i = 0..=k (all phases present when `k` is absent); files joined by '+' give the first k + 1.
+pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
+    let path = Path::new(spec);
+    let files: Vec<String> = if path.is_dir() {
+        let found: Vec<String> = (0..)
+            .map(|i| path.join(format!("phase{i}")).join("protocol.json"))
+            .take_while(|p| p.exists())
+            .map(|p| p.display().to_string())
+            .collect();
+        if found.is_empty() {
+            bail!("run.protocol: {spec} is a directory without phase0/protocol.json (not a design directory)");
+        }
+        found
+    } else {
+        spec.split('+').map(str::to_string).collect()
+    };
+    match k {
+        Some(k) if k + 1 > files.len() => bail!("run.design_k: {k} asks for {} phases but {spec} has {}", k + 1, files.len()),
+        Some(k) => Ok(files[..=k].to_vec()),
+        None => Ok(files),
+    }
 }
 
 impl TrainConfig {
@@ -200,10 +215,10 @@ impl TrainConfig {
         Ok(cfg)
     }
 
-    /// Apply the algorithm's implications (mixer for qmix/vdn/qplex, state for qmix-state)
-    /// and validate everything.
+    /// Validate everything: the run, the learner, the protocol against the environment and the
+    /// method's settings.
     pub fn check(&self) -> Result<()> {
-        algo(&self.run.algo)?;
+        methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
         self.learn.validate()?;
         let r = &self.run;
         for (field, v) in [
@@ -237,34 +252,59 @@ impl TrainConfig {
         if plan.msg_dim() > schema.message_columns {
             bail!("run.protocol: {protocol} writes {} message columns but {} allows {}", plan.msg_dim(), r.env, schema.message_columns);
         }
+        self.agent_config(&schema, plan.msg_dim())?;
         Ok(())
     }
 
-    /// The protocol the runner applies: `run.protocol` if set, else the algorithm's.
+    /// The protocol the runner applies: the method's own, or `run.protocol` resolved to files.
     pub fn protocol(&self) -> Result<String> {
-        let a = algo(&self.run.algo)?;
-        if self.run.protocol.is_empty() {
-            return Ok(a.protocol.to_string());
+        let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
+        let given = !self.run.protocol.is_empty();
+        match m.messages {
+            Messages::FullComm if given => {
+                bail!("run.protocol: {} fixes its protocol (fullcomm); give a protocol to qmix, vdn, qplex, qmix-state or lmac", m.name)
+            }
+            Messages::FullComm => Ok("fullcomm".into()),
+            Messages::Designed if !given => bail!(
+                "run.protocol: {} needs a designed protocol: --protocol <design directory> (from `lmac design`) or phase files a.json+b.json",
+                m.name
+            ),
+            Messages::Optional if !given => {
+                if self.run.design_k.is_some() {
+                    bail!("run.design_k: set, but run.protocol is empty");
+                }
+                Ok("none".into())
+            }
+            _ => Ok(protocol_files(&self.run.protocol, self.run.design_k)?.join("+")),
         }
-        if a.protocol != "none" {
-            bail!(
-                "run.protocol: algorithm {} fixes its protocol ({}); use qmix, vdn, qplex or qmix-state with a protocol",
-                self.run.algo,
-                a.protocol
-            );
-        }
-        Ok(self.run.protocol.clone())
     }
 
-    /// The learner config with the algorithm's settings applied.
+    /// The learner config with the method's backbone and inputs applied.
     pub fn effective_learn(&self) -> Result<LearnConfig> {
-        let a = algo(&self.run.algo)?;
+        let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
         let mut l = self.learn.clone();
-        if let Some(m) = a.mixer {
-            l.mixer = m;
+        if let Some(mixer) = m.mixer {
+            l.mixer = mixer;
         }
-        l.agent_sees_state |= a.sees_state;
+        l.agent_sees_state |= m.agent_sees_state;
         Ok(l)
+    }
+
+    /// The method's agent network for this run: its `[method]` settings checked against what
+    /// the environment and the protocol (`msg_cols` message columns) give it.
+    pub fn agent_config(&self, schema: &lmac_shm_schema::EnvSchema, msg_cols: usize) -> Result<AgentConfig> {
+        let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
+        let protocol = self.protocol()?;
+        let mut critical = std::collections::BTreeSet::new();
+        if protocol != "none" && protocol != "fullcomm" {
+            let files: Vec<&str> = protocol.split('+').collect();
+            let env = lmac_protocol_runner::protocol_env(schema);
+            for phase in lmac_protocol_runner::load_phases(&files, &env).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))? {
+                critical.extend(phase.critical_dims);
+            }
+        }
+        let ctx = MethodContext { msg_cols, alpha: schema.alpha, critical_dims: critical.into_iter().collect(), state_dim: schema.state_dim };
+        (m.configure)(&self.method, &ctx).map_err(|e| anyhow::anyhow!("{}: {e}", m.name))
     }
 }
 
@@ -283,6 +323,9 @@ pub struct MetricsRow {
     pub loss: Option<f32>,
     pub grad_norm: Option<f32>,
     pub q_taken_mean: Option<f32>,
+    /// The method's extra losses and diagnostics of the last update (LMAC's, for example).
+    #[serde(flatten, default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub method: std::collections::BTreeMap<String, f32>,
 }
 
 const CSV_HEADER: &str =
@@ -290,6 +333,8 @@ const CSV_HEADER: &str =
 
 /// The metrics of a run: CSV, JSON lines and TensorBoard scalars, side by side in its directory.
 pub struct Metrics {
+    /// The method's columns after the common ones (`AgentConfig::stat_names`).
+    method_columns: Vec<String>,
     csv: std::fs::File,
     jsonl: std::fs::File,
     tb: crate::tensorboard::EventWriter,
@@ -364,12 +409,13 @@ impl Metrics {
     /// continues from (0 for a fresh start): rows logged after it are dropped from the CSV and
     /// the JSON lines, and TensorBoard is told to discard its later events, so no curve steps
     /// backwards.
-    pub fn open(dir: &Path, resume_t_env: u64) -> Result<(Metrics, MetricsResume)> {
+    pub fn open(dir: &Path, resume_t_env: u64, method_columns: &[&str]) -> Result<(Metrics, MetricsResume)> {
         let csv_path = dir.join("metrics.csv");
         let jsonl_path = dir.join("metrics.jsonl");
+        let header: String = std::iter::once(CSV_HEADER).chain(method_columns.iter().copied()).collect::<Vec<_>>().join(",");
+        let columns = header.split(',').count();
         let t_env_of_csv = |line: &str| line.split(',').next().and_then(|v| v.parse::<u64>().ok());
-        let ok_csv =
-            |line: &str| line.split(',').count() == CSV_HEADER.split(',').count() && t_env_of_csv(line).is_some_and(|t| t <= resume_t_env);
+        let ok_csv = |line: &str| line.split(',').count() == columns && t_env_of_csv(line).is_some_and(|t| t <= resume_t_env);
         let (dropped_csv, kept) = keep_lines(&csv_path, 1, ok_csv)?;
         let wall_s = kept.iter().skip(1).last().and_then(|l| l.split(',').nth(3)).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
         let ok_json = |line: &str| {
@@ -381,7 +427,7 @@ impl Metrics {
         let new = kept.is_empty();
         let mut csv = open(&csv_path)?;
         if new {
-            writeln!(csv, "{CSV_HEADER}").with_context(|| format!("writing {}", csv_path.display()))?;
+            writeln!(csv, "{header}").with_context(|| format!("writing {}", csv_path.display()))?;
         }
         let jsonl = open(&jsonl_path)?;
         let mut tb =
@@ -389,14 +435,16 @@ impl Metrics {
         if resume_t_env > 0 {
             tb.session_start(resume_t_env + 1).with_context(|| format!("writing {}", tb.path().display()))?;
         }
-        Ok((Metrics { csv, jsonl, tb, dir: dir.to_path_buf() }, MetricsResume { dropped_rows: dropped_csv.max(dropped_json), wall_s }))
+        let method_columns = method_columns.iter().map(|c| c.to_string()).collect();
+        Ok((Metrics { method_columns, csv, jsonl, tb, dir: dir.to_path_buf() }, MetricsResume { dropped_rows: dropped_csv.max(dropped_json), wall_s }))
     }
 
     pub fn write(&mut self, r: &MetricsRow) -> Result<()> {
         let csv_err = |e: std::io::Error| anyhow::anyhow!("writing {}: {e}", self.dir.join("metrics.csv").display());
+        let method: String = self.method_columns.iter().map(|c| format!(",{}", opt(&r.method.get(c)))).collect();
         writeln!(
             self.csv,
-            "{},{},{},{:.2},{:.1},{:.4},{},{},{},{},{},{}",
+            "{},{},{},{:.2},{:.1},{:.4},{},{},{},{},{},{}{method}",
             r.t_env,
             r.episodes,
             r.updates,
@@ -414,20 +462,19 @@ impl Metrics {
         .map_err(csv_err)?;
         self.json_line(&serde_json::to_value(r)?)?;
         let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
+        let mut scalars = vec![
+            ("env_steps_per_s", r.env_steps_per_s),
+            ("epsilon", r.epsilon as f64),
+            ("train_return_mean", f(r.train_return_mean)),
+            ("test_return_mean", f(r.test_return_mean)),
+            ("test_win_rate", f(r.test_win_rate)),
+            ("loss", f(r.loss.map(f64::from))),
+            ("grad_norm", f(r.grad_norm.map(f64::from))),
+            ("q_taken_mean", f(r.q_taken_mean.map(f64::from))),
+        ];
+        scalars.extend(self.method_columns.iter().map(|c| (c.as_str(), f(r.method.get(c).map(|&v| f64::from(v))))));
         self.tb
-            .scalars(
-                r.t_env,
-                &[
-                    ("env_steps_per_s", r.env_steps_per_s),
-                    ("epsilon", r.epsilon as f64),
-                    ("train_return_mean", f(r.train_return_mean)),
-                    ("test_return_mean", f(r.test_return_mean)),
-                    ("test_win_rate", f(r.test_win_rate)),
-                    ("loss", f(r.loss.map(f64::from))),
-                    ("grad_norm", f(r.grad_norm.map(f64::from))),
-                    ("q_taken_mean", f(r.q_taken_mean.map(f64::from))),
-                ],
-            )
+            .scalars(r.t_env, &scalars)
             .map_err(|e| anyhow::anyhow!("writing {}: {e}", self.tb.path().display()))?;
         Ok(())
     }
@@ -458,8 +505,10 @@ pub struct CheckpointWritten {
 #[derive(Default)]
 struct Shared {
     /// Newest acting weights, taken by the actor.
-    agent: Option<crate::learn::agent::RnnAgent>,
+    agent: Option<AgentNet>,
     updates: u64,
+    /// The method's terms of the last update.
+    method: Vec<(&'static str, f32)>,
     loss: Option<f32>,
     grad_norm: Option<f32>,
     q_taken_mean: Option<f32>,
@@ -571,6 +620,7 @@ impl TrainActor {
             loss: s.loss,
             grad_norm: s.grad_norm,
             q_taken_mean: s.q_taken_mean,
+            method: s.method.iter().map(|&(k, v)| (k.to_string(), v)).collect(),
         };
         drop(s);
         if test.is_none() {
@@ -741,6 +791,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     };
     let device = crate::learn::Device::default();
     let ck = checkpoint_dir(run_dir);
+    let agent_cfg = cfg.agent_config(schema, args.msg_used)?;
     let learner = if crate::learn::checkpoint::checkpoint_exists(&ck) {
         let info = crate::learn::checkpoint::peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("resuming: {e}"))?;
         if info.dims != dims {
@@ -759,10 +810,10 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         eprintln!("lmac: trainer: resuming from {} at t_env {} ({} updates), {buffer_note}", info.dir.display(), c.t_env, c.updates);
         l
     } else {
-        Learner::new(dims, learn.clone(), device)?
+        Learner::with_agent(dims, learn.clone(), agent_cfg, device)?
     };
     let counters = learner.counters();
-    let (metrics, earlier) = Metrics::open(run_dir, counters.t_env)?;
+    let (metrics, earlier) = Metrics::open(run_dir, counters.t_env, learner.agent_config().stat_names())?;
     if earlier.dropped_rows > 0 {
         eprintln!(
             "lmac: trainer: dropped {} metrics rows logged after t_env {} (after the checkpoint, before the run stopped)",
@@ -926,6 +977,7 @@ fn learner_loop(
                     s.loss = Some(st.loss);
                     s.grad_norm = Some(st.grad_norm);
                     s.q_taken_mean = Some(st.q_taken_mean);
+                    s.method = st.method;
                     did = true;
                 }
                 Err(e) => {
@@ -984,7 +1036,7 @@ mod tests {
         std::fs::write(dir.join("metrics.csv"), csv).unwrap();
         std::fs::write(dir.join("metrics.jsonl"), "{\"t_env\":100}\n{\"t_env\":200,\"checkpoint\":\"x\"}\n{\"t_env\":300}\n{\"t_e")
             .unwrap();
-        let (mut m, r) = Metrics::open(&dir, 200).unwrap();
+        let (mut m, r) = Metrics::open(&dir, 200, &[]).unwrap();
         assert_eq!(r, MetricsResume { dropped_rows: 2, wall_s: 2.0 }, "row 300 and the cut-off line go");
         m.write(&MetricsRow { t_env: 250, ..Default::default() }).unwrap();
         let csv = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
@@ -1002,7 +1054,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         // Every write to /dev/full fails with "no space left on device".
         std::os::unix::fs::symlink("/dev/full", dir.join("metrics.jsonl")).unwrap();
-        let (mut m, _) = Metrics::open(&dir, 0).unwrap();
+        let (mut m, _) = Metrics::open(&dir, 0, &[]).unwrap();
         let err = m.write(&MetricsRow::default()).unwrap_err().to_string();
         assert!(err.contains("metrics.jsonl") && err.contains("No space left"), "{err}");
         let _ = std::fs::remove_dir_all(&dir);

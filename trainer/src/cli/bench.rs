@@ -28,9 +28,12 @@ pub(crate) enum BenchCmd {
     Train {
         #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
         env: String,
-        /// qmix | vdn | qplex | fullcomm | qmix-state
+        /// qmix | vdn | qplex | fullcomm | qmix-state | lmac
         #[arg(long, default_value = "qmix")]
         algo: String,
+        /// Protocol (a design directory or phase files; lmac needs one).
+        #[arg(long)]
+        protocol: Option<String>,
         /// Total environments of each training run (split over 2 env servers), comma separated.
         #[arg(long, value_delimiter = ',', default_value = "8,32")]
         envs: Vec<usize>,
@@ -192,12 +195,24 @@ pub(crate) fn bench_separate_runs(p: &PipelineOpts, repeat: usize, interrupted: 
     Ok(Alternations { raws, pipes, trainer_us: median(trainer_us), method: "separate runs", split: None })
 }
 
-pub(crate) fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64, updates: usize, json: bool) -> Result<i32> {
+pub(crate) fn bench_train(
+    env: &str,
+    algo_name: &str,
+    protocol: Option<&str>,
+    envs: &[usize],
+    steps: u64,
+    updates: usize,
+    json: bool,
+) -> Result<i32> {
     use lmac_trainer::episode::{Episode, EpisodeDims};
     use lmac_trainer::learn::{Device, LearnRng, Learner};
     use lmac_trainer::train::TrainConfig;
     let interrupted = interrupt_flag();
-    let cfg = TrainConfig::resolve(None, &[format!("run.env={env:?}"), format!("run.algo={algo_name:?}")])?;
+    let mut overrides = vec![format!("run.env={env:?}"), format!("run.algo={algo_name:?}")];
+    if let Some(p) = protocol {
+        overrides.push(format!("run.protocol={:?}", std::fs::canonicalize(p).with_context(|| format!("--protocol {p}"))?.display().to_string()));
+    }
+    let cfg = TrainConfig::resolve(None, &overrides)?;
     let schema = load_env(env).map_err(anyhow::Error::msg)?;
     let msg = lmac_protocol_runner::plan_for(&cfg.protocol()?, &schema).map_err(anyhow::Error::msg)?.msg_dim();
     let dims = EpisodeDims {
@@ -209,7 +224,8 @@ pub(crate) fn bench_train(env: &str, algo_name: &str, envs: &[usize], steps: u64
     // 1. One update on full-length episodes of this environment's sizes (values do not change
     //    the cost of dense math).
     let learn = cfg.effective_learn()?;
-    let mut learner = Learner::new(dims, learn.clone(), Device::default())?;
+    let agent = cfg.agent_config(&schema, msg)?;
+    let mut learner = Learner::with_agent(dims, learn.clone(), agent, Device::default())?;
     let mut rng = LearnRng::seed_from(0);
     let len = schema.episode_limit;
     for _ in 0..2 * learn.batch_size {

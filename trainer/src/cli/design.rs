@@ -9,68 +9,87 @@ use clap::Args;
 pub(crate) struct DesignArgs {
     /// Environment, e.g. lbf:8x8-2p-2f-s1-coop.
     #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
-    env: String,
+    pub(crate) env: String,
     /// Designer: `offline` (embedded, no network: builds each phase from the meta-information),
     /// or an LLM: `openai:MODEL` (any OpenAI-compatible server: OpenAI, vLLM, llama.cpp,
     /// Ollama; key from OPENAI_API_KEY), `anthropic:MODEL` (key from ANTHROPIC_API_KEY).
     #[arg(long, default_value = "offline")]
-    llm: String,
+    pub(crate) llm: String,
     /// Base URL of an OpenAI-compatible server, e.g. http://127.0.0.1:8080/v1.
     #[arg(long)]
-    base_url: Option<String>,
+    pub(crate) base_url: Option<String>,
     /// The environment variable holding the key for a --base-url server. Without it such a
     /// server gets no key (OPENAI_API_KEY goes only to OpenAI's own API); a key is sent only
     /// over https, or over http to this machine.
     #[arg(long, value_name = "VAR")]
-    api_key_env: Option<String>,
+    pub(crate) api_key_env: Option<String>,
     /// live: ask the LLM (recording every exchange); replay: answer from the recordings only
     /// (offline, exact); replay-or-live: recordings first, then the LLM.
     #[arg(long, default_value = "live")]
-    llm_mode: String,
+    pub(crate) llm_mode: String,
     /// Where LLM exchanges are recorded and replayed from (default: <out>/llm-recordings).
     #[arg(long)]
-    recordings: Option<std::path::PathBuf>,
+    pub(crate) recordings: Option<std::path::PathBuf>,
     /// Corrections the LLM gets per reply (invalid JSON, validation errors) before the design fails.
     #[arg(long, default_value_t = 3)]
-    max_retries: usize,
+    pub(crate) max_retries: usize,
     /// Env steps of the QMIX run whose epsilon-greedy policy collects the dataset (paper: 200k).
     #[arg(long, default_value = "50k", value_parser = parse_steps)]
-    pretrain_steps: u64,
+    pub(crate) pretrain_steps: u64,
     /// Episodes in the dataset (paper: 5000).
     #[arg(long, default_value_t = 1000)]
-    dataset_episodes: usize,
+    pub(crate) dataset_episodes: usize,
     /// Epsilon while collecting (default: the schedule's value at the end of the QMIX run).
     #[arg(long)]
-    dataset_epsilon: Option<f32>,
+    pub(crate) dataset_epsilon: Option<f32>,
     /// Reuse a dataset directory (e.g. <design>/collect/dataset) instead of collecting one.
     #[arg(long)]
-    dataset: Option<std::path::PathBuf>,
+    pub(crate) dataset: Option<std::path::PathBuf>,
     /// Environments per env server and env servers for the collection run.
     #[arg(long, default_value_t = 16)]
-    envs: usize,
+    pub(crate) envs: usize,
     #[arg(long, default_value_t = 2)]
-    servers: usize,
+    pub(crate) servers: usize,
     /// Discriminator updates per training (paper: 1000 epochs x 10 iterations).
     #[arg(long)]
-    disc_updates: Option<usize>,
+    pub(crate) disc_updates: Option<usize>,
     /// Design phases (paper: 3).
     #[arg(long, default_value_t = 3)]
-    phases: usize,
+    pub(crate) phases: usize,
     #[arg(long, default_value_t = 0)]
-    seed: u64,
+    pub(crate) seed: u64,
     /// Where design directories go.
     #[arg(long, default_value = "designs")]
-    out: std::path::PathBuf,
+    pub(crate) out: std::path::PathBuf,
+}
+
+impl DesignArgs {
+    /// The command's defaults (the offline designer) for `env`, writing under `out`.
+    pub(crate) fn defaults(env: &str, out: std::path::PathBuf) -> DesignArgs {
+        use clap::FromArgMatches;
+        let cmd = <DesignArgs as clap::Args>::augment_args(clap::Command::new("design"));
+        let mut a = DesignArgs::from_arg_matches(&cmd.get_matches_from(["design"])).expect("the defaults parse");
+        a.env = env.to_string();
+        a.out = out;
+        a
+    }
 }
 
 pub(crate) fn design(a: DesignArgs) -> Result<i32> {
+    let dir = design_dir(&a, interrupt_flag())?;
+    println!("design written to {}", dir.display());
+    println!("final protocol: {}", std::fs::read_to_string(dir.join("final_protocol.txt"))?.trim());
+    Ok(0)
+}
+
+/// Run the design loop `a` describes; returns its directory.
+pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::atomic::AtomicBool>) -> Result<std::path::PathBuf> {
     use lmac_trainer::design::llm::LlmMode;
     use lmac_trainer::design::llm_designer::{LlmDesigner, LlmDesignerOptions};
     use lmac_trainer::design::meta::{self, MetaConfig};
     use lmac_trainer::design::offline::{OfflineConfig, OfflineDesigner};
     use lmac_trainer::design::run::{run_design, DesignOptions};
     use lmac_trainer::design::Designer;
-    let interrupted = interrupt_flag();
     let opts = DesignOptions {
         env: a.env.clone(),
         out: a.out.clone(),
@@ -106,7 +125,5 @@ pub(crate) fn design(a: DesignArgs) -> Result<i32> {
     };
     let dir = run_design(&opts, designer.as_mut(), &train, &evaluate)?;
     super::plot("plot_design.py", &dir);
-    println!("design written to {}", dir.display());
-    println!("final protocol: {}", std::fs::read_to_string(dir.join("final_protocol.txt"))?.trim());
-    Ok(0)
+    Ok(dir)
 }

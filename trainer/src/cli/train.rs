@@ -27,16 +27,20 @@ pub(crate) struct TrainArgs {
     /// Environment (overrides run.env).
     #[arg(long)]
     env: Option<String>,
-    /// qmix | vdn | qplex | fullcomm | qmix-state (overrides run.algo).
+    /// qmix | vdn | qplex | fullcomm | qmix-state | lmac (overrides run.algo).
     #[arg(long)]
     algo: Option<String>,
+    /// Protocol: a design directory (from `lmac design`) or phase files a.json+b.json
+    /// (overrides run.protocol; lmac needs one).
+    #[arg(long)]
+    protocol: Option<String>,
     /// Seeds, comma separated: one run directory each, run one after the other.
     #[arg(long, default_value = "0", value_delimiter = ',')]
     seeds: Vec<u64>,
     /// Env steps per seed, e.g. 2M, 500k (overrides run.steps).
     #[arg(long, value_parser = parse_steps)]
     steps: Option<u64>,
-    /// Config file (TOML with [run] and [learn] sections).
+    /// Config file (TOML with [run], [learn] and [method] sections).
     #[arg(long)]
     config: Option<std::path::PathBuf>,
     /// Override a config value: --set learn.lr=0.001 --set run.envs=8
@@ -50,7 +54,7 @@ pub(crate) struct TrainArgs {
     #[arg(long, default_value = "runs")]
     out: std::path::PathBuf,
     /// Continue the runs in this directory (a seed's directory or a group of seeds).
-    #[arg(long, conflicts_with_all = ["env", "algo", "config", "set", "steps", "preset"])]
+    #[arg(long, conflicts_with_all = ["env", "algo", "protocol", "config", "set", "steps", "preset"])]
     resume: Option<std::path::PathBuf>,
 }
 
@@ -85,6 +89,9 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
         }
         if let Some(al) = &a.algo {
             overrides.push(format!("run.algo={al:?}"));
+        }
+        if let Some(p) = &a.protocol {
+            overrides.push(format!("run.protocol={p:?}"));
         }
         if let Some(st) = a.steps {
             overrides.push(format!("run.steps={st}"));

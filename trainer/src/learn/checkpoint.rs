@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use super::buffer::ReplayBuffer;
 use super::config::LearnConfig;
+use super::methods::AgentConfig;
 use super::learner::{make_optimizer, Counters, LearnError, Learner, QNet};
 use super::LearnRng;
 use crate::episode::{Episode, EpisodeDims, NextStep};
@@ -34,6 +35,9 @@ struct DimsJson {
 struct StateJson {
     format_version: u32,
     config: LearnConfig,
+    /// The method's agent network; absent in checkpoints written before methods had settings.
+    #[serde(default)]
+    agent: AgentConfig,
     dims: DimsJson,
     counters: Counters,
     rng: LearnRng,
@@ -111,6 +115,7 @@ fn read_state(dir: &Path) -> Result<(PathBuf, StateJson), LearnError> {
         }
     }
     st.config.validate().map_err(|e| ck(format!("config: {e}"), "load", &p))?;
+    st.agent.validate().map_err(|e| ck(format!("agent: {e}"), "load", &p))?;
     Ok((dir, st))
 }
 
@@ -151,6 +156,7 @@ impl Learner {
         let state = StateJson {
             format_version: FORMAT_VERSION,
             config: self.cfg.clone(),
+            agent: self.agent_cfg.clone(),
             dims: DimsJson { n_agents: d.n_agents, obs_width: d.obs_width, state_dim: d.state_dim, n_actions: d.n_actions },
             counters: self.counters,
             rng: self.rng.clone(),
@@ -185,14 +191,14 @@ impl Learner {
     pub fn load_checkpoint(dir: impl AsRef<Path>, device: Device) -> Result<Learner, LearnError> {
         let (dir, st) = read_state(dir.as_ref())?;
         let dims = st.dims.to_dims();
-        let mut l = Learner::new(dims, st.config, device)?;
+        let mut l = Learner::with_agent(dims, st.config, st.agent, device).map_err(|e| ck(e, "load", &dir.join("state.json")))?;
         let ad = l.device.clone().autodiff();
         let mut scratch = LearnRng::seed_from(0); // initial values are overwritten by the load
         let p = dir.join("net.bpk");
-        l.net = guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &ad).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?;
+        l.net = guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &l.agent_cfg, &ad).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?;
         let p = dir.join("target.bpk");
         l.target =
-            guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &l.device).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?.valid();
+            guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &l.agent_cfg, &l.device).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?.valid();
         let p = dir.join("optim.bpk");
         l.optim = guarded(&p, || make_optimizer(&l.cfg).load(&p).map_err(|e| ck(e, "load", &p)))?;
         l.counters = st.counters;

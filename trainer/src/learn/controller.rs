@@ -1,21 +1,23 @@
 //! Acting: batched greedy / epsilon-greedy action selection for `n_envs` environments with the
-//! agent network (no autodiff), keeping each environment's GRU hidden state between calls.
+//! agent network (no autodiff), keeping each environment's recurrent state (whatever the
+//! method's `AgentNet::state_width` holds) between calls.
 
 use burn::tensor::{Device, Tensor, TensorData};
 
-use super::agent::RnnAgent;
+use super::methods::AgentNet;
 use super::learner::Learner;
 use super::{InputLayout, LearnRng};
 
 pub struct Controller {
     /// Acting weights in use, oldest first; the last is the newest. Each env acts with one of
     /// them for a whole episode (`env_agent`), so new weights take effect between episodes.
-    agents: Vec<RnnAgent>,
+    agents: Vec<AgentNet>,
     /// Per env: index into `agents`.
     env_agent: Vec<usize>,
     layout: InputLayout,
     device: Device,
     n_envs: usize,
+    /// Recurrent state width per agent-row.
     hidden_dim: usize,
     /// [n_envs * n_agents * H]
     hidden: Vec<f32>,
@@ -27,10 +29,11 @@ pub struct Controller {
 impl Controller {
     pub fn new(learner: &Learner, n_envs: usize) -> Self {
         let layout = *learner.layout();
-        let h = learner.config().rnn_hidden_dim;
+        let agent = learner.acting_net().agent;
+        let h = agent.state_width();
         let n = layout.dims.n_agents;
         Controller {
-            agents: vec![learner.acting_net().agent],
+            agents: vec![agent],
             env_agent: vec![0; n_envs],
             layout,
             device: learner.device().clone(),
@@ -48,14 +51,14 @@ impl Controller {
     }
 
     /// Act with `agent` in every env from the next step on (mid-episode).
-    pub fn set_agent(&mut self, agent: RnnAgent) {
+    pub fn set_agent(&mut self, agent: AgentNet) {
         self.agents = vec![agent];
         self.env_agent.fill(0);
     }
 
     /// New weights for the episodes that start from now on; running episodes finish with the
     /// weights they started with (as pymarl's runners, which load new weights between episodes).
-    pub fn offer_agent(&mut self, agent: RnnAgent) {
+    pub fn offer_agent(&mut self, agent: AgentNet) {
         self.agents.push(agent);
         self.drop_unused();
     }

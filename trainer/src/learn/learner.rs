@@ -7,9 +7,9 @@ use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer, RmsPropConfig};
 use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
-use super::agent::RnnAgent;
 use super::buffer::{Batch, ReplayBuffer};
 use super::config::{ConfigError, LearnConfig, MixerKind, OptimizerKind};
+use super::methods::{AgentConfig, AgentNet, TrainContext};
 use super::mixer::{Mixer, QplexInputs};
 use super::{InputLayout, LearnRng};
 use crate::episode::{Episode, EpisodeDims};
@@ -17,16 +17,16 @@ use crate::episode::{Episode, EpisodeDims};
 /// Agent network plus mixer: the unit that is optimized, copied to the target and saved.
 #[derive(Module, Debug)]
 pub struct QNet {
-    pub agent: RnnAgent,
+    pub agent: AgentNet,
     pub mixer: Mixer,
 }
 
 impl QNet {
     /// Build with weights drawn from `rng` (deterministic for a given RNG state).
-    pub fn new(rng: &mut LearnRng, dims: &EpisodeDims, cfg: &LearnConfig, device: &Device) -> Self {
+    pub fn new(rng: &mut LearnRng, dims: &EpisodeDims, cfg: &LearnConfig, agent: &AgentConfig, device: &Device) -> Self {
         let layout = InputLayout::new(*dims, cfg);
         QNet {
-            agent: RnnAgent::new(rng, layout.width(), cfg.rnn_hidden_dim, dims.n_actions, device),
+            agent: AgentNet::new(rng, agent, &layout, cfg, device),
             mixer: Mixer::new(rng, cfg.mixer, dims.n_agents, dims.state_dim, dims.n_actions, cfg, device),
         }
     }
@@ -57,7 +57,7 @@ pub struct Counters {
     pub last_target_update_episode: u64,
 }
 
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub struct TrainStats {
     pub loss: f32,
     /// Global gradient norm before clipping.
@@ -66,10 +66,14 @@ pub struct TrainStats {
     pub q_taken_mean: f32,
     pub target_mean: f32,
     pub target_updated: bool,
+    /// The method's extra terms (name, unweighted value), in `AgentConfig::stat_names` order.
+    pub method: Vec<(&'static str, f32)>,
 }
 
 pub struct Learner {
     pub(crate) cfg: LearnConfig,
+    /// The method's agent network (with its own settings).
+    pub(crate) agent_cfg: AgentConfig,
     pub(crate) dims: EpisodeDims,
     pub(crate) layout: InputLayout,
     /// Plain (no autodiff) device; the online network lives on `device.autodiff()`.
@@ -92,15 +96,31 @@ pub(crate) fn make_optimizer(cfg: &LearnConfig) -> ModuleOptimizer {
 }
 
 impl Learner {
-    /// Validate `cfg` and build online + target networks, initialized from `cfg.seed`.
+    /// Validate `cfg` and build online + target networks of pymarl's RNN agent, initialized
+    /// from `cfg.seed`.
     pub fn new(dims: EpisodeDims, cfg: LearnConfig, device: Device) -> Result<Self, LearnError> {
+        Self::with_agent(dims, cfg, AgentConfig::Rnn, device)
+    }
+
+    /// As [`new`](Self::new), with the agent network of a method (`methods::REGISTRY`).
+    pub fn with_agent(dims: EpisodeDims, cfg: LearnConfig, agent_cfg: AgentConfig, device: Device) -> Result<Self, LearnError> {
         cfg.validate()?;
+        agent_cfg.validate()?;
         if dims.n_agents == 0 || dims.n_actions == 0 || dims.obs_width == 0 {
             return Err(LearnError::BadEpisode(format!("dims must be non-zero: {dims:?}")));
         }
         let device = device.inner();
         let mut init_rng = LearnRng::seed_from(cfg.seed ^ 0x1417_0000_0000_0001);
-        let net = QNet::new(&mut init_rng, &dims, &cfg, &device.clone().autodiff());
+        if let AgentConfig::Lmac(c) = &agent_cfg {
+            if c.msg_cols > dims.obs_width || c.critical_dims.iter().any(|&d| d >= dims.state_dim) {
+                return Err(LearnError::BadEpisode(format!(
+                    "lmac settings ({} message columns, critical dims up to {:?}) do not fit {dims:?}",
+                    c.msg_cols,
+                    c.critical_dims.iter().max()
+                )));
+            }
+        }
+        let net = QNet::new(&mut init_rng, &dims, &cfg, &agent_cfg, &device.clone().autodiff());
         let target = net.valid();
         Ok(Learner {
             layout: InputLayout::new(dims, &cfg),
@@ -109,6 +129,7 @@ impl Learner {
             rng: LearnRng::seed_from(cfg.seed ^ 0x5EED_1EA4_0000_0001),
             counters: Counters::default(),
             cfg,
+            agent_cfg,
             dims,
             device,
             net,
@@ -118,6 +139,9 @@ impl Learner {
 
     pub fn config(&self) -> &LearnConfig {
         &self.cfg
+    }
+    pub fn agent_config(&self) -> &AgentConfig {
+        &self.agent_cfg
     }
     pub fn dims(&self) -> &EpisodeDims {
         &self.dims
@@ -145,6 +169,10 @@ impl Learner {
     /// Trainable parameters of the online network (agent + mixer).
     pub fn num_params(&self) -> usize {
         self.net.num_params()
+    }
+    /// The online network (on the autodiff device), e.g. to map gradients to its parameters.
+    pub fn online_net(&self) -> &QNet {
+        &self.net
     }
     pub fn target_net(&self) -> &QNet {
         &self.target
@@ -199,8 +227,8 @@ impl Learner {
     }
 
     /// The masked double-Q TD(0) loss of `batch` (a scalar on the autodiff device, graph kept)
-    /// and its statistics. Extension point: a module that adds auxiliary losses (LMAC's
-    /// representation losses) adds them to this tensor and calls [`apply_loss`](Self::apply_loss).
+    /// and its statistics, with the method's extra losses (`AgentNet::unroll`) added in and
+    /// each logged in `TrainStats::method`.
     pub fn td_loss(&self, batch: &Batch) -> Result<(Tensor<1>, TrainStats), LearnError> {
         let (b, t, n, a) = (batch.b, batch.t, batch.n_agents, batch.n_actions);
         let (nb, iw, sd) = (t * b, batch.input_dim, batch.state_dim);
@@ -229,14 +257,24 @@ impl Learner {
 
         // ---- online network (autodiff)
         // The target unroll (no autodiff) optionally runs on a second thread meanwhile.
-        let (mac_out, target_out) = if self.cfg.parallel_target {
+        let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
+        let mask_t: Tensor<1> = Tensor::from_data(TensorData::new(batch.mask.clone(), [nb]), &ad);
+        let ctx = TrainContext {
+            state: states_t(&ad),
+            mask: mask_t.clone(),
+            mask_sum,
+            b,
+            n_agents: n,
+            seed: self.cfg.seed ^ (self.counters.updates + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        };
+        let ((mac_out, aux), (target_out, _)) = if self.cfg.parallel_target {
             std::thread::scope(|s| {
-                let target = s.spawn(|| self.target.agent.unroll(step_inputs(&dev)));
-                let online = self.net.agent.unroll(step_inputs(&ad));
+                let target = s.spawn(|| self.target.agent.unroll(step_inputs(&dev), None));
+                let online = self.net.agent.unroll(step_inputs(&ad), Some(&ctx));
                 (online, target.join().expect("target unroll thread panicked"))
             })
         } else {
-            (self.net.agent.unroll(step_inputs(&ad)), self.target.agent.unroll(step_inputs(&dev)))
+            (self.net.agent.unroll(step_inputs(&ad), Some(&ctx)), self.target.agent.unroll(step_inputs(&dev), None))
         };
         let mac_out: Tensor<4> = mac_out.reshape([t, b, n, a]);
         let chosen = mac_out.clone().gather(3, actions_t(&ad)).reshape([nb, n]);
@@ -268,7 +306,6 @@ impl Learner {
                 y[i] = if batch.mask[i] > 0.0 { batch.reward[i] + self.cfg.gamma * next } else { 0.0 };
             }
         }
-        let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
         let target_mean = y.iter().zip(&batch.mask).map(|(v, m)| v * m).sum::<f32>() / mask_sum;
 
         // ---- mixed online values and loss
@@ -276,9 +313,16 @@ impl Learner {
             .then(|| QplexInputs { actions_onehot: onehot(actions_t(&ad)), max_q: mac_plain.max_dim(3).reshape([nb, n]) });
         let q_tot = self.net.mixer.forward(chosen, states_t(&ad), extra);
         let y_t: Tensor<1> = Tensor::from_data(TensorData::new(y, [nb]), &ad);
-        let mask_t: Tensor<1> = Tensor::from_data(TensorData::new(batch.mask.clone(), [nb]), &ad);
         let td = (q_tot.clone() - y_t) * mask_t.clone();
-        let loss = td.clone().square().sum().div_scalar(mask_sum);
+        let mut loss = td.clone().square().sum().div_scalar(mask_sum);
+        // The method's extra losses join the TD loss; every term is logged.
+        let mut method = Vec::with_capacity(aux.len());
+        for term in aux {
+            if let Some(l) = term.loss {
+                loss = loss + l;
+            }
+            method.push((term.name, term.value));
+        }
 
         let td_abs: f32 = td.detach().abs().sum().into_scalar::<f32>() / mask_sum;
         let q_taken: f32 = (q_tot.detach() * mask_t).sum().into_scalar::<f32>() / mask_sum;
@@ -289,6 +333,7 @@ impl Learner {
             q_taken_mean: q_taken,
             target_mean,
             target_updated: false,
+            method,
         };
         Ok((loss, stats))
     }

@@ -26,12 +26,14 @@ pub mod checkpoint;
 pub mod config;
 pub mod controller;
 pub mod learner;
+pub mod methods;
 pub mod mixer;
 
 pub use buffer::{Batch, ReplayBuffer};
 pub use config::{ConfigError, LearnConfig, MixerKind, OptimizerKind};
 pub use controller::Controller;
 pub use learner::{Counters, LearnError, Learner, QNet, TrainStats};
+pub use methods::{AgentConfig, AgentNet};
 
 use crate::episode::EpisodeDims;
 /// The burn device type (re-exported so callers need no direct burn dependency).

@@ -1,0 +1,179 @@
+//! LMAC (paper section 4.2, appendix B.3, Algorithm 1 lines 13-20): agents read the designed
+//! protocol's messages through a meta-cognitive latent module (`module.rs`) whose latent z joins
+//! each agent's RNN input; the module is trained with state reconstruction, a reliability
+//! ("meta") loss and cycle consistency, jointly with the TD loss.
+//!
+//! Differences from the authors' released code, each kept as an option where it changes
+//! results:
+//! - The consistency loss is masked over padded steps like every other loss
+//!   (`mask_consistency = true`); the released code averages it over padding too (`false`).
+//! - Dropout acts only in training updates; acting, test episodes and the target network use the
+//!   deterministic module (the released code leaves dropout on everywhere). Not an option: a
+//!   greedy test episode with random units switched off is not the policy being tested.
+//! - The encoder variant follows the released code (`gru-gate`) or the paper's wording
+//!   (`window`: scaled dot-product attention over the last W steps).
+
+pub mod module;
+
+pub use module::LmacAgent;
+
+use serde::{Deserialize, Serialize};
+
+use super::{AgentConfig, Messages, MethodContext, MethodSpec};
+use crate::learn::config::ConfigError;
+
+pub const LMAC: MethodSpec = MethodSpec {
+    name: "lmac",
+    about: "LMAC: a designed protocol read through the meta-cognitive latent module (needs --protocol)",
+    messages: Messages::Designed,
+    mixer: None,
+    agent_sees_state: false,
+    configure,
+};
+
+/// The numbers an LMAC update logs, in order (see `module.rs`).
+pub const STAT_NAMES: &[&str] = &["lmac_recon_mse", "lmac_meta_bce", "lmac_cons", "lmac_recovered", "lmac_reliability"];
+
+/// How the encoder attends to the agent's trajectory.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EncoderKind {
+    /// The authors' code: a GRU over the step embeddings gives the keys and values; z is the
+    /// value gated by sigmoid(query . key).
+    GruGate,
+    /// The paper's wording: multi-head scaled dot-product attention from the current step's
+    /// embedding to the embeddings of the agent's last `window` steps.
+    Window,
+}
+
+/// The `[method]` settings of `--algo lmac` (defaults: the paper's Table C.3 and the authors'
+/// code).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LmacSettings {
+    pub encoder: EncoderKind,
+    /// Width of the step embedding and the encoder GRU (Table C.3: attention hidden 64).
+    pub embed_dim: usize,
+    /// Latent z per agent (Table C.3: 20).
+    pub latent_dim: usize,
+    /// Query/key width.
+    pub attention_dim: usize,
+    /// Attention heads (`window` only; must divide attention_dim).
+    pub heads: usize,
+    /// Steps the `window` encoder attends to, the current one included.
+    pub window: usize,
+    /// Dropout after the step embedding, training updates only (Table C.3: 0.1).
+    pub dropout: f32,
+    /// Hidden width of the decoder and the cycle encoder.
+    pub decoder_hidden: usize,
+    /// Weight of the reliability loss inside L_recon (Table C.3: 0.1); 0 = "w/o meta".
+    pub lambda_meta: f32,
+    /// Weight of the cycle-consistency loss (Table C.3: 1); 0 = "w/o consistency".
+    pub lambda_cons: f32,
+    /// Let the TD gradient reach the encoder through z (the released code detaches z).
+    pub td_to_encoder: bool,
+    /// The agent network also reads the raw message columns (the released code: only through z).
+    pub raw_messages: bool,
+    /// Mask the consistency loss over padded steps (the released code does not).
+    pub mask_consistency: bool,
+    /// Recovery threshold for the meta target; absent = the environment schema's alpha.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub alpha: Option<f64>,
+}
+
+impl Default for LmacSettings {
+    fn default() -> Self {
+        LmacSettings {
+            encoder: EncoderKind::GruGate,
+            embed_dim: 64,
+            latent_dim: 20,
+            attention_dim: 64,
+            heads: 4,
+            window: 10,
+            dropout: 0.1,
+            decoder_hidden: 64,
+            lambda_meta: 0.1,
+            lambda_cons: 1.0,
+            td_to_encoder: false,
+            raw_messages: false,
+            mask_consistency: true,
+            alpha: None,
+        }
+    }
+}
+
+/// The settings plus what the run resolved: saved in checkpoints, so a resumed run rebuilds the
+/// same module.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LmacConfig {
+    pub settings: LmacSettings,
+    /// Message columns after each agent's observation.
+    pub msg_cols: usize,
+    /// The meta target's threshold in use.
+    pub alpha: f64,
+    /// State dims the decoder reconstructs (the protocol's task-critical set, or all).
+    pub critical_dims: Vec<usize>,
+}
+
+fn bad(field: &'static str, reason: impl Into<String>) -> ConfigError {
+    ConfigError { field, reason: reason.into() }
+}
+
+impl LmacConfig {
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let s = &self.settings;
+        for (field, v) in [
+            ("method.embed_dim", s.embed_dim),
+            ("method.latent_dim", s.latent_dim),
+            ("method.attention_dim", s.attention_dim),
+            ("method.heads", s.heads),
+            ("method.window", s.window),
+            ("method.decoder_hidden", s.decoder_hidden),
+        ] {
+            if v == 0 || v > 1 << 14 {
+                return Err(bad(field, format!("must be in 1..=16384, got {v}")));
+            }
+        }
+        if s.attention_dim % s.heads != 0 {
+            return Err(bad("method.heads", format!("({}) must divide method.attention_dim ({})", s.heads, s.attention_dim)));
+        }
+        if s.window > 256 {
+            return Err(bad("method.window", format!("must be at most 256, got {}", s.window)));
+        }
+        if !(s.dropout.is_finite() && (0.0..1.0).contains(&s.dropout)) {
+            return Err(bad("method.dropout", format!("must be in [0, 1), got {}", s.dropout)));
+        }
+        for (field, v) in [("method.lambda_meta", s.lambda_meta), ("method.lambda_cons", s.lambda_cons)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(bad(field, format!("must be a non-negative number, got {v}")));
+            }
+        }
+        if !(self.alpha.is_finite() && self.alpha > 0.0) {
+            return Err(bad("method.alpha", format!("must be positive, got {}", self.alpha)));
+        }
+        if self.critical_dims.is_empty() {
+            return Err(bad("method.critical_dims", "no state dim to reconstruct"));
+        }
+        Ok(())
+    }
+}
+
+fn configure(table: &toml::Table, ctx: &MethodContext) -> Result<AgentConfig, ConfigError> {
+    let settings: LmacSettings = toml::Value::Table(table.clone()).try_into().map_err(|e: toml::de::Error| {
+        // toml names the unknown or mistyped key in its message.
+        bad("method", e.message().to_string())
+    })?;
+    if ctx.msg_cols == 0 {
+        return Err(bad("run.protocol", "lmac needs a designed protocol (a design directory or phase files); it has no message columns"));
+    }
+    let alpha = settings.alpha.unwrap_or(ctx.alpha);
+    // No task-critical dims named: reconstruct the whole state.
+    let critical_dims = if ctx.critical_dims.is_empty() { (0..ctx.state_dim).collect() } else { ctx.critical_dims.clone() };
+    if let Some(&d) = critical_dims.iter().find(|&&d| d >= ctx.state_dim) {
+        return Err(bad("run.protocol", format!("critical state dim {d} is outside the state (state_dim {})", ctx.state_dim)));
+    }
+    let cfg = LmacConfig { alpha, msg_cols: ctx.msg_cols, critical_dims, settings };
+    cfg.validate()?;
+    Ok(AgentConfig::Lmac(cfg))
+}

@@ -1,0 +1,316 @@
+//! The meta-cognitive latent module and the agent it feeds (one set of parameters shared by all
+//! agents, the agent id one-hot in the input).
+//!
+//! Per agent-row and step, with u = [observation | messages | last action | agent id]:
+//! - embedding  x = dropout(relu(W2 LayerNorm(relu(W1 u))))          (dropout in training only)
+//! - encoder    z = Enc(x, trajectory):
+//!     `gru-gate`: h = GRU(x, h_prev), r = h + x; z = sigmoid(W_q x . W_k r) * W_v r
+//!     `window`:   multi-head softmax(W_q x_t . W_k x_{t-o} / sqrt(d)) over o < W, values W_v x_{t-o},
+//!                 then a linear map to the latent width (steps before the episode are masked)
+//! - decoder    (s_hat, xi_hat) = Dec(z): z -> H -> H -> (|critical dims| values, as many logits)
+//! - cycle      z_hat = Enc_c(s_hat, sigmoid(xi_hat)): -> H -> latent
+//! - agent      Q = RNN([observation (| messages) | last action | id | z])
+//!
+//! Losses (means over the trained steps, agents and dims):
+//! L_recon = (s_hat - s)^2 + lambda_meta BCE(xi_hat, xi), xi = 1[(s_hat - s)^2 <= alpha]
+//! (no gradient through xi); L_cons = ||z_hat - z||^2 (summed over the latent), weighted by
+//! lambda_cons.
+
+use burn::module::Module;
+use burn::nn::{LayerNorm, LayerNormConfig, Linear};
+use burn::tensor::activation::{relu, sigmoid, softmax};
+use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
+
+use super::{EncoderKind, LmacConfig};
+use crate::learn::agent::{FusedGru, RnnAgent};
+use crate::learn::config::LearnConfig;
+use crate::learn::init::linear;
+use crate::learn::methods::{dropout, AuxTerm, TrainContext};
+use crate::learn::{InputLayout, LearnRng};
+
+/// The `gru-gate` encoder (the authors' code).
+#[derive(Module, Debug)]
+pub struct GruGateEncoder {
+    pub gru: FusedGru,
+    pub query: Linear,
+    pub key: Linear,
+    pub value: Linear,
+}
+
+/// The `window` encoder (the paper's wording).
+#[derive(Module, Debug)]
+pub struct WindowEncoder {
+    pub query: Linear,
+    pub key: Linear,
+    pub value: Linear,
+    pub out: Linear,
+    pub heads: usize,
+    pub window: usize,
+}
+
+#[derive(Module, Debug)]
+pub enum Encoder {
+    GruGate(GruGateEncoder),
+    Window(WindowEncoder),
+}
+
+#[derive(Module, Debug)]
+pub struct LmacAgent {
+    pub embed1: Linear,
+    pub norm: LayerNorm,
+    pub embed2: Linear,
+    pub encoder: Encoder,
+    pub dec1: Linear,
+    pub dec2: Linear,
+    pub dec_state: Linear,
+    pub dec_meta: Linear,
+    pub cycle1: Linear,
+    pub cycle2: Linear,
+    pub agent: RnnAgent,
+    #[module(skip)]
+    pub cfg: LmacConfig,
+    /// Observation columns before the messages.
+    pub obs_dim: usize,
+    /// Width of the learner's input row.
+    pub in_width: usize,
+}
+
+impl LmacAgent {
+    pub fn new(rng: &mut LearnRng, cfg: &LmacConfig, layout: &InputLayout, learn: &LearnConfig, device: &Device) -> Self {
+        let s = &cfg.settings;
+        let in_width = layout.width();
+        let (e, l, hd, dc) = (s.embed_dim, s.latent_dim, s.decoder_hidden, cfg.critical_dims.len());
+        let embed1 = linear(rng, in_width, e, device);
+        let embed2 = linear(rng, e, e, device);
+        let encoder = match s.encoder {
+            EncoderKind::GruGate => Encoder::GruGate(GruGateEncoder {
+                gru: FusedGru::new(rng, e, e, device),
+                query: linear(rng, e, s.attention_dim, device),
+                key: linear(rng, e, s.attention_dim, device),
+                value: linear(rng, e, l, device),
+            }),
+            EncoderKind::Window => Encoder::Window(WindowEncoder {
+                query: linear(rng, e, s.attention_dim, device),
+                key: linear(rng, e, s.attention_dim, device),
+                value: linear(rng, e, s.attention_dim, device),
+                out: linear(rng, s.attention_dim, l, device),
+                heads: s.heads,
+                window: s.window,
+            }),
+        };
+        let agent_in = in_width - if s.raw_messages { 0 } else { cfg.msg_cols } + l;
+        LmacAgent {
+            embed1,
+            norm: LayerNormConfig::new(e).init(device),
+            embed2,
+            encoder,
+            dec1: linear(rng, l, hd, device),
+            dec2: linear(rng, hd, hd, device),
+            dec_state: linear(rng, hd, dc, device),
+            dec_meta: linear(rng, hd, dc, device),
+            cycle1: linear(rng, 2 * dc, hd, device),
+            cycle2: linear(rng, hd, l, device),
+            agent: RnnAgent::new(rng, agent_in, learn.rnn_hidden_dim, layout.dims.n_actions, device),
+            cfg: cfg.clone(),
+            obs_dim: layout.dims.obs_width - cfg.msg_cols,
+            in_width,
+        }
+    }
+
+    fn embed_dim(&self) -> usize {
+        self.cfg.settings.embed_dim
+    }
+
+    /// Encoder state per row: the GRU's hidden state, or the last W-1 embeddings plus a count of
+    /// how many of them belong to this episode.
+    fn encoder_state_width(&self) -> usize {
+        match &self.encoder {
+            Encoder::GruGate(_) => self.embed_dim(),
+            Encoder::Window(w) => (w.window - 1) * self.embed_dim() + 1,
+        }
+    }
+
+    /// [encoder state | agent GRU hidden state]
+    pub fn state_width(&self) -> usize {
+        self.encoder_state_width() + self.agent.hidden_dim
+    }
+
+    fn embed(&self, u: Tensor<2>, rng: Option<&mut LearnRng>) -> Tensor<2> {
+        let x = relu(self.embed2.forward(self.norm.forward(relu(self.embed1.forward(u)))));
+        match rng {
+            Some(r) => dropout(x, self.cfg.settings.dropout, r),
+            None => x,
+        }
+    }
+
+    /// The agent network's own input: the row without the message columns (unless it reads them).
+    fn agent_input(&self, u: Tensor<2>, z: Tensor<2>) -> Tensor<2> {
+        let n = u.dims()[0];
+        let m = self.cfg.msg_cols;
+        let own = if self.cfg.settings.raw_messages || m == 0 {
+            u
+        } else {
+            Tensor::cat(vec![u.clone().slice([0..n, 0..self.obs_dim]), u.slice([0..n, self.obs_dim + m..self.in_width])], 1)
+        };
+        let z = if self.cfg.settings.td_to_encoder { z } else { z.detach() };
+        Tensor::cat(vec![own, z], 1)
+    }
+
+    /// One acting step (deterministic).
+    pub fn step(&self, u: Tensor<2>, state: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+        let n = u.dims()[0];
+        let es = self.encoder_state_width();
+        let enc_state = state.clone().slice([0..n, 0..es]);
+        let h_agent = state.slice([0..n, es..es + self.agent.hidden_dim]);
+        let x = self.embed(u.clone(), None);
+        let (z, enc_next) = match &self.encoder {
+            Encoder::GruGate(g) => {
+                let h = g.gru.forward(x.clone(), enc_state);
+                (gate(g, x, h.clone()), h)
+            }
+            Encoder::Window(w) => {
+                let e = self.embed_dim();
+                let past = w.window - 1;
+                let count = enc_state.clone().slice([0..n, past * e..past * e + 1]);
+                // Window entries, newest first: the current embedding, then the stored ones.
+                let mut entries = vec![x.clone()];
+                entries.extend((0..past).map(|o| enc_state.clone().slice([0..n, o * e..(o + 1) * e])));
+                // Entry o (o >= 1) is from this episode when o <= count.
+                let valid: Vec<Tensor<2, Bool>> = (0..w.window).map(|o| count.clone().greater_equal_elem(o as f32)).collect();
+                let z = window_attend(w, x.clone(), &entries, &valid);
+                let mut next: Vec<Tensor<2>> = entries[..past].to_vec();
+                next.push(count.add_scalar(1.0).clamp_max(past as f32));
+                (z, Tensor::cat(next, 1))
+            }
+        };
+        let (q, h_agent) = self.agent.step(self.agent_input(u, z), h_agent);
+        (q, Tensor::cat(vec![enc_next, h_agent.clone()], 1))
+    }
+
+    /// Unroll from zero states; in training also the module's losses (see the file's header).
+    pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
+        let t_len = inputs.len();
+        assert!(t_len > 0, "unroll needs at least one step");
+        let n = inputs[0].dims()[0];
+        let device = inputs[0].device();
+        let mut rng = train.map(|c| LearnRng::seed_from(c.seed ^ 0xD80F_0000_0000_0001));
+        let xs: Vec<Tensor<2>> = inputs.iter().map(|u| self.embed(u.clone(), rng.as_mut())).collect();
+        let zs: Vec<Tensor<2>> = match &self.encoder {
+            Encoder::GruGate(g) => {
+                let mut h: Tensor<2> = Tensor::zeros([n, self.embed_dim()], &device);
+                xs.iter()
+                    .map(|x| {
+                        h = g.gru.forward(x.clone(), h.clone());
+                        gate(g, x.clone(), h.clone())
+                    })
+                    .collect()
+            }
+            Encoder::Window(w) => {
+                let zero: Tensor<2> = Tensor::zeros([n, self.embed_dim()], &device);
+                let no: Tensor<2, Bool> = Tensor::<2>::zeros([n, 1], &device).greater_elem(0.0);
+                let yes: Tensor<2, Bool> = no.clone().bool_not();
+                (0..t_len)
+                    .map(|t| {
+                        let entries: Vec<Tensor<2>> =
+                            (0..w.window).map(|o| if o <= t { xs[t - o].clone() } else { zero.clone() }).collect();
+                        let valid: Vec<Tensor<2, Bool>> = (0..w.window).map(|o| if o <= t { yes.clone() } else { no.clone() }).collect();
+                        window_attend(w, xs[t].clone(), &entries, &valid)
+                    })
+                    .collect()
+            }
+        };
+        let agent_inputs: Vec<Tensor<2>> = inputs.into_iter().zip(&zs).map(|(u, z)| self.agent_input(u, z.clone())).collect();
+        let q = self.agent.unroll(agent_inputs);
+        let aux = match train {
+            Some(ctx) => self.losses(Tensor::stack(zs, 0), ctx),
+            None => Vec::new(),
+        };
+        (q, aux)
+    }
+
+    /// Decode the latent: (s_hat, xi_hat logits), each [.., critical dims].
+    pub fn decode(&self, z: Tensor<3>) -> (Tensor<3>, Tensor<3>) {
+        let h = relu(self.dec2.forward(relu(self.dec1.forward(z))));
+        (self.dec_state.forward(h.clone()), self.dec_meta.forward(h))
+    }
+
+    /// The cycle encoder: z_hat from (s_hat, sigmoid(xi_hat)).
+    pub fn cycle(&self, s_hat: Tensor<3>, xi_logit: Tensor<3>) -> Tensor<3> {
+        self.cycle2.forward(relu(self.cycle1.forward(Tensor::cat(vec![s_hat, sigmoid(xi_logit)], 2))))
+    }
+
+    /// z [T, N, L] with N = B * n (batch-major rows); the context's state and mask are per
+    /// (t, b) row.
+    fn losses(&self, z: Tensor<3>, ctx: &TrainContext) -> Vec<AuxTerm> {
+        let [t, n_rows, l] = z.dims();
+        let (b, n) = (ctx.b, ctx.n_agents);
+        assert_eq!(n_rows, b * n, "rows are batch x agents");
+        let dc = self.cfg.critical_dims.len();
+        let device = z.device();
+        let s = &self.cfg.settings;
+        let (s_hat, xi_logit) = self.decode(z.clone());
+        let s_hat = s_hat.reshape([t, b, n, dc]);
+        let xi_logit = xi_logit.reshape([t, b, n, dc]);
+        let idx: Tensor<1, Int> =
+            Tensor::from_data(TensorData::new(self.cfg.critical_dims.iter().map(|&d| d as i64).collect::<Vec<_>>(), [dc]), &device);
+        let target = ctx.state.clone().select(1, idx).reshape([t, b, 1, dc]).expand([t, b, n, dc]);
+        let mask = ctx.mask.clone().reshape([t, b, 1, 1]);
+        let denom = ctx.mask_sum * (n * dc) as f32;
+
+        let sq = (s_hat.clone() - target).square();
+        let mse = (sq.clone() * mask.clone()).sum().div_scalar(denom);
+        // xi = 1[(s_hat - s)^2 <= alpha], a target without gradient.
+        let xi = sq.detach().lower_equal_elem(self.cfg.alpha as f32).float();
+        // BCE with logits, stable: max(l, 0) - l * xi + log(1 + exp(-|l|)).
+        let bce = relu(xi_logit.clone()) - xi_logit.clone() * xi.clone() + xi_logit.clone().abs().neg().exp().log1p();
+        let bce = (bce * mask.clone()).sum().div_scalar(denom);
+        let recon = mse.clone() + bce.clone().mul_scalar(s.lambda_meta);
+
+        let z_hat = self.cycle(s_hat.reshape([t, n_rows, dc]), xi_logit.clone().reshape([t, n_rows, dc]));
+        let cyc = (z_hat - z).square().sum_dim(2).reshape([t, b, n, 1]);
+        let cons = if s.mask_consistency {
+            (cyc * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32)
+        } else {
+            cyc.mean()
+        };
+        let _ = l;
+
+        let scalar = |x: &Tensor<1>| x.clone().detach().into_scalar::<f32>();
+        let recovered = scalar(&(xi * mask.clone()).sum().div_scalar(denom));
+        let reliability = scalar(&(sigmoid(xi_logit.detach()) * mask).sum().div_scalar(denom));
+        vec![
+            AuxTerm { name: "lmac_recon_mse", value: scalar(&mse), loss: Some(recon) },
+            AuxTerm { name: "lmac_meta_bce", value: scalar(&bce), loss: None },
+            AuxTerm { name: "lmac_cons", value: scalar(&cons), loss: Some(cons.mul_scalar(s.lambda_cons)) },
+            AuxTerm { name: "lmac_recovered", value: recovered, loss: None },
+            AuxTerm { name: "lmac_reliability", value: reliability, loss: None },
+        ]
+    }
+}
+
+/// z = sigmoid(W_q x . W_k r) * W_v r with r = h + x (the residual).
+fn gate(g: &GruGateEncoder, x: Tensor<2>, h: Tensor<2>) -> Tensor<2> {
+    let r = h + x.clone();
+    let q = g.query.forward(x);
+    let k = g.key.forward(r.clone());
+    let score = sigmoid((q * k).sum_dim(1));
+    g.value.forward(r) * score
+}
+
+/// Multi-head scaled dot-product attention from `x` (the current embedding) to `entries`
+/// (newest first); `valid[o]` [N, 1] says which rows have entry o.
+fn window_attend(w: &WindowEncoder, x: Tensor<2>, entries: &[Tensor<2>], valid: &[Tensor<2, Bool>]) -> Tensor<2> {
+    let n = x.dims()[0];
+    let a = w.query.weight.dims()[1];
+    let (h, dh) = (w.heads, a / w.heads);
+    let q = w.query.forward(x).reshape([n, h, dh]);
+    let stacked = Tensor::cat(entries.to_vec(), 0); // [W * N, E]: one matmul for all entries
+    let k = w.key.forward(stacked.clone()).reshape([w.window, n, h, dh]);
+    let v = w.value.forward(stacked).reshape([w.window, n, h, dh]);
+    let scores = (k * q.unsqueeze_dim::<4>(0)).sum_dim(3).reshape([w.window, n, h]).div_scalar((dh as f32).sqrt());
+    let valid: Tensor<3, Bool> = Tensor::stack::<3>(valid.to_vec(), 0).expand([w.window, n, h]);
+    let scores = scores.mask_fill(valid.bool_not(), -1e9);
+    let att = softmax(scores, 0).reshape([w.window, n, h, 1]);
+    let out = (att * v).sum_dim(0).reshape([n, a]);
+    w.out.forward(out)
+}

@@ -1,0 +1,202 @@
+//! The seam every method plugs into. A method is one file (or folder) here that gives a
+//! [`MethodSpec`]: which messages the runner makes for it, its backbone and what its agents see,
+//! and how its `[method]` settings become an [`AgentConfig`]. The agent network it builds is one
+//! variant of [`AgentNet`], which offers the learner and the controller four things:
+//!
+//! - `state_width`: the per-agent recurrent state carried between acting steps (GRU hidden
+//!   states, attention windows: whatever the method needs, as one flat row);
+//! - `step`: acting, one step for N agent-rows;
+//! - `unroll`: a batch over time, giving the Q-values handed to the mixer and, in training, the
+//!   method's extra losses (named, each logged);
+//! - its parameters, as a burn `Module` (optimizer, target copy, checkpoint).
+//!
+//! The learner (double Q, masking, mixers, target copies, clipping, optimizer) knows nothing
+//! about any method. Adding one = a file or folder here, a variant of [`AgentConfig`] and
+//! [`AgentNet`], and a line in [`REGISTRY`]; `tests/method_suite.rs` then checks it.
+
+pub mod fullcomm;
+pub mod lmac;
+pub mod qmix_state;
+pub mod value_decomposition;
+
+use burn::module::Module;
+use burn::tensor::{Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use super::agent::RnnAgent;
+use super::config::{ConfigError, LearnConfig, MixerKind};
+use super::{InputLayout, LearnRng};
+
+/// Which messages the protocol runner writes for a method.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Messages {
+    /// None unless `run.protocol` names protocol files (then "QMIX with messages").
+    Optional,
+    /// Every agent receives every other agent's full observation.
+    FullComm,
+    /// A designed protocol is required (`run.protocol`: a design directory or phase files).
+    Designed,
+}
+
+/// What a run knows when it configures its method: resolved from the schema and the protocol.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MethodContext {
+    /// Message columns after each agent's observation (the protocol's width).
+    pub msg_cols: usize,
+    /// The environment's recovery threshold alpha (a squared error in the state's units).
+    pub alpha: f64,
+    /// The union of the protocol phases' task-critical state dims (sorted); empty = none named.
+    pub critical_dims: Vec<usize>,
+    pub state_dim: usize,
+}
+
+/// One entry of the registry: everything a method decides outside its network.
+pub struct MethodSpec {
+    /// `--algo` name.
+    pub name: &'static str,
+    /// One line for `--help` and errors.
+    pub about: &'static str,
+    pub messages: Messages,
+    /// The backbone this name fixes (`None`: `learn.mixer` decides).
+    pub mixer: Option<MixerKind>,
+    /// Agents also see the global state (QMIX+State, an upper bound).
+    pub agent_sees_state: bool,
+    /// Parse and check the `[method]` table (unknown keys are errors naming the field).
+    pub configure: fn(&toml::Table, &MethodContext) -> Result<AgentConfig, ConfigError>,
+}
+
+/// Every method, by `--algo` name (pymarl's registry: one line each).
+pub const REGISTRY: &[&MethodSpec] = &[
+    &value_decomposition::QMIX,
+    &value_decomposition::VDN,
+    &value_decomposition::QPLEX,
+    &fullcomm::FULLCOMM,
+    &qmix_state::QMIX_STATE,
+    &lmac::LMAC,
+];
+
+/// The method called `name`, or an error listing the known ones.
+pub fn method(name: &str) -> Result<&'static MethodSpec, String> {
+    REGISTRY.iter().copied().find(|m| m.name == name).ok_or_else(|| {
+        format!("unknown algorithm {name:?}; known: {}", REGISTRY.iter().map(|m| m.name).collect::<Vec<_>>().join(", "))
+    })
+}
+
+/// A method without settings: any key in `[method]` is an error.
+pub fn no_settings(table: &toml::Table, _: &MethodContext) -> Result<AgentConfig, ConfigError> {
+    match table.keys().next() {
+        Some(k) => Err(ConfigError { field: "method", reason: format!("this algorithm has no settings, got `{k}`") }),
+        None => Ok(AgentConfig::Rnn),
+    }
+}
+
+/// The agent network a method builds, saved in checkpoints with the learner's config.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "agent", rename_all = "kebab-case")]
+pub enum AgentConfig {
+    /// pymarl's RNN agent (QMIX, VDN, QPLEX, FullComm, QMIX+State).
+    #[default]
+    Rnn,
+    /// The LMAC agent: the meta-cognitive latent module in front of an RNN agent.
+    Lmac(lmac::LmacConfig),
+}
+
+impl AgentConfig {
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        match self {
+            AgentConfig::Rnn => Ok(()),
+            AgentConfig::Lmac(c) => c.validate(),
+        }
+    }
+
+    /// The names of the numbers `unroll` logs in training (losses and diagnostics), in order.
+    pub fn stat_names(&self) -> &'static [&'static str] {
+        match self {
+            AgentConfig::Rnn => &[],
+            AgentConfig::Lmac(_) => lmac::STAT_NAMES,
+        }
+    }
+}
+
+/// What the online network's unroll needs in training, beyond its inputs. Tensors are on the
+/// autodiff device; rows are time-major (`t * b + b_i`).
+pub struct TrainContext {
+    /// [T * B, state_dim]
+    pub state: Tensor<2>,
+    /// [T * B]: 1 on steps that are trained on.
+    pub mask: Tensor<1>,
+    /// Sum of `mask` (at least 1).
+    pub mask_sum: f32,
+    pub b: usize,
+    pub n_agents: usize,
+    /// Seed of this update's random draws (dropout), so an update is reproducible and a resumed
+    /// run draws what the uninterrupted one would have.
+    pub seed: u64,
+}
+
+/// A named term a method adds to the TD loss, or a diagnostic it logs.
+pub struct AuxTerm {
+    pub name: &'static str,
+    /// Weighted and gradient-carrying; `None` for a logged diagnostic.
+    pub loss: Option<Tensor<1>>,
+    /// The logged value (unweighted).
+    pub value: f32,
+}
+
+/// One agent network for every method (burn modules are concrete types, so the seam is an enum).
+#[derive(Module, Debug)]
+pub enum AgentNet {
+    Rnn(RnnAgent),
+    Lmac(lmac::LmacAgent),
+}
+
+impl AgentNet {
+    /// Build with weights drawn from `rng`. `layout` is what the learner writes per agent-row.
+    pub fn new(rng: &mut LearnRng, agent: &AgentConfig, layout: &InputLayout, cfg: &LearnConfig, device: &Device) -> Self {
+        let d = &layout.dims;
+        match agent {
+            AgentConfig::Rnn => AgentNet::Rnn(RnnAgent::new(rng, layout.width(), cfg.rnn_hidden_dim, d.n_actions, device)),
+            AgentConfig::Lmac(c) => AgentNet::Lmac(lmac::LmacAgent::new(rng, c, layout, cfg, device)),
+        }
+    }
+
+    /// Width of one agent-row's recurrent state (all zeros at an episode's start).
+    pub fn state_width(&self) -> usize {
+        match self {
+            AgentNet::Rnn(a) => a.hidden_dim,
+            AgentNet::Lmac(a) => a.state_width(),
+        }
+    }
+
+    /// One acting step, deterministic (no dropout): x [N, in], state [N, S] -> (q [N, A], state').
+    pub fn step(&self, x: Tensor<2>, state: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+        match self {
+            AgentNet::Rnn(a) => a.step(x, state),
+            AgentNet::Lmac(a) => a.step(x, state),
+        }
+    }
+
+    /// Unroll from zero states: `inputs[t]` is [N, in] with N = B * n_agents (batch-major rows).
+    /// Returns Q [T, N, A] and, when `train` is given (the online network in an update), the
+    /// method's extra loss terms. Without `train` the network is deterministic.
+    pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
+        match self {
+            AgentNet::Rnn(a) => (a.unroll(inputs), Vec::new()),
+            AgentNet::Lmac(a) => a.unroll(inputs, train),
+        }
+    }
+}
+
+/// Dropout with a mask drawn on the host from `rng` (inverted: kept units scaled by 1/(1-p)),
+/// so a seed fixes it exactly (burn's device RNG is process-global).
+pub fn dropout<const D: usize>(x: Tensor<D>, p: f32, rng: &mut LearnRng) -> Tensor<D> {
+    if p <= 0.0 {
+        return x;
+    }
+    let shape = x.dims();
+    let n: usize = shape.iter().product();
+    let keep = 1.0 / (1.0 - p);
+    let mask: Vec<f32> = (0..n).map(|_| if rng.uniform() < p { 0.0 } else { keep }).collect();
+    let m: Tensor<D> = Tensor::from_data(burn::tensor::TensorData::new(mask, shape), &x.device());
+    x * m
+}
