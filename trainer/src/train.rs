@@ -146,6 +146,14 @@ impl UpdateSchedule {
     }
 }
 
+/// The environment a design directory was made for (its `summary.json` or `options.json`).
+fn design_env(dir: &Path) -> Option<String> {
+    ["summary.json", "options.json"].iter().find_map(|f| {
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join(f)).ok()?).ok()?;
+        v.get("env")?.as_str().map(str::to_string)
+    })
+}
+
 /// The protocol files of `spec`: a design directory gives its `phase<i>/protocol.json` for
 /// i = 0..=k (all phases present when `k` is absent); files joined by '+' give the first k + 1.
 pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
@@ -275,7 +283,13 @@ impl TrainConfig {
                 }
                 Ok("none".into())
             }
-            _ => Ok(protocol_files(&self.run.protocol, self.run.design_k)?.join("+")),
+            _ => {
+                let dir = Path::new(&self.run.protocol);
+                if let Some(env) = design_env(dir).filter(|e| *e != self.run.env) {
+                    bail!("run.protocol: the design in {} was made for {env}, this run is on {}", dir.display(), self.run.env);
+                }
+                Ok(protocol_files(&self.run.protocol, self.run.design_k)?.join("+"))
+            }
         }
     }
 

@@ -189,13 +189,25 @@ impl LmacAgent {
 
     /// Unroll from zero states; in training also the module's losses (see the file's header).
     pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
+        assert!(!inputs.is_empty(), "unroll needs at least one step");
+        let mut rng = train.map(|c| LearnRng::seed_from(c.seed ^ 0xD80F_0000_0000_0001));
+        let zs = self.latent(&inputs, rng.as_mut());
+        let agent_inputs: Vec<Tensor<2>> = inputs.into_iter().zip(&zs).map(|(u, z)| self.agent_input(u, z.clone())).collect();
+        let q = self.agent.unroll(agent_inputs);
+        let aux = match train {
+            Some(ctx) => self.losses(Tensor::stack(zs, 0), ctx),
+            None => Vec::new(),
+        };
+        (q, aux)
+    }
+
+    /// The latent z of every step (`rng`: dropout, in training).
+    pub fn latent(&self, inputs: &[Tensor<2>], mut rng: Option<&mut LearnRng>) -> Vec<Tensor<2>> {
         let t_len = inputs.len();
-        assert!(t_len > 0, "unroll needs at least one step");
         let n = inputs[0].dims()[0];
         let device = inputs[0].device();
-        let mut rng = train.map(|c| LearnRng::seed_from(c.seed ^ 0xD80F_0000_0000_0001));
-        let xs: Vec<Tensor<2>> = inputs.iter().map(|u| self.embed(u.clone(), rng.as_mut())).collect();
-        let zs: Vec<Tensor<2>> = match &self.encoder {
+        let xs: Vec<Tensor<2>> = inputs.iter().map(|u| self.embed(u.clone(), rng.as_deref_mut())).collect();
+        match &self.encoder {
             Encoder::GruGate(g) => {
                 let mut h: Tensor<2> = Tensor::zeros([n, self.embed_dim()], &device);
                 xs.iter()
@@ -218,14 +230,7 @@ impl LmacAgent {
                     })
                     .collect()
             }
-        };
-        let agent_inputs: Vec<Tensor<2>> = inputs.into_iter().zip(&zs).map(|(u, z)| self.agent_input(u, z.clone())).collect();
-        let q = self.agent.unroll(agent_inputs);
-        let aux = match train {
-            Some(ctx) => self.losses(Tensor::stack(zs, 0), ctx),
-            None => Vec::new(),
-        };
-        (q, aux)
+        }
     }
 
     /// Decode the latent: (s_hat, xi_hat logits), each [.., critical dims].
@@ -241,8 +246,8 @@ impl LmacAgent {
 
     /// z [T, N, L] with N = B * n (batch-major rows); the context's state and mask are per
     /// (t, b) row.
-    fn losses(&self, z: Tensor<3>, ctx: &TrainContext) -> Vec<AuxTerm> {
-        let [t, n_rows, l] = z.dims();
+    pub fn losses(&self, z: Tensor<3>, ctx: &TrainContext) -> Vec<AuxTerm> {
+        let [t, n_rows, _] = z.dims();
         let (b, n) = (ctx.b, ctx.n_agents);
         assert_eq!(n_rows, b * n, "rows are batch x agents");
         let dc = self.cfg.critical_dims.len();
@@ -273,7 +278,6 @@ impl LmacAgent {
         } else {
             cyc.mean()
         };
-        let _ = l;
 
         let scalar = |x: &Tensor<1>| x.clone().detach().into_scalar::<f32>();
         let recovered = scalar(&(xi * mask.clone()).sum().div_scalar(denom));
