@@ -221,7 +221,7 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     std::fs::write(dir.join("comparison.csv"), csv)?;
     super::plot_experiment(&dir);
     println!("{table}");
-    println!("written: {}/comparison.{{md,csv,json}}, curves.png", dir.display());
+    println!("written: {}/comparison.{{md,csv,json}} and the plots", dir.display());
     Ok(0)
 }
 

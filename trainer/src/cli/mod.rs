@@ -134,23 +134,8 @@ pub(crate) fn plot(script: &str, dir: &std::path::Path) {
     }
 }
 
-/// The curves of an experiment (one line per variant, std band over seeds) into
-/// `<dir>/curves.png`.
+/// The curves of an experiment and, with the k ablations, its phase plot
+/// (`trainer/plot_experiment.py`).
 pub(crate) fn plot_experiment(dir: &std::path::Path) {
-    let groups: Vec<std::path::PathBuf> = match std::fs::read_dir(dir.join("runs")) {
-        Ok(rd) => {
-            let mut g: Vec<_> = rd.flatten().map(|e| e.path()).filter(|p| p.is_dir()).collect();
-            g.sort();
-            g
-        }
-        Err(_) => return,
-    };
-    let out = supervisor::repo_root().map(|r| r.join("trainer").join("plot_runs.py")).and_then(|s| {
-        Ok(supervisor::python_command()?.arg(s).arg("--compare").arg(dir.join("curves.png")).args(&groups).output()?)
-    });
-    match out {
-        Ok(o) if o.status.success() => {}
-        Ok(o) => eprintln!("lmac: plot_runs.py --compare failed: {}", String::from_utf8_lossy(&o.stderr)),
-        Err(e) => eprintln!("lmac: plot_runs.py --compare failed: {e}"),
-    }
+    plot("plot_experiment.py", dir);
 }
