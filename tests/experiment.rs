@@ -48,7 +48,7 @@ fn an_experiment_designs_trains_resumes_after_an_interruption_and_writes_its_tab
     assert!(out.join("comparison.csv").exists() && out.join("curves.png").exists());
     // LMAC's metrics carry its module's terms, and its curve never steps backwards.
     let csv = std::fs::read_to_string(lmac_run.join("metrics.csv")).unwrap();
-    assert!(csv.lines().next().unwrap().ends_with("lmac_recon_mse,lmac_meta_bce,lmac_cons,lmac_recovered,lmac_reliability"));
+    assert!(csv.lines().next().unwrap().ends_with("lmac_recon_mse,lmac_meta_bce,lmac_cons,lmac_recovered,lmac_reliability,lmac_z_sq"));
     let t: Vec<u64> = csv.lines().skip(1).map(|l| l.split(',').next().unwrap().parse().unwrap()).collect();
     assert!(t.windows(2).all(|w| w[0] <= w[1]) && *t.last().unwrap() >= 12_000, "{t:?}");
     // A third run finds everything done and writes the same table.

@@ -426,7 +426,13 @@ impl Metrics {
     pub fn open(dir: &Path, resume_t_env: u64, method_columns: &[&str]) -> Result<(Metrics, MetricsResume)> {
         let csv_path = dir.join("metrics.csv");
         let jsonl_path = dir.join("metrics.jsonl");
-        let header: String = std::iter::once(CSV_HEADER).chain(method_columns.iter().copied()).collect::<Vec<_>>().join(",");
+        // A run resumed by a build whose method logs other terms keeps the columns its file has.
+        let existing = std::fs::read_to_string(&csv_path).ok().and_then(|t| t.lines().next().map(str::to_string));
+        let header: String = match existing.filter(|h| h.starts_with(CSV_HEADER)) {
+            Some(h) => h,
+            None => std::iter::once(CSV_HEADER).chain(method_columns.iter().copied()).collect::<Vec<_>>().join(","),
+        };
+        let method_columns: Vec<String> = header.split(',').skip(CSV_HEADER.split(',').count()).map(str::to_string).collect();
         let columns = header.split(',').count();
         let t_env_of_csv = |line: &str| line.split(',').next().and_then(|v| v.parse::<u64>().ok());
         let ok_csv = |line: &str| line.split(',').count() == columns && t_env_of_csv(line).is_some_and(|t| t <= resume_t_env);
@@ -449,7 +455,6 @@ impl Metrics {
         if resume_t_env > 0 {
             tb.session_start(resume_t_env + 1).with_context(|| format!("writing {}", tb.path().display()))?;
         }
-        let method_columns = method_columns.iter().map(|c| c.to_string()).collect();
         Ok((Metrics { method_columns, csv, jsonl, tb, dir: dir.to_path_buf() }, MetricsResume { dropped_rows: dropped_csv.max(dropped_json), wall_s }))
     }
 
@@ -1059,6 +1064,25 @@ mod tests {
         let json = std::fs::read_to_string(dir.join("metrics.jsonl")).unwrap();
         assert_eq!(json.lines().count(), 3, "{json}");
         assert!(json.lines().all(|l| serde_json::from_str::<serde_json::Value>(l).is_ok()));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_resumed_run_keeps_the_method_columns_its_metrics_file_has() {
+        let dir = std::env::temp_dir().join(format!("lmac-metrics-cols-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (mut m, _) = Metrics::open(&dir, 0, &["a", "b"]).unwrap();
+        let row = |t| MetricsRow { t_env: t, method: [("a".to_string(), 1.5), ("b".to_string(), 2.5)].into(), ..Default::default() };
+        m.write(&row(100)).unwrap();
+        drop(m);
+        // A newer build logs a third term: the file keeps its two, and no row is dropped.
+        let (mut m, r) = Metrics::open(&dir, 100, &["a", "b", "c"]).unwrap();
+        assert_eq!(r.dropped_rows, 0);
+        m.write(&row(200)).unwrap();
+        let csv = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
+        assert!(csv.lines().next().unwrap().ends_with(",a,b"), "{csv}");
+        assert!(csv.lines().skip(1).all(|l| l.ends_with(",1.5,2.5")), "{csv}");
+        assert_eq!(read_metrics(&dir).unwrap()[1].method["b"], 2.5);
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -32,7 +32,7 @@ pub const LMAC: MethodSpec = MethodSpec {
 };
 
 /// The numbers an LMAC update logs, in order (see `module.rs`).
-pub const STAT_NAMES: &[&str] = &["lmac_recon_mse", "lmac_meta_bce", "lmac_cons", "lmac_recovered", "lmac_reliability"];
+pub const STAT_NAMES: &[&str] = &["lmac_recon_mse", "lmac_meta_bce", "lmac_cons", "lmac_recovered", "lmac_reliability", "lmac_z_sq"];
 
 /// How the encoder attends to the agent's trajectory.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

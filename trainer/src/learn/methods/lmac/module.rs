@@ -14,7 +14,8 @@
 //! Losses (means over the trained steps, agents and dims):
 //! L_recon = (s_hat - s)^2 + lambda_meta BCE(xi_hat, xi), xi = 1[(s_hat - s)^2 <= alpha]
 //! (no gradient through xi); L_cons = ||z_hat - z||^2 (summed over the latent), weighted by
-//! lambda_cons.
+//! lambda_cons. Logged besides: the share of (agent, dim, step) recovered within alpha, the mean
+//! predicted reliability, and the mean ||z||^2.
 
 use burn::module::Module;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear};
@@ -272,6 +273,9 @@ impl LmacAgent {
         let recon = mse.clone() + bce.clone().mul_scalar(s.lambda_meta);
 
         let z_hat = self.cycle(s_hat.reshape([t, n_rows, dc]), xi_logit.clone().reshape([t, n_rows, dc]));
+        // The latent's size: the consistency loss alone is smallest for a z shrunk towards 0,
+        // so its value only means something next to ||z||^2.
+        let z_sq = (z.clone().detach().square().sum_dim(2).reshape([t, b, n, 1]) * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32);
         let cyc = (z_hat - z).square().sum_dim(2).reshape([t, b, n, 1]);
         let cons = if s.mask_consistency {
             (cyc * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32)
@@ -288,6 +292,7 @@ impl LmacAgent {
             AuxTerm { name: "lmac_cons", value: scalar(&cons), loss: Some(cons.mul_scalar(s.lambda_cons)) },
             AuxTerm { name: "lmac_recovered", value: recovered, loss: None },
             AuxTerm { name: "lmac_reliability", value: reliability, loss: None },
+            AuxTerm { name: "lmac_z_sq", value: z_sq.into_scalar::<f32>(), loss: None },
         ]
     }
 }
