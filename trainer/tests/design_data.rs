@@ -401,32 +401,39 @@ fn meta_json_shape() {
     );
     let cfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 2 };
     let m = meta::evaluate(&ctx(&schema, &env, &data), &[p0], &cfg).unwrap();
-    let dims = m["dimensions"].as_array().unwrap();
+    let dims = &m.dimensions;
     // Critical dims 0, 3, 4 capped to the 2 worst recovered with messages: s[3] (agent 0
     // never learns it) and s[4] (seen every 4th step by agent 0 only); s[0] now reaches agent 1.
-    assert_eq!(m["summary"]["target_dims"], serde_json::json!([3, 4]), "{m:#}");
-    assert!(m["target_dims_selection"].as_str().unwrap().contains("cut to the 2 worst"));
-    assert_eq!(dims[0]["dimension"], "s[3] - hidden value B");
+    assert_eq!(m.summary.target_dims, vec![3, 4], "{:#}", m.json());
+    assert!(m.target_dims_selection.contains("cut to the 2 worst"));
+    assert_eq!((dims[0].dim, dims[0].dimension.as_str()), (3, "s[3] - hidden value B"));
     for d in dims {
-        for side in ["with_communication", "without_communication"] {
-            let s = &d[side];
-            assert_eq!(s["agent_success_rates"].as_array().unwrap().len(), 2);
-            for th in ["early", "mid", "late"] {
-                assert_eq!(s[th].as_array().unwrap().len(), 2);
-                assert!(s[format!("variance_in_{th}")].as_f64().unwrap() >= 0.0);
+        for s in [&d.with_communication, &d.without_communication] {
+            assert_eq!(s.agent_success_rates.len(), 2);
+            for th in 0..3 {
+                let (rates, var) = s.third(th);
+                assert_eq!(rates.len(), 2);
+                assert!(var >= 0.0);
             }
-            assert!(s["variance_across_agents"].as_f64().is_some());
+            assert!(s.variance_across_agents >= 0.0);
         }
     }
-    for side in ["with_communication", "without_communication"] {
-        let r = m["summary"][side]["mean_recovery"].as_f64().unwrap();
-        assert!((0.0..=1.0).contains(&r));
-        assert!(m["summary"][side]["mean_variance_across_agents"].as_f64().unwrap() >= 0.0);
+    for side in [&m.summary.with_communication, &m.summary.without_communication] {
+        assert!((0.0..=1.0).contains(&side.mean_recovery));
+        assert!(side.mean_variance_across_agents >= 0.0);
     }
-    assert_eq!(m["message_columns"], 2 + 1); // one sender block: one-hot (2) + one value
-    assert!(m["evaluation"]["note"].as_str().unwrap().contains("neither discriminator trained on"));
-    assert!(m["discriminators"]["with_communication"]["ms_per_update"].as_f64().unwrap() > 0.0);
-    let line = meta::summary_line(&m);
+    assert_eq!(m.message_columns, 2 + 1); // one sender block: one-hot (2) + one value
+    assert!(m.evaluation.note.contains("neither discriminator trained on"));
+    assert!(m.discriminators.with_communication.ms_per_update > 0.0);
+    // The JSON written to meta.json and shown to the LLM keeps its keys, with the dim as a number.
+    let j = m.json();
+    assert_eq!(j["summary"]["target_dims"], serde_json::json!([3, 4]));
+    assert_eq!(
+        (&j["dimensions"][0]["dim"], &j["dimensions"][0]["dimension"]),
+        (&serde_json::json!(3), &serde_json::json!("s[3] - hidden value B"))
+    );
+    assert!(j["dimensions"][0]["with_communication"]["variance_in_mid"].is_number());
+    let line = m.summary_line();
     assert!(line.contains("with messages") && line.contains("2 target dims"), "{line}");
     // With the cap lifted, all three critical dims are listed and s[0]'s recovery by agent 1
     // rises with the message.
@@ -437,9 +444,9 @@ fn meta_json_shape() {
         &[],
     );
     let m = meta::evaluate(&ctx(&schema, &env, &data), &[p0], &cfg).unwrap();
-    let d0 = &m["dimensions"][0];
-    let with1 = d0["with_communication"]["agent_success_rates"][1].as_f64().unwrap();
-    let without1 = d0["without_communication"]["agent_success_rates"][1].as_f64().unwrap();
+    let d0 = &m.dimensions[0];
+    let with1 = d0.with_communication.agent_success_rates[1];
+    let without1 = d0.without_communication.agent_success_rates[1];
     assert!(with1 > without1 + 0.3, "agent 1 on s[0]: {with1} with, {without1} without");
     // Without a dataset the evaluation explains what is missing.
     let no_data = DesignContext { dataset: None, ..ctx(&schema, &env, &data) };
@@ -477,11 +484,8 @@ fn offline_designer_three_phases() {
             protocol::validate_phase(&p.protocol, &env, &validated[..i]).unwrap();
         }
         let m = meta::evaluate(&c, &validated, &mcfg).unwrap();
-        eprintln!("phase {k}: {}", meta::summary_line(&m));
-        means.push((
-            m["summary"]["with_communication"]["mean_recovery"].as_f64().unwrap(),
-            m["summary"]["without_communication"]["mean_recovery"].as_f64().unwrap(),
-        ));
+        eprintln!("phase {k}: {}", m.summary_line());
+        means.push((m.summary.with_communication.mean_recovery, m.summary.without_communication.mean_recovery));
         if k == 2 {
             break;
         }
@@ -632,8 +636,8 @@ fn design_sized_run() {
         let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
         let t = std::time::Instant::now();
         let m = meta::evaluate(&c, &validated, &mcfg).unwrap();
-        eprintln!("phase {k} evaluated in {:.1} s: {}", t.elapsed().as_secs_f64(), meta::summary_line(&m));
-        eprintln!("  discriminator: {}", m["discriminators"]["with_communication"]);
+        eprintln!("phase {k} evaluated in {:.1} s: {}", t.elapsed().as_secs_f64(), m.summary_line());
+        eprintln!("  discriminator: {}", serde_json::to_string(&m.discriminators.with_communication).unwrap());
         if k == 2 {
             break;
         }

@@ -5,8 +5,12 @@
 //! error with the transcript kept; recording and exact offline replay; the API key never written.
 
 use lmac_protocol_runner::protocol;
+use lmac_trainer::design::discriminator::{DiscriminatorConfig, TrainReport};
 use lmac_trainer::design::llm::{ApiKey, ChatMessage, HttpLlm, LlmClient, LlmConfig, LlmError, LlmMode};
 use lmac_trainer::design::llm_designer::{LlmDesigner, LlmDesignerOptions};
+use lmac_trainer::design::meta_info::{
+    DimRecovery, DiscriminatorReports, EvaluationFacts, MetaInfo, MetaSummary, RecoverySummary, SideRecovery,
+};
 use lmac_trainer::design::prompts::Templates;
 use lmac_trainer::design::{DesignContext, Designer, PhaseProtocol};
 use std::collections::VecDeque;
@@ -167,23 +171,40 @@ fn config(spec: &str, url: &str) -> LlmConfig {
     c
 }
 
-/// Meta-information in the shape of the paper's Figure B.2 (synthetic numbers).
-fn meta(phase: usize) -> serde_json::Value {
-    let dims: Vec<serde_json::Value> = [104usize, 105, 116]
-        .iter()
-        .map(|&d| {
-            serde_json::json!({
-                "dimension": format!("s[{d}] - food layer of the padded grid, cell {d}"),
-                "with_communication": {"agent_success_rates": [0.61, 0.42], "early": [0.5, 0.3], "mid": [0.6, 0.4], "late": [0.7, 0.5], "variance": [0.01, 0.01, 0.01]},
-                "without_communication": {"agent_success_rates": [0.40, 0.38], "early": [0.3, 0.3], "mid": [0.4, 0.4], "late": [0.5, 0.4], "variance": [0.0, 0.0, 0.0]}
+/// Meta-information in the shape of the paper's Figure B.2 (synthetic numbers) for phases
+/// 0..=`phase`.
+fn meta(phase: usize) -> MetaInfo {
+    let with = SideRecovery::from_rates(&[0.61, 0.42], [&[0.5, 0.3], &[0.6, 0.4], &[0.7, 0.5]]);
+    let without = SideRecovery::from_rates(&[0.40, 0.38], [&[0.3, 0.3], &[0.4, 0.4], &[0.5, 0.4]]);
+    let dims = [104usize, 105, 116];
+    MetaInfo {
+        env: ENV.into(),
+        alpha: 0.1,
+        phases: phase + 1,
+        message_columns: 21,
+        evaluation: EvaluationFacts { held_out_episodes: 100, held_out_rows: 5000, note: "synthetic".into() },
+        discriminators: DiscriminatorReports {
+            with_communication: TrainReport::default(),
+            without_communication: TrainReport::default(),
+            config: DiscriminatorConfig::default(),
+        },
+        target_dims_selection: "synthetic".into(),
+        dimensions: dims
+            .iter()
+            .map(|&d| DimRecovery {
+                dim: d,
+                dimension: format!("s[{d}] - food layer of the padded grid, cell {d}"),
+                constant_guess_rate: 0.3,
+                with_communication: with.clone(),
+                without_communication: without.clone(),
             })
-        })
-        .collect();
-    serde_json::json!({
-        "phase": phase,
-        "dimensions": dims,
-        "summary": {"target_dims": [104, 105, 116], "with_communication": {"mean_recovery": 0.52, "mean_variance_across_agents": 0.009}, "without_communication": {"mean_recovery": 0.39, "mean_variance_across_agents": 0.001}}
-    })
+            .collect(),
+        summary: MetaSummary {
+            target_dims: dims.to_vec(),
+            with_communication: RecoverySummary { mean_recovery: 0.52, mean_variance_across_agents: 0.009 },
+            without_communication: RecoverySummary { mean_recovery: 0.39, mean_variance_across_agents: 0.001 },
+        },
+    }
 }
 
 fn feedback_json(tag: &str) -> String {

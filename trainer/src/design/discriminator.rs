@@ -330,7 +330,8 @@ impl Standardize {
 }
 
 /// How a training run went.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct TrainReport {
     pub updates: usize,
     pub train_episodes: usize,

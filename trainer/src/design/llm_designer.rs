@@ -8,6 +8,7 @@
 //! then the designer fails with the last problem and the transcript keeps every prompt and reply.
 
 use super::llm::{ChatMessage, LlmClient, LlmMode};
+use super::meta_info::MetaInfo;
 use super::prompts::{budget_left, Templates};
 use super::{DesignContext, Designer, Feedback, PhaseProtocol, TranscriptEntry};
 use anyhow::{anyhow, bail, Result};
@@ -309,7 +310,7 @@ impl Designer for LlmDesigner {
         Ok(PhaseProtocol { protocol: p, validated: v, reasoning })
     }
 
-    fn feedback(&mut self, ctx: &DesignContext, phase: usize, previous: &[PhaseProtocol], meta: &serde_json::Value) -> Result<Feedback> {
+    fn feedback(&mut self, ctx: &DesignContext, phase: usize, previous: &[PhaseProtocol], meta: &MetaInfo) -> Result<Feedback> {
         let prev: Vec<ValidatedProtocol> = previous.iter().map(|p| p.validated.clone()).collect();
         let prompt = self.templates.feedback(ctx.env_name, ctx.schema, ctx.env, phase, &prev, meta, self.options.meta_max_chars)?;
         let msgs = vec![ChatMessage::system(self.templates.system()?), ChatMessage::user(prompt)];
@@ -322,7 +323,7 @@ impl Designer for LlmDesigner {
         phase: usize,
         previous: &[PhaseProtocol],
         feedback: &Feedback,
-        _meta: &serde_json::Value,
+        _meta: &MetaInfo,
     ) -> Result<PhaseProtocol> {
         let prev: Vec<ValidatedProtocol> = previous.iter().map(|p| p.validated.clone()).collect();
         Self::check_room(ctx, phase, &prev)?;

@@ -5,19 +5,7 @@
 //! discriminator trained with agent i's received messages and s_hat[0] from the one trained with
 //! the message columns zeroed, both measured on held-out episodes of B, in the state's own units.
 //!
-//! # The JSON ([`evaluate`], [`meta_json`])
-//! ```text
-//! { "env", "alpha", "phases", "message_columns", "evaluation": {held-out episodes, rows, note},
-//!   "discriminators": {"with_communication": TrainReport, "without_communication": TrainReport, "config"},
-//!   "target_dims_selection": "how the dims below were chosen",
-//!   "dimensions": [ { "dimension": "s[62] - <meaning>", "constant_guess_rate": E[chi] of guessing the median,
-//!       "with_communication": { "agent_success_rates": [E_t chi per agent],
-//!           "variance_across_agents": Var_i,
-//!           "early": [per agent], "variance_in_early": Var_i, "mid": .., "late": .. },
-//!       "without_communication": { same } }, ... ],
-//!   "summary": { "target_dims": [..], "with_communication": {"mean_recovery",
-//!       "mean_variance_across_agents"}, "without_communication": {..} } }
-//! ```
+//! [`evaluate`] returns a [`MetaInfo`] ([`super::meta_info`], which also shows its JSON).
 //! Early/mid/late are the thirds of each episode's own length (step t of an episode of length
 //! L falls in third floor(3t/L)), so short episodes (food collected early) contribute to all
 //! three. Variances are population variances across agents.
@@ -25,23 +13,25 @@
 //! Target dims: the union of the critical state dims of the phases so far (all dims when none
 //! are listed). More than [`MetaConfig::max_target_dims`] (prompt size) are cut to the worst
 //! recovered with messages relative to a constant guess ([`skill`]; ties: worst without
-//! messages, then lower index); the JSON says so.
+//! messages, then lower index); [`MetaInfo::target_dims_selection`] says so.
 
 use super::discriminator::{split_episodes, DiscInput, Discriminator, DiscriminatorConfig, TrainReport};
+use super::meta_info::{
+    round3, round5, DimRecovery, DiscriminatorReports, EvaluationFacts, MetaInfo, MetaSummary, RecoverySummary, SideRecovery,
+};
 use super::DesignContext;
 use crate::dataset::Dataset;
 use anyhow::{bail, Result};
 use burn::tensor::Device;
 use lmac_protocol_runner::protocol::{self, ValidatedProtocol};
 use serde::{Deserialize, Serialize};
-use serde_json::{json, Value};
 
 /// How the meta-information is measured.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MetaConfig {
     pub discriminator: DiscriminatorConfig,
-    /// Most target dims in the JSON (each costs a few hundred characters of prompt).
+    /// Most target dims in the meta-information (each costs a few hundred characters of prompt).
     pub max_target_dims: usize,
 }
 
@@ -207,26 +197,10 @@ pub fn constant_guess(data: &Dataset, train: &[usize], test: &[usize], dims: &[u
     hits.iter().map(|&h| h as f64 / total.max(1) as f64).collect()
 }
 
-fn r3(x: f64) -> Value {
-    json!((x * 1000.0).round() / 1000.0)
-}
-
-fn r5(x: f64) -> Value {
-    json!((x * 100_000.0).round() / 100_000.0)
-}
-
-/// One side (with or without communication) of one dim's entry.
-fn side(r: &Recovery, k: usize) -> Value {
-    let mut o = serde_json::Map::new();
-    let rates = r.rates(k);
-    o.insert("agent_success_rates".into(), Value::Array(rates.iter().map(|&x| r3(x)).collect()));
-    o.insert("variance_across_agents".into(), r5(variance(&rates)));
-    for (th, name) in THIRDS.iter().enumerate() {
-        let v: Vec<f64> = (0..r.n_agents).map(|i| r.third_rate(k, i, th)).collect();
-        o.insert((*name).into(), Value::Array(v.iter().map(|&x| r3(x)).collect()));
-        o.insert(format!("variance_in_{name}"), r5(variance(&v)));
-    }
-    Value::Object(o)
+/// One side (with or without communication) of the k-th measured dim's entry.
+fn side(r: &Recovery, k: usize) -> SideRecovery {
+    let [early, mid, late] = [0, 1, 2].map(|th| (0..r.n_agents).map(|i| r.third_rate(k, i, th)).collect::<Vec<f64>>());
+    SideRecovery::from_rates(&r.rates(k), [&early, &mid, &late])
 }
 
 /// The label of a state dim: `s[62] - <meaning>` (or `s[62]` when the meaning is unknown).
@@ -269,7 +243,7 @@ pub fn select_targets(with: &Recovery, without: &Recovery, guess: &[f64], wanted
     (chosen, note)
 }
 
-/// What [`meta_json`] needs besides the two recoveries.
+/// What [`meta_info`] needs besides the two recoveries.
 pub struct MetaFacts<'a> {
     pub env: &'a str,
     pub alpha: f64,
@@ -282,48 +256,50 @@ pub struct MetaFacts<'a> {
     pub config: &'a MetaConfig,
 }
 
-/// The meta-information JSON for `targets` (each must be among the measured dims).
+/// The meta-information for `targets` (each must be among the measured dims).
 /// `guess` is the constant-guess rate of each of `with.dims` ([`constant_guess`]).
-pub fn meta_json(facts: &MetaFacts, with: &Recovery, without: &Recovery, guess: &[f64], targets: &[usize], selection: &str) -> Value {
+pub fn meta_info(facts: &MetaFacts, with: &Recovery, without: &Recovery, guess: &[f64], targets: &[usize], selection: &str) -> MetaInfo {
     let mut dims = Vec::new();
     let (mut mw, mut mo, mut vw, mut vo) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for &d in targets {
         let (Some(kw), Some(ko)) = (with.position(d), without.position(d)) else { continue };
-        dims.push(json!({
-            "dimension": dim_label(d, facts.state_names),
-            "constant_guess_rate": r3(guess.get(kw).copied().unwrap_or(0.0)),
-            "with_communication": side(with, kw),
-            "without_communication": side(without, ko),
-        }));
+        dims.push(DimRecovery {
+            dim: d,
+            dimension: dim_label(d, facts.state_names),
+            constant_guess_rate: round3(guess.get(kw).copied().unwrap_or(0.0)),
+            with_communication: side(with, kw),
+            without_communication: side(without, ko),
+        });
         mw.push(with.mean_rate(kw));
         mo.push(without.mean_rate(ko));
         vw.push(with.variance_across_agents(kw));
         vo.push(without.variance_across_agents(ko));
     }
     let rows: u32 = with.totals.iter().sum();
-    json!({
-        "env": facts.env,
-        "alpha": facts.alpha,
-        "phases": facts.phases,
-        "message_columns": facts.message_columns,
-        "evaluation": {
-            "held_out_episodes": facts.held_out_episodes,
-            "held_out_rows": rows,
-            "note": "chi = 1[(s_hat - s)^2 <= alpha] in the state's own units, measured on episodes of the dataset that neither discriminator trained on; with_communication: the discriminator given the agent's received messages; without_communication: the same architecture trained and evaluated with the message columns zeroed; constant_guess_rate: the success rate of always guessing the dim's median, the level a rate must beat to show any recovery",
+    let summary = |m: &[f64], v: &[f64]| RecoverySummary { mean_recovery: round3(mean(m)), mean_variance_across_agents: round5(mean(v)) };
+    MetaInfo {
+        env: facts.env.to_string(),
+        alpha: facts.alpha,
+        phases: facts.phases,
+        message_columns: facts.message_columns,
+        evaluation: EvaluationFacts {
+            held_out_episodes: facts.held_out_episodes,
+            held_out_rows: rows,
+            note: "chi = 1[(s_hat - s)^2 <= alpha] in the state's own units, measured on episodes of the dataset that neither discriminator trained on; with_communication: the discriminator given the agent's received messages; without_communication: the same architecture trained and evaluated with the message columns zeroed; constant_guess_rate: the success rate of always guessing the dim's median, the level a rate must beat to show any recovery".into(),
         },
-        "discriminators": {
-            "with_communication": facts.with_report,
-            "without_communication": facts.without_report,
-            "config": facts.config.discriminator,
+        discriminators: DiscriminatorReports {
+            with_communication: facts.with_report.clone(),
+            without_communication: facts.without_report.clone(),
+            config: facts.config.discriminator.clone(),
         },
-        "target_dims_selection": selection,
-        "dimensions": dims,
-        "summary": {
-            "target_dims": targets,
-            "with_communication": {"mean_recovery": r3(mean(&mw)), "mean_variance_across_agents": r5(mean(&vw))},
-            "without_communication": {"mean_recovery": r3(mean(&mo)), "mean_variance_across_agents": r5(mean(&vo))},
+        target_dims_selection: selection.to_string(),
+        dimensions: dims,
+        summary: MetaSummary {
+            target_dims: targets.to_vec(),
+            with_communication: summary(&mw, &vw),
+            without_communication: summary(&mo, &vo),
         },
-    })
+    }
 }
 
 /// Check that the dataset was collected on the environment the design is for.
@@ -392,8 +368,8 @@ pub fn measure(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &Discrimi
     Ok(Measured { with, without, with_report, without_report, held_out: test, message_columns: msg_dim, guess })
 }
 
-/// The design loop's evaluation of phases 0..=k on B: the meta-information JSON.
-pub fn evaluate(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &MetaConfig) -> Result<Value> {
+/// The design loop's evaluation of phases 0..=k on B: the meta-information.
+pub fn evaluate(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &MetaConfig) -> Result<MetaInfo> {
     if cfg.max_target_dims == 0 {
         bail!("meta.max_target_dims must be at least 1");
     }
@@ -414,20 +390,5 @@ pub fn evaluate(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &MetaCon
         without_report: &m.without_report,
         config: cfg,
     };
-    Ok(meta_json(&facts, &m.with, &m.without, &m.guess, &targets, &selection))
-}
-
-/// One line for logs: mean recovery and variance across agents over the target dims.
-pub fn summary_line(meta: &Value) -> String {
-    let s = &meta["summary"];
-    let num = |v: &Value| v.as_f64().map(|x| format!("{x:.3}")).unwrap_or_else(|| "?".into());
-    let n = s["target_dims"].as_array().map(|a| a.len()).unwrap_or(0);
-    format!(
-        "recovery {} with messages, {} without; variance across agents {} with, {} without ({n} target dims, {} message columns)",
-        num(&s["with_communication"]["mean_recovery"]),
-        num(&s["without_communication"]["mean_recovery"]),
-        num(&s["with_communication"]["mean_variance_across_agents"]),
-        num(&s["without_communication"]["mean_variance_across_agents"]),
-        meta["message_columns"],
-    )
+    Ok(meta_info(&facts, &m.with, &m.without, &m.guess, &targets, &selection))
 }

@@ -7,7 +7,7 @@
 //! 3. for each phase k, the messages of the protocol so far are recomputed on B by the runner's
 //!    own compiled plan, a discriminator D^(k) learns to reconstruct the state with and without
 //!    them ([`discriminator`]), and the meta-information chi says per agent and state dim how
-//!    often reconstruction succeeds ([`meta`]);
+//!    often reconstruction succeeds ([`meta`], handed on as a [`meta_info::MetaInfo`]);
 //! 4. the designer turns the meta-information into feedback and the next phase's protocol
 //!    (`Designer::feedback`, `Designer::refine`); the final protocol is phase 0 + 1 + 2.
 //!
@@ -19,12 +19,14 @@ pub mod discriminator;
 pub mod llm;
 pub mod llm_designer;
 pub mod meta;
+pub mod meta_info;
 pub mod offline;
 pub mod prompts;
 pub mod run;
 
 use lmac_protocol_runner::protocol::{Protocol, ProtocolEnv, ValidatedProtocol};
 use lmac_shm_schema::EnvSchema;
+use meta_info::MetaInfo;
 use serde::{Deserialize, Serialize};
 
 /// What every designer may read: the environment (its schema with the meaning of every
@@ -83,14 +85,8 @@ pub trait Designer {
     /// Phase 0 (initialization): select the task-critical state dims, then write f_C^(0).
     fn initial(&mut self, ctx: &DesignContext) -> anyhow::Result<PhaseProtocol>;
     /// Feedback c^(k+1) on the protocol so far (`previous`, phases 0..k) from the
-    /// meta-information of phase k (the JSON written by [`meta`]). `phase` is k + 1.
-    fn feedback(
-        &mut self,
-        ctx: &DesignContext,
-        phase: usize,
-        previous: &[PhaseProtocol],
-        meta: &serde_json::Value,
-    ) -> anyhow::Result<Feedback>;
+    /// meta-information of phases 0..=k ([`meta::evaluate`]). `phase` is k + 1.
+    fn feedback(&mut self, ctx: &DesignContext, phase: usize, previous: &[PhaseProtocol], meta: &MetaInfo) -> anyhow::Result<Feedback>;
     /// Phase k + 1's protocol (recognition enhancement for 1, sharing enhancement for 2),
     /// using the feedback; it must fit the budget left by `previous`.
     fn refine(
@@ -99,7 +95,7 @@ pub trait Designer {
         phase: usize,
         previous: &[PhaseProtocol],
         feedback: &Feedback,
-        meta: &serde_json::Value,
+        meta: &MetaInfo,
     ) -> anyhow::Result<PhaseProtocol>;
     /// Everything said so far (prompts and replies), for the transcript file.
     fn transcript(&self) -> Vec<TranscriptEntry>;

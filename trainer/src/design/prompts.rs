@@ -7,6 +7,7 @@
 //! the meta-information or the validator's text). Substitution is one pass, so a value that
 //! happens to contain `{{...}}` is left as it is. `prompts/README.md` lists the placeholders.
 
+use super::meta_info::MetaInfo;
 use super::Feedback;
 use anyhow::{bail, Context, Result};
 use lmac_protocol_runner::protocol::{self, ProtocolEnv, ValidatedProtocol};
@@ -283,7 +284,7 @@ impl Templates {
         env: &ProtocolEnv,
         phase: usize,
         previous: &[ValidatedProtocol],
-        meta: &serde_json::Value,
+        meta: &MetaInfo,
         meta_max_chars: usize,
     ) -> Result<String> {
         if previous.is_empty() {
@@ -429,12 +430,13 @@ fn reference_for_analysis(env: &ProtocolEnv) -> String {
 /// The meta-information as JSON within `max_chars`: pretty when it fits, else compact with
 /// numbers rounded to 3 decimals, else with the longest lists cut (halving the longest until it
 /// fits, with a note of how many entries were left out), else cut at the limit with a note.
-pub fn render_meta(meta: &serde_json::Value, max_chars: usize) -> String {
-    let pretty = serde_json::to_string_pretty(meta).expect("JSON serializes");
+pub fn render_meta(meta: &MetaInfo, max_chars: usize) -> String {
+    let meta = meta.json();
+    let pretty = serde_json::to_string_pretty(&meta).expect("JSON serializes");
     if pretty.chars().count() <= max_chars {
         return pretty;
     }
-    let mut v = round_numbers(meta);
+    let mut v = round_numbers(&meta);
     let mut s = serde_json::to_string(&v).expect("JSON serializes");
     let mut cuts: BTreeMap<String, usize> = BTreeMap::new();
     while s.chars().count() > max_chars {
@@ -562,15 +564,15 @@ mod tests {
 
     #[test]
     fn meta_is_capped() {
-        let dims: Vec<serde_json::Value> = (0..300)
-            .map(|d| serde_json::json!({"dimension": format!("s[{d}] - something long enough"), "with_communication": {"agent_success_rates": [0.123456, 0.654321]}}))
-            .collect();
-        let meta = serde_json::json!({"dimensions": dims, "summary": {"mean_recovery": 0.5}});
-        let small = render_meta(&serde_json::json!({"a": 1}), 1000);
-        assert!(small.contains("\"a\": 1"));
+        let dims: Vec<(usize, String)> = (0..300).map(|d| (d, format!("s[{d}] - something long enough"))).collect();
+        let small = render_meta(&super::super::meta_info::example(&dims[..1], &[0.5, 0.25], &[0.5, 0.25]), 10_000);
+        assert!(small.contains("\"dim\": 0,") && small.contains("\"dimension\": \"s[0] - something long enough\""), "{small}");
+        // Rates as measured are rounded to 3 decimals; the 5-decimal variances are cut to 3 when shortened.
+        let meta = super::super::meta_info::example(&dims, &[0.123, 0.543], &[0.1, 0.2]);
+        assert!(render_meta(&meta, 1_000_000).contains("0.0441"));
         let s = render_meta(&meta, 4000);
         assert!(s.chars().count() < 4300, "{}", s.len());
         assert!(s.contains("summary") && s.contains("/dimensions (first entries of 300)"), "{s}");
-        assert!(s.contains("0.123") && !s.contains("0.123456"));
+        assert!(s.contains("0.123") && s.contains("0.044") && !s.contains("0.0441"), "{s}");
     }
 }

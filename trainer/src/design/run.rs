@@ -16,6 +16,7 @@
 //!                           without messages; recovery.png plots it (the paper's Figure 3)
 //! ```
 
+use super::meta_info::{MetaInfo, RecoverySummary};
 use super::{DesignContext, Designer, PhaseProtocol};
 use crate::dataset::Dataset;
 use anyhow::{bail, Context, Result};
@@ -49,8 +50,18 @@ pub struct DesignOptions {
 /// the real processes. Given by the CLI, which owns the process supervision.
 pub type TrainRun<'a> = &'a dyn Fn(&Path) -> Result<()>;
 
-/// How a phase's protocol is evaluated on B: returns the meta-information JSON (see `meta`).
-pub type Evaluate<'a> = &'a dyn Fn(&DesignContext, &[ValidatedProtocol]) -> Result<serde_json::Value>;
+/// How a phase's protocol is evaluated on B: returns the meta-information (see `meta`).
+pub type Evaluate<'a> = &'a dyn Fn(&DesignContext, &[ValidatedProtocol]) -> Result<MetaInfo>;
+
+/// One phase's line of `summary.json` (read by `plot_design.py`).
+#[derive(Serialize)]
+struct PhaseEvaluation {
+    phase: usize,
+    message_columns: usize,
+    with_messages: RecoverySummary,
+    without_messages: RecoverySummary,
+    target_dims: Vec<usize>,
+}
 
 fn write(path: &Path, text: &str) -> Result<()> {
     std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
@@ -64,17 +75,6 @@ fn save_phase(dir: &Path, k: usize, p: &PhaseProtocol, ctx: &DesignContext) -> R
     write(&pd.join("protocol.txt"), &protocol::explain(&p.protocol, Some(ctx.env)))?;
     write(&pd.join("reasoning.md"), &p.reasoning)?;
     Ok(file)
-}
-
-/// Mean over the target dims of a meta JSON's per-agent rates: (mean recovery, mean variance
-/// across agents), with or without messages.
-fn summarize(meta: &serde_json::Value, with: bool) -> serde_json::Value {
-    let key = if with { "with_communication" } else { "without_communication" };
-    let s = &meta["summary"][key];
-    serde_json::json!({
-        "mean_recovery": s["mean_recovery"],
-        "mean_variance_across_agents": s["mean_variance_across_agents"],
-    })
 }
 
 /// Run the design: phases, dataset, discriminators, feedback. Returns the design directory.
@@ -160,15 +160,15 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
     for k in 0..opts.phases {
         let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
         let meta = evaluate(&ctx, &validated).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
-        write(&dir.join(format!("phase{k}")).join("meta.json"), &serde_json::to_string_pretty(&meta)?)?;
-        eprintln!("lmac: phase {k}: {}", super::meta::summary_line(&meta));
-        evaluations.push(serde_json::json!({
-            "phase": k,
-            "message_columns": validated.iter().map(|v| v.width).sum::<usize>(),
-            "with_messages": summarize(&meta, true),
-            "without_messages": summarize(&meta, false),
-            "target_dims": meta["summary"]["target_dims"],
-        }));
+        write(&dir.join(format!("phase{k}")).join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
+        eprintln!("lmac: phase {k}: {}", meta.summary_line());
+        evaluations.push(PhaseEvaluation {
+            phase: k,
+            message_columns: validated.iter().map(|v| v.width).sum::<usize>(),
+            with_messages: meta.summary.with_communication.clone(),
+            without_messages: meta.summary.without_communication.clone(),
+            target_dims: meta.summary.target_dims.clone(),
+        });
         persist_transcript(designer)?;
         if k + 1 == opts.phases {
             break;
@@ -198,7 +198,7 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
         "alpha": schema.alpha,
         "dataset": data_dir.display().to_string(),
         "dataset_episodes": data.episodes.len(),
-        "target_dims": evaluations.last().map(|e| e["target_dims"].clone()).unwrap_or_default(),
+        "target_dims": evaluations.last().map(|e| e.target_dims.clone()).unwrap_or_default(),
         "evaluations": evaluations,
         "final_protocol": spec,
     });

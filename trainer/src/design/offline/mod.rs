@@ -32,6 +32,7 @@
 
 use super::discriminator::DiscriminatorConfig;
 use super::meta::{self, Recovery};
+use super::meta_info::MetaInfo;
 use super::{DesignContext, Designer, Feedback, PhaseProtocol, TranscriptEntry};
 use anyhow::{anyhow, bail, Context, Result};
 use lmac_protocol_runner::protocol::{
@@ -39,7 +40,6 @@ use lmac_protocol_runner::protocol::{
     Window, WindowOp,
 };
 use serde::{Deserialize, Serialize};
-use serde_json::Value;
 use std::collections::BTreeMap;
 
 mod assemble;
@@ -300,17 +300,11 @@ impl Designer for OfflineDesigner {
         self.design(ctx, 0, &[], Targets { dims, weights, why }, &critical)
     }
 
-    fn feedback(&mut self, ctx: &DesignContext, phase: usize, _previous: &[PhaseProtocol], meta_v: &Value) -> Result<Feedback> {
+    fn feedback(&mut self, ctx: &DesignContext, phase: usize, _previous: &[PhaseProtocol], meta_v: &MetaInfo) -> Result<Feedback> {
         let dims = meta_dims(meta_v)?;
         let names = ctx.schema.state_meanings();
-        let s = &meta_v["summary"];
-        let g = |side: &str, key: &str| s[side][key].as_f64().unwrap_or(f64::NAN);
-        let (rw, ro, vw, vo) = (
-            g("with_communication", "mean_recovery"),
-            g("without_communication", "mean_recovery"),
-            g("with_communication", "mean_variance_across_agents"),
-            g("without_communication", "mean_variance_across_agents"),
-        );
+        let (w, o) = (&meta_v.summary.with_communication, &meta_v.summary.without_communication);
+        let (rw, ro, vw, vo) = (w.mean_recovery, o.mean_recovery, w.mean_variance_across_agents, o.mean_variance_across_agents);
         let mut by_rate: Vec<&MetaDim> = dims.iter().collect();
         by_rate.sort_by(|a, b| a.skill().partial_cmp(&b.skill()).unwrap_or(std::cmp::Ordering::Equal));
         let mut by_gain: Vec<&MetaDim> = dims.iter().collect();
@@ -337,7 +331,7 @@ impl Designer for OfflineDesigner {
         let evaluation = format!(
             "offline designer: over {} target state dims (alpha {}), agents recover {:.3} of held-out steps with the messages against {:.3} without; the variance of recovery across agents is {:.4} with and {:.4} without. Largest gains from the messages: {}. Worst recovered with messages relative to a constant guess: {}.",
             dims.len(),
-            meta_v["alpha"],
+            meta_v.alpha,
             rw,
             ro,
             vw,
@@ -389,7 +383,7 @@ impl Designer for OfflineDesigner {
         self.log(
             phase,
             "feedback",
-            format!("offline designer: feedback from the meta-information of phases 0..={}: {}", phase - 1, meta::summary_line(meta_v)),
+            format!("offline designer: feedback from the meta-information of phases 0..={}: {}", phase - 1, meta_v.summary_line()),
             serde_json::to_string_pretty(&fb)?,
         );
         Ok(fb)
@@ -401,7 +395,7 @@ impl Designer for OfflineDesigner {
         phase: usize,
         previous: &[PhaseProtocol],
         _feedback: &Feedback,
-        meta_v: &Value,
+        meta_v: &MetaInfo,
     ) -> Result<PhaseProtocol> {
         if phase == 0 {
             bail!("offline designer: refine is for phases 1 and later (phase 0 is `initial`)");

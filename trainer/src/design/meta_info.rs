@@ -1,0 +1,214 @@
+//! The meta-information as data: what [`super::meta::evaluate`] measured on B for phases 0..=k,
+//! handed to the designers, written to `phase<k>/meta.json` and shown to the LLM.
+//!
+//! # The JSON (serde of [`MetaInfo`]; keys sorted, see [`MetaInfo::json`])
+//! ```text
+//! { "env", "alpha", "phases", "message_columns", "evaluation": {held-out episodes, rows, note},
+//!   "discriminators": {"with_communication": TrainReport, "without_communication": TrainReport, "config"},
+//!   "target_dims_selection": "how the dims below were chosen",
+//!   "dimensions": [ { "dim": 62, "dimension": "s[62] - <meaning>",
+//!       "constant_guess_rate": E[chi] of guessing the median,
+//!       "with_communication": { "agent_success_rates": [E_t chi per agent],
+//!           "variance_across_agents": Var_i,
+//!           "early": [per agent], "variance_in_early": Var_i, "mid": .., "late": .. },
+//!       "without_communication": { same } }, ... ],
+//!   "summary": { "target_dims": [..], "with_communication": {"mean_recovery",
+//!       "mean_variance_across_agents"}, "without_communication": {..} } }
+//! ```
+//! Rates are rounded to 3 decimals and variances to 5 when measured, so what a designer reads
+//! is exactly what the file and the prompt show.
+
+use super::discriminator::{DiscriminatorConfig, TrainReport};
+use super::meta::{variance, THIRDS};
+use serde::{Deserialize, Serialize};
+
+/// The meta-information of phases 0..=k on held-out episodes of B.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MetaInfo {
+    /// Environment name, e.g. `lbf:8x8-2p-2f-s1-coop`.
+    pub env: String,
+    /// The chi threshold on the squared reconstruction error, in the state's own units.
+    pub alpha: f64,
+    /// Phases evaluated together (k + 1).
+    pub phases: usize,
+    /// Message columns of those phases (what each agent receives).
+    pub message_columns: usize,
+    pub evaluation: EvaluationFacts,
+    pub discriminators: DiscriminatorReports,
+    /// How the target dims were chosen (and cut, when there were too many for the prompt).
+    pub target_dims_selection: String,
+    /// One entry per target dim, by increasing dim.
+    pub dimensions: Vec<DimRecovery>,
+    pub summary: MetaSummary,
+}
+
+/// Which data chi was measured on.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EvaluationFacts {
+    pub held_out_episodes: usize,
+    /// Held-out rows (episode, step, agent).
+    pub held_out_rows: u32,
+    /// What chi and the two discriminators are, for a reader of the JSON (the LLM).
+    pub note: String,
+}
+
+/// How the two discriminators trained, and their configuration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiscriminatorReports {
+    pub with_communication: TrainReport,
+    pub without_communication: TrainReport,
+    pub config: DiscriminatorConfig,
+}
+
+/// Recovery of one state dim, with and without the messages.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DimRecovery {
+    /// The state dim's index: what programs use (the label is for people and the LLM).
+    pub dim: usize,
+    /// `s[62] - <meaning>` ([`super::meta::dim_label`]).
+    pub dimension: String,
+    /// E[chi] of always guessing the dim's median: the level a rate must beat.
+    pub constant_guess_rate: f64,
+    pub with_communication: SideRecovery,
+    pub without_communication: SideRecovery,
+}
+
+/// One side (with or without communication) of a dim's recovery: per-agent E_t[chi] over whole
+/// episodes and per third of each episode ([`THIRDS`]), with population variances across agents.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SideRecovery {
+    pub agent_success_rates: Vec<f64>,
+    pub variance_across_agents: f64,
+    pub early: Vec<f64>,
+    pub variance_in_early: f64,
+    pub mid: Vec<f64>,
+    pub variance_in_mid: f64,
+    pub late: Vec<f64>,
+    pub variance_in_late: f64,
+}
+
+impl SideRecovery {
+    /// From unrounded per-agent rates over whole episodes and per third (in [`THIRDS`] order):
+    /// rates rounded to 3 decimals, variances (of the unrounded rates) to 5.
+    pub fn from_rates(rates: &[f64], thirds: [&[f64]; 3]) -> SideRecovery {
+        let r3 = |v: &[f64]| v.iter().map(|&x| round3(x)).collect::<Vec<f64>>();
+        let var5 = |v: &[f64]| round5(variance(v));
+        let [early, mid, late] = thirds;
+        SideRecovery {
+            agent_success_rates: r3(rates),
+            variance_across_agents: var5(rates),
+            early: r3(early),
+            variance_in_early: var5(early),
+            mid: r3(mid),
+            variance_in_mid: var5(mid),
+            late: r3(late),
+            variance_in_late: var5(late),
+        }
+    }
+
+    /// Per-agent rates and their variance across agents in third `th` ([`THIRDS`]`[th]`).
+    pub fn third(&self, th: usize) -> (&[f64], f64) {
+        match th {
+            0 => (&self.early, self.variance_in_early),
+            1 => (&self.mid, self.variance_in_mid),
+            2 => (&self.late, self.variance_in_late),
+            _ => panic!("third {th} of an episode: there are {} ({THIRDS:?})", THIRDS.len()),
+        }
+    }
+}
+
+/// Means over the target dims.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MetaSummary {
+    /// Every target dim chosen (see [`MetaInfo::target_dims_selection`]).
+    pub target_dims: Vec<usize>,
+    pub with_communication: RecoverySummary,
+    pub without_communication: RecoverySummary,
+}
+
+/// Mean recovery and mean variance across agents of one side over the target dims; also one
+/// side of a phase in the design directory's `summary.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecoverySummary {
+    pub mean_recovery: f64,
+    pub mean_variance_across_agents: f64,
+}
+
+/// Rounding of rates (3 decimals) in the meta-information.
+pub fn round3(x: f64) -> f64 {
+    (x * 1000.0).round() / 1000.0
+}
+
+/// Rounding of variances (5 decimals) in the meta-information.
+pub fn round5(x: f64) -> f64 {
+    (x * 100_000.0).round() / 100_000.0
+}
+
+impl MetaInfo {
+    /// As a JSON value: `meta.json` and the prompt are rendered from this, so their keys come
+    /// out sorted (serde_json's map) as they always have, whatever the fields' order here or in
+    /// `TrainReport` and `DiscriminatorConfig`.
+    pub fn json(&self) -> serde_json::Value {
+        // Cannot fail: plain structs, lists, strings and numbers (a non-finite number becomes null).
+        serde_json::to_value(self).expect("MetaInfo serializes to JSON")
+    }
+
+    /// One line for logs: mean recovery and variance across agents over the target dims.
+    pub fn summary_line(&self) -> String {
+        let s = &self.summary;
+        let (w, o) = (&s.with_communication, &s.without_communication);
+        format!(
+            "recovery {:.3} with messages, {:.3} without; variance across agents {:.3} with, {:.3} without ({} target dims, {} message columns)",
+            w.mean_recovery,
+            o.mean_recovery,
+            w.mean_variance_across_agents,
+            o.mean_variance_across_agents,
+            s.target_dims.len(),
+            self.message_columns,
+        )
+    }
+}
+
+/// Meta-information with `dims` (index, label), every third of the episodes at the same
+/// per-agent rates; for tests of its readers.
+#[cfg(test)]
+pub(crate) fn example(dims: &[(usize, String)], with: &[f64], without: &[f64]) -> MetaInfo {
+    let side = |r: &[f64]| SideRecovery::from_rates(r, [r, r, r]);
+    let mean_side =
+        |r: &[f64]| RecoverySummary { mean_recovery: round3(super::meta::mean(r)), mean_variance_across_agents: round5(variance(r)) };
+    MetaInfo {
+        env: "lbf:8x8-2p-2f-s1-coop".into(),
+        alpha: 0.1,
+        phases: 1,
+        message_columns: 4,
+        evaluation: EvaluationFacts { held_out_episodes: 10, held_out_rows: 400, note: "synthetic".into() },
+        discriminators: DiscriminatorReports {
+            with_communication: TrainReport::default(),
+            without_communication: TrainReport::default(),
+            config: DiscriminatorConfig::default(),
+        },
+        target_dims_selection: "synthetic".into(),
+        dimensions: dims
+            .iter()
+            .map(|(d, label)| DimRecovery {
+                dim: *d,
+                dimension: label.clone(),
+                constant_guess_rate: 0.5,
+                with_communication: side(with),
+                without_communication: side(without),
+            })
+            .collect(),
+        summary: MetaSummary {
+            target_dims: dims.iter().map(|(d, _)| *d).collect(),
+            with_communication: mean_side(with),
+            without_communication: mean_side(without),
+        },
+    }
+}
