@@ -290,29 +290,9 @@ struct Standardize {
 impl Standardize {
     /// Columns whose standard deviation is below 1e-6 of their scale are only centred.
     fn fit(width: usize, rows: impl Iterator<Item = Vec<f32>>) -> Self {
-        let mut sum = vec![0f64; width];
-        let mut sq = vec![0f64; width];
-        let mut n = 0f64;
-        for r in rows {
-            for c in 0..width {
-                let v = r[c] as f64;
-                sum[c] += v;
-                sq[c] += v * v;
-            }
-            n += 1.0;
-        }
-        let n = n.max(1.0);
-        let mut mean = vec![0f32; width];
-        let mut inv_std = vec![1f32; width];
-        for c in 0..width {
-            let m = sum[c] / n;
-            let var = (sq[c] / n - m * m).max(0.0);
-            mean[c] = m as f32;
-            let sd = var.sqrt();
-            if sd > 1e-6 * (1.0 + m.abs()) {
-                inv_std[c] = (1.0 / sd) as f32;
-            }
-        }
+        let m = crate::stats::ColumnMoments::of_rows(width, rows);
+        let mean = m.mean.iter().map(|&x| x as f32).collect();
+        let inv_std = m.sd.iter().zip(&m.mean).map(|(&sd, &mu)| if sd > 1e-6 * (1.0 + mu.abs()) { (1.0 / sd) as f32 } else { 1.0 }).collect();
         Standardize { mean, inv_std }
     }
 

@@ -133,15 +133,7 @@ impl Recovery {
     }
 }
 
-pub fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len().max(1) as f64
-}
-
-/// Population variance.
-pub fn variance(v: &[f64]) -> f64 {
-    let m = mean(v);
-    v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / v.len().max(1) as f64
-}
+pub use crate::stats::{mean, variance};
 
 /// Recovery relative to a constant guess: (rate - guess) / (1 - guess), 1 for a dim the guess
 /// always gets right (a constant dim). 0 means no better than guessing; negative, worse.

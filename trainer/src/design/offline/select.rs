@@ -142,24 +142,10 @@ pub(super) fn sample(
     Ok(s)
 }
 
-/// Mean and inverse std of columns (for correlations).
+/// Mean and std of columns (for correlations).
 pub(super) fn moments(v: &[f32], w: usize, rows: usize) -> (Vec<f64>, Vec<f64>) {
-    let mut m = vec![0f64; w];
-    let mut q = vec![0f64; w];
-    for r in 0..rows {
-        for c in 0..w {
-            let x = v[r * w + c] as f64;
-            m[c] += x;
-            q[c] += x * x;
-        }
-    }
-    let n = rows.max(1) as f64;
-    let mut sd = vec![0f64; w];
-    for c in 0..w {
-        m[c] /= n;
-        sd[c] = (q[c] / n - m[c] * m[c]).max(0.0).sqrt();
-    }
-    (m, sd)
+    let m = crate::stats::ColumnMoments::of_flat(v, w, rows);
+    (m.mean, m.sd)
 }
 
 /// Keep the `keep` candidates with the largest weighted squared marginal correlation between

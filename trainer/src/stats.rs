@@ -1,0 +1,61 @@
+//! The few statistics several parts of lmac need, each written once: mean and population
+//! variance of a list, and per-column moments of row-major data (standardising discriminator
+//! inputs and targets, correlations in the offline designer).
+
+/// Mean (0 for an empty list).
+pub fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Population variance (0 for an empty list).
+pub fn variance(v: &[f64]) -> f64 {
+    let m = mean(v);
+    v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Per-column mean and population standard deviation of rows of `width` values.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColumnMoments {
+    pub mean: Vec<f64>,
+    pub sd: Vec<f64>,
+}
+
+impl ColumnMoments {
+    /// Over `rows` (each at least `width` long); no rows gives means 0 and deviations 0.
+    pub fn of_rows<R: AsRef<[f32]>>(width: usize, rows: impl IntoIterator<Item = R>) -> Self {
+        let mut sum = vec![0f64; width];
+        let mut sq = vec![0f64; width];
+        let mut n = 0usize;
+        for r in rows {
+            for (c, &x) in r.as_ref()[..width].iter().enumerate() {
+                let x = x as f64;
+                sum[c] += x;
+                sq[c] += x * x;
+            }
+            n += 1;
+        }
+        let n = n.max(1) as f64;
+        let mean: Vec<f64> = sum.iter().map(|s| s / n).collect();
+        let sd = sq.iter().zip(&mean).map(|(q, m)| (q / n - m * m).max(0.0).sqrt()).collect();
+        ColumnMoments { mean, sd }
+    }
+
+    /// Over the first `rows` rows of a flat row-major buffer.
+    pub fn of_flat(v: &[f32], width: usize, rows: usize) -> Self {
+        Self::of_rows(width, v.chunks_exact(width.max(1)).take(rows))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn column_moments_match_the_definition() {
+        let m = ColumnMoments::of_flat(&[1.0, 10.0, 3.0, 10.0, 5.0, 10.0], 2, 3);
+        assert_eq!(m.mean, vec![3.0, 10.0]);
+        assert!((m.sd[0] - (8.0f64 / 3.0).sqrt()).abs() < 1e-12 && m.sd[1] == 0.0);
+        assert_eq!((mean(&[1.0, 2.0, 6.0]), variance(&[1.0, 3.0])), (3.0, 1.0));
+        assert_eq!(ColumnMoments::of_rows::<&[f32]>(2, []), ColumnMoments { mean: vec![0.0; 2], sd: vec![0.0; 2] });
+    }
+}
