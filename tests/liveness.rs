@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 const CHILD: &str = "LMAC_LIVENESS_CHILD_RUN";
 
 fn spec(run: &str, role: Stage) -> RingSpec {
-    RingSpec { run: run.into(), n_servers: 1, n_slots: 2, role, server: 0 }
+    RingSpec { run: run.into(), n_members: 1, n_slots: 2, role, member: 0 }
 }
 
 #[test]

@@ -63,9 +63,9 @@ fn lbf_episodes_flow_end_to_end_with_fullcomm_messages() {
         std::fs::read_to_string(&tmp).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     std::fs::remove_file(&tmp).ok();
     assert!(episodes.len() >= 100, "only {} episodes finished", episodes.len());
-    let mut servers = HashSet::new();
+    let mut members = HashSet::new();
     for e in &episodes {
-        servers.insert(e["server"].as_u64().unwrap());
+        members.insert(e["member"].as_u64().unwrap());
         let len = e["len"].as_u64().unwrap();
         let ret = e["team_return"].as_f64().unwrap();
         let (term, trunc) = (e["terminated"].as_bool().unwrap(), e["truncated"].as_bool().unwrap());
@@ -78,8 +78,8 @@ fn lbf_episodes_flow_end_to_end_with_fullcomm_messages() {
         assert!((-1e-5..=1.0 + 1e-5).contains(&ret), "team return {ret} outside [0, 1]: {e}");
         assert_eq!(term, (ret - 1.0).abs() < 1e-4, "terminated iff all food eaten (return 1): {e}");
     }
-    // 2 env servers x 2 sub-batches (the default double buffering): 4 ring servers.
-    assert_eq!(servers.len(), 4, "every sub-batch of both env servers delivered episodes");
+    // 2 env servers x 2 sub-batches (the default double buffering): 4 ring members.
+    assert_eq!(members.len(), 4, "every sub-batch of both env servers delivered episodes");
     // Episode ids are unique.
     let ids: HashSet<u64> = episodes.iter().map(|e| e["episode_id"].as_u64().unwrap()).collect();
     assert_eq!(ids.len(), episodes.len());
@@ -124,7 +124,7 @@ fn a_killed_env_server_is_reported_by_name_and_nothing_hangs() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    // 2 servers x 4 envs = 2 sub-batches each: env server 1 owns the slabs of ring servers 2 and 3.
+    // 2 servers x 4 envs = 2 sub-batches each: env server 1 owns the slabs of ring members 2 and 3.
     let slab = wait_for(Duration::from_secs(30), || lmac_shm_files().difference(&before).find(|f| f.ends_with("-s3")).cloned())
         .expect("env server 1's second slab appears");
     std::thread::sleep(Duration::from_millis(1500)); // let the ring run

@@ -19,7 +19,7 @@ fn run_id(tag: &str) -> String {
 
 fn handover(c: &mut Criterion) {
     let run = run_id("h");
-    let spec = |role| RingSpec { run: run.clone(), n_servers: 1, n_slots: 4, role, server: 0 };
+    let spec = |role| RingSpec { run: run.clone(), n_members: 1, n_slots: 4, role, member: 0 };
     let mut trainer = Port::new(spec(Stage::Trainer)).unwrap();
     let mut runner = Port::new(spec(Stage::Runner)).unwrap();
     let mut env = Port::new(spec(Stage::Env)).unwrap();

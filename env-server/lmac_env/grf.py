@@ -281,7 +281,7 @@ def _default_workers(num_envs: int) -> int:
     processes cost 10-15% more CPU per env-step (pipes, pickling, idle lockstep) and, with the
     cores busy, were slower than stepping all B engines in the server process; the pipeline
     already runs one process per env server, which is the place to add parallelism
-    (``--n-servers``). ``LMAC_GRF_WORKERS=2`` opts in where cores are free."""
+    (``--members``). ``LMAC_GRF_WORKERS=2`` opts in where cores are free."""
     return 0
 
 

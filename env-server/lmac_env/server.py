@@ -1,13 +1,13 @@
 """The env server: steps B environments and writes every batched step straight into a slot of
 its shared-memory slab, then hands the slot to the protocol runner. The trainer hands it back
-with the chosen actions. Started by `lmac` (one process per server); also usable by hand:
+with the chosen actions. Started by `lmac` (one process per env server); also usable by hand:
 
     python -m lmac_env.server --env lbf:8x8-2p-2f-s1-coop --envs 32 --sub-batches 2 --run myrun \
-        --server 0 --n-servers 2 --slots 4 --msg-dim 29
+        --first-member 0 --members 2 --slots 4 --msg-dim 29
 
 `python -m lmac_env.server --raw --steps 2000 ...` steps the same environments with random
 available actions and no pipeline (the baseline of `lmac bench pipeline`); with `--compare-raw K`
-a pipeline server alternates blocks of K batched steps through the ring and of that baseline in
+a pipeline env server alternates blocks of K batched steps through the ring and of that baseline in
 this process (how `lmac bench pipeline` measures one env server).
 """
 from __future__ import annotations
@@ -56,13 +56,13 @@ class Driver:
       chosen on it are ignored: the next row starts the next episode (reward 0, no end flags).
     FLAG_PREV_WON marks the row that ends a won episode."""
 
-    def __init__(self, env: VecEnv, server: int):
+    def __init__(self, env: VecEnv, member: int):
         self.env = env
         b = env.num_envs
         self.limit = env.schema.episode_limit
         self.ep_step = np.zeros(b, np.uint32)
-        # Episode ids are unique across servers: server index in the high bits.
-        self.episode_id = (np.uint64(server) << np.uint64(40)) + np.arange(b, dtype=np.uint64)
+        # Episode ids are unique across members: member index in the high bits.
+        self.episode_id = (np.uint64(member) << np.uint64(40)) + np.arange(b, dtype=np.uint64)
         self.next_id = self.episode_id[-1] + np.uint64(1)
         self.episodes_done = 0
         self.return_sum = 0.0
@@ -141,15 +141,15 @@ def _write_step(driver: Driver, lease) -> None:
 
 class _SubBatch:
     """One sub-batch of this process: its environments, its slab and its ring port. To the
-    protocol runner and the trainer each sub-batch is an env server of its own (index `server`)."""
+    protocol runner and the trainer each sub-batch is a ring member of its own (index `member`)."""
 
-    def __init__(self, args, server: int, num_envs: int, lmac_shm):
-        self.server = server
-        self.env = make(args.env, num_envs, seed=args.seed + 1_000_003 * server)
-        self.driver = Driver(self.env, server)
-        self.slab = lmac_shm.Slab.create(f"lmac-{args.run}-s{server}", str(schema_path(args.env)), num_envs,
+    def __init__(self, args, member: int, num_envs: int, lmac_shm):
+        self.member = member
+        self.env = make(args.env, num_envs, seed=args.seed + 1_000_003 * member)
+        self.driver = Driver(self.env, member)
+        self.slab = lmac_shm.Slab.create(f"lmac-{args.run}-s{member}", str(schema_path(args.env)), num_envs,
                                          args.msg_dim, args.slots)
-        self.port = lmac_shm.Port(args.run, "env", server, args.n_servers, args.slots,
+        self.port = lmac_shm.Port(args.run, "env", member, args.members, args.slots,
                                   startup_timeout=args.startup_timeout)
         self.seq = 0
         self.open = True
@@ -162,7 +162,7 @@ class _SubBatch:
         _write_first(self.driver, lease)
         lease.seq = self.seq
         lease.release()
-        self.port.send_slot(self.server, 0, self.seq)
+        self.port.send_slot(self.member, 0, self.seq)
 
     def _next(self):
         """The next slot message: the one `hold` kept back, else wait (up to 0.25 s) for one."""
@@ -190,7 +190,7 @@ class _SubBatch:
         self.stepped += time.perf_counter() - t1
         lease.seq = self.seq
         lease.release()
-        self.port.send_slot(self.server, slot, self.seq)
+        self.port.send_slot(self.member, slot, self.seq)
         return True
 
     def hold(self) -> None:
@@ -208,8 +208,8 @@ class _SubBatch:
 
 
 def serve(args) -> int:
-    """Serve `--sub-batches` H sub-batches of `--envs / H` environments each (env servers
-    `--server` .. `--server + H - 1` of the ring). With H = 2 the process steps one half while
+    """Serve `--sub-batches` H sub-batches of `--envs / H` environments each (ring
+    members `--first-member` .. `--first-member + H - 1`). With H = 2 the process steps one half while
     the other half's slot is with the protocol runner and the trainer, so it never sleeps
     waiting for actions (double buffering); with H = 1 stepping and the round trip alternate."""
     import lmac_shm
@@ -223,13 +223,13 @@ def serve(args) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
 
-    last = args.server + args.sub_batches - 1
-    who = f"env server {args.server} ({args.env})" if args.sub_batches == 1 else \
-        f"env servers {args.server}-{last} ({args.env})"
+    last = args.first_member + args.sub_batches - 1
+    who = f"env server, ring member {args.first_member} ({args.env})" if args.sub_batches == 1 else \
+        f"env server, ring members {args.first_member}-{last} ({args.env})"
     units: list[_SubBatch] = []
     try:
         for k in range(args.sub_batches):
-            units.append(_SubBatch(args, args.server + k, args.envs // args.sub_batches, lmac_shm))
+            units.append(_SubBatch(args, args.first_member + k, args.envs // args.sub_batches, lmac_shm))
         for u in units:
             u.port.handshake(args.startup_timeout)
         for u in units:
@@ -350,10 +350,10 @@ def main(argv=None) -> int:
     p.add_argument("--envs", type=int, default=8, help="environments stepped together (B)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--run", help="run id (names the shared memory and iceoryx2 services)")
-    p.add_argument("--server", type=int, default=0, help="ring index of this process's first sub-batch")
+    p.add_argument("--first-member", "--server", type=int, default=0, help="ring member index of this process's first sub-batch (--server: the name before 2026-12)")
     p.add_argument("--sub-batches", type=int, default=1,
                    help="split --envs into this many sub-batches stepped in turn (2: double buffering)")
-    p.add_argument("--n-servers", type=int, default=1)
+    p.add_argument("--members", "--n-servers", type=int, default=1, help="ring members in the run: env server processes x sub-batches (--n-servers: the name before 2026-12)")
     p.add_argument("--slots", type=int, default=4, help="slots in the slab")
     p.add_argument("--msg-dim", type=int, default=0, help="message columns reserved per row")
     p.add_argument("--startup-timeout", type=float, default=60.0)

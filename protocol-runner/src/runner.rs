@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 pub struct RunnerArgs {
     pub run: String,
     pub schema: EnvSchema,
-    pub n_servers: usize,
+    pub n_members: usize,
     pub n_slots: usize,
     pub startup_timeout: Duration,
 }
@@ -32,9 +32,9 @@ pub enum RunnerError {
     Slots { slab: String, found: usize, ring: usize },
 }
 
-/// Name of env server `s`'s slab in run `run` (the env server creates it).
-pub fn slab_name(run: &str, server: usize) -> String {
-    format!("lmac-{run}-s{server}")
+/// Name of ring member `s`'s slab in run `run` (its env server process creates it).
+pub fn slab_name(run: &str, member: usize) -> String {
+    format!("lmac-{run}-s{member}")
 }
 
 /// Apply `plan` to one slot this process owns.
@@ -48,10 +48,10 @@ pub fn apply_to_slot(plan: &mut dyn MessagePlan, slab: &Slab, slot: usize) -> Re
     Ok(())
 }
 
-/// Run until every env server has said goodbye (or a peer dies / a stop is requested).
-/// `plans[s]` serves env server `s` (each plan keeps its own observation history).
+/// Run until every ring member has said goodbye (or a peer dies / a stop is requested).
+/// `plans[s]` serves ring member `s` (each plan keeps its own observation history).
 pub fn run(args: &RunnerArgs, plans: &mut [Box<dyn MessagePlan>]) -> Result<RunnerStats, RunnerError> {
-    assert_eq!(plans.len(), args.n_servers, "one plan per env server");
+    assert_eq!(plans.len(), args.n_members, "one plan per ring member");
     let mut slabs = Vec::new();
     for (s, plan) in plans.iter().enumerate() {
         let slab = Slab::open(&slab_name(&args.run, s), &args.schema, args.startup_timeout)?;
@@ -65,20 +65,20 @@ pub fn run(args: &RunnerArgs, plans: &mut [Box<dyn MessagePlan>]) -> Result<Runn
         slabs.push(slab);
     }
     let mut port =
-        Port::new(RingSpec { run: args.run.clone(), n_servers: args.n_servers, n_slots: args.n_slots, role: Stage::Runner, server: 0 })?;
+        Port::new(RingSpec { run: args.run.clone(), n_members: args.n_members, n_slots: args.n_slots, role: Stage::Runner, member: 0 })?;
     port.set_startup_timeout(args.startup_timeout);
     let mut stats = RunnerStats::default();
     let mut byes = 0;
-    while byes < args.n_servers {
+    while byes < args.n_members {
         let Some(m) = port.recv(Duration::from_millis(500))? else { continue };
         match m.kind {
             KIND_SLOT => {
-                // `Port::recv` has checked server and slot against the ring's sizes.
+                // `Port::recv` has checked member and slot against the ring's sizes.
                 let t0 = Instant::now();
-                let (server, slot) = (m.server as usize, m.slot as usize);
-                apply_to_slot(plans[server].as_mut(), &slabs[server], slot)?;
-                slabs[server].set_stage(slot, Stage::Trainer);
-                port.send_slot(server, slot, m.seq)?;
+                let (member, slot) = (m.member as usize, m.slot as usize);
+                apply_to_slot(plans[member].as_mut(), &slabs[member], slot)?;
+                slabs[member].set_stage(slot, Stage::Trainer);
+                port.send_slot(member, slot, m.seq)?;
                 stats.slots += 1;
                 stats.busy += t0.elapsed();
             }

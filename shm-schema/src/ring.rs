@@ -3,12 +3,12 @@
 //! handshake so no slot message is lost, shutdown messages, and liveness (a dead peer is found
 //! through iceoryx2's node list and reported by name).
 //!
-//! Ownership of a slot travels env server -> protocol runner -> trainer -> env server. Per env
-//! server `s` there are three publish-subscribe services `lmac/<run>/s<s>/to_<stage>`; each
+//! Ownership of a slot travels env server -> protocol runner -> trainer -> env server. Per ring
+//! member `s` (one sub-batch of an env server process: each has its own slab) there are three publish-subscribe services `lmac/<run>/s<s>/to_<stage>`; each
 //! process has one event service `lmac/<run>/wake/<process>` it sleeps on.
 //!
 //! Hostile input is refused, never trusted: every slot message read from the ring is checked
-//! against the ring's sizes (kind, server, slot) before anyone indexes with it, and an
+//! against the ring's sizes (kind, member, slot) before anyone indexes with it, and an
 //! out-of-range message is a [`RingError::BadMessage`] naming the sending node. Clean-up of dead
 //! iceoryx2 nodes touches only this run's nodes (see [`is_run_node`]), never another
 //! application's on the same machine.
@@ -25,12 +25,12 @@ use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-/// What travels on the ring: which slot of which server, and what kind of message it is.
+/// What travels on the ring: which slot of which member, and what kind of message it is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
 #[repr(C)]
 pub struct SlotMsg {
     pub kind: u32,
-    pub server: u32,
+    pub member: u32,
     pub slot: u32,
     pub _pad: u32,
     pub seq: u64,
@@ -72,8 +72,8 @@ pub enum RingError {
     Stopped,
     #[error("iceoryx2: {0}")]
     Ipc(String),
-    #[error("the start-up handshake of env server {server} did not complete within {waited:?}")]
-    Handshake { server: usize, waited: Duration },
+    #[error("the start-up handshake of ring member {member} did not complete within {waited:?}")]
+    Handshake { member: usize, waited: Duration },
     /// A slot message whose fields do not fit the ring: the peer is broken or hostile.
     #[error("bad ring message from {peer} on {service}: {field} = {value} {problem}")]
     BadMessage { peer: String, service: String, field: &'static str, value: u64, problem: String },
@@ -87,9 +87,9 @@ fn ipc<E: std::fmt::Debug>(what: &str) -> impl FnOnce(E) -> RingError + '_ {
 }
 
 /// Name of a process's iceoryx2 node (also what errors report).
-pub fn node_name(run: &str, role: Stage, server: usize) -> String {
+pub fn node_name(run: &str, role: Stage, member: usize) -> String {
     match role {
-        Stage::Env => format!("lmac-{run}-env{server}"),
+        Stage::Env => format!("lmac-{run}-env{member}"),
         Stage::Runner => format!("lmac-{run}-runner"),
         Stage::Trainer => format!("lmac-{run}-trainer"),
     }
@@ -127,17 +127,17 @@ type SlotService = iceoryx2::service::port_factory::publish_subscribe::PortFacto
 pub struct RingSpec {
     /// Run id: part of every service and node name, so runs never meet.
     pub run: String,
-    pub n_servers: usize,
+    pub n_members: usize,
     pub n_slots: usize,
     pub role: Stage,
-    /// For an env server: its index.
-    pub server: usize,
+    /// For an env-stage port: its ring member (one sub-batch of an env server process).
+    pub member: usize,
 }
 
 pub struct Port {
     spec: RingSpec,
     node: Node<ipc::Service>,
-    /// Indexed by server (an env server has one, its own).
+    /// Indexed by ring member (an env-stage port has one, its own).
     inbox: Vec<Subscriber<ipc::Service, SlotMsg, ()>>,
     /// The service of each inbox and its name: to find who sent a bad message.
     inbox_services: Vec<(String, SlotService)>,
@@ -182,20 +182,20 @@ fn event(node: &Node<ipc::Service>, name: &str) -> Result<iceoryx2::service::por
 impl Port {
     /// Create this process's node and ports. Nothing is sent yet.
     pub fn new(spec: RingSpec) -> Result<Port, RingError> {
-        // Slot messages carry server and slot as u32; at least one of each makes a ring.
-        if spec.n_servers == 0 || spec.n_servers > u32::MAX as usize {
-            return Err(RingError::Usage(format!("n_servers = {} must be between 1 and {}", spec.n_servers, u32::MAX)));
+        // Slot messages carry member and slot as u32; at least one of each makes a ring.
+        if spec.n_members == 0 || spec.n_members > u32::MAX as usize {
+            return Err(RingError::Usage(format!("n_members = {} must be between 1 and {}", spec.n_members, u32::MAX)));
         }
         if spec.n_slots == 0 || spec.n_slots > u32::MAX as usize {
             return Err(RingError::Usage(format!("n_slots = {} must be between 1 and {}", spec.n_slots, u32::MAX)));
         }
-        if spec.role == Stage::Env && spec.server >= spec.n_servers {
-            return Err(RingError::Usage(format!("env server {} does not exist in a ring of {} env servers", spec.server, spec.n_servers)));
+        if spec.role == Stage::Env && spec.member >= spec.n_members {
+            return Err(RingError::Usage(format!("ring member {} does not exist in a ring of {} members", spec.member, spec.n_members)));
         }
         // iceoryx2 warns on stderr that it runs on its default config; that is intended here.
         set_log_level(LogLevel::Error);
         let run = spec.run.clone();
-        let me = node_name(&run, spec.role, spec.server);
+        let me = node_name(&run, spec.role, spec.member);
         let node = NodeBuilder::new()
             .config(&ring_config())
             .name(&NodeName::new(&me).map_err(ipc("node name"))?)
@@ -206,9 +206,9 @@ impl Port {
         let wake_env = |s: usize| format!("lmac/{run}/wake/env{s}");
         let wake_runner = format!("lmac/{run}/wake/runner");
         let wake_trainer = format!("lmac/{run}/wake/trainer");
-        let servers: Vec<usize> = match spec.role {
-            Stage::Env => vec![spec.server],
-            _ => (0..spec.n_servers).collect(),
+        let members: Vec<usize> = match spec.role {
+            Stage::Env => vec![spec.member],
+            _ => (0..spec.n_members).collect(),
         };
         let (me_to, next_to) = match spec.role {
             Stage::Env => ("env", "runner"),
@@ -218,18 +218,18 @@ impl Port {
         let mut inbox = Vec::new();
         let mut inbox_services = Vec::new();
         let mut outbox = Vec::new();
-        for &s in &servers {
+        for &s in &members {
             let name = svc(s, me_to);
             let f = pubsub(&node, &name, spec.n_slots)?;
             inbox.push(f.subscriber_builder().create().map_err(ipc("subscriber"))?);
             inbox_services.push((name, f));
         }
-        for &s in &servers {
+        for &s in &members {
             let f = pubsub(&node, &svc(s, next_to), spec.n_slots)?;
             outbox.push(f.publisher_builder().max_loaned_samples(2).create().map_err(ipc("publisher"))?);
         }
         let my_wake = match spec.role {
-            Stage::Env => wake_env(spec.server),
+            Stage::Env => wake_env(spec.member),
             Stage::Runner => wake_runner.clone(),
             Stage::Trainer => wake_trainer.clone(),
         };
@@ -237,7 +237,7 @@ impl Port {
         let notify_names: Vec<String> = match spec.role {
             Stage::Env => vec![wake_runner],
             Stage::Runner => vec![wake_trainer],
-            Stage::Trainer => servers.iter().map(|&s| wake_env(s)).collect(),
+            Stage::Trainer => members.iter().map(|&s| wake_env(s)).collect(),
         };
         let mut notifiers = Vec::new();
         for n in &notify_names {
@@ -250,7 +250,7 @@ impl Port {
                 peers.insert(node_name(&run, Stage::Trainer, 0), false);
             }
             Stage::Runner | Stage::Trainer => {
-                for s in 0..spec.n_servers {
+                for s in 0..spec.n_members {
                     peers.insert(node_name(&run, Stage::Env, s), false);
                 }
                 let other = if spec.role == Stage::Runner { Stage::Trainer } else { Stage::Runner };
@@ -285,65 +285,65 @@ impl Port {
         self.startup = d;
     }
 
-    fn out_index(&self, server: usize) -> usize {
+    fn out_index(&self, member: usize) -> usize {
         if self.spec.role == Stage::Env {
             0
         } else {
-            server
+            member
         }
     }
 
     fn post(&self, msg: SlotMsg) -> Result<(), RingError> {
         // The receiver refuses out-of-range messages; refusing them here names the culprit.
-        let (server, slot) = (msg.server as usize, msg.slot as usize);
-        if server >= self.spec.n_servers || (self.spec.role == Stage::Env && server != self.spec.server) {
+        let (member, slot) = (msg.member as usize, msg.slot as usize);
+        if member >= self.spec.n_members || (self.spec.role == Stage::Env && member != self.spec.member) {
             return Err(RingError::Usage(format!(
-                "the {} cannot send for env server {server} (ring of {} env servers)",
+                "the {} cannot send for ring member {member} (ring of {} members)",
                 self.spec.role.name(),
-                self.spec.n_servers
+                self.spec.n_members
             )));
         }
         if slot >= self.spec.n_slots {
-            return Err(RingError::Usage(format!("cannot send slot {slot}: each env server has {} slots", self.spec.n_slots)));
+            return Err(RingError::Usage(format!("cannot send slot {slot}: each ring member has {} slots", self.spec.n_slots)));
         }
-        let i = self.out_index(server);
+        let i = self.out_index(member);
         self.outbox[i].send_copy(msg).map_err(ipc("send"))?;
         let n = if self.spec.role == Stage::Trainer { i } else { 0 };
         self.notifiers[n].notify().map_err(ipc("notify"))?;
         Ok(())
     }
 
-    /// Hand slot `slot` of `server` to the next stage.
-    pub fn send_slot(&self, server: usize, slot: usize, seq: u64) -> Result<(), RingError> {
-        self.post(SlotMsg { kind: KIND_SLOT, server: server as u32, slot: slot as u32, _pad: 0, seq })
+    /// Hand slot `slot` of `member` to the next stage.
+    pub fn send_slot(&self, member: usize, slot: usize, seq: u64) -> Result<(), RingError> {
+        self.post(SlotMsg { kind: KIND_SLOT, member: member as u32, slot: slot as u32, _pad: 0, seq })
     }
 
-    /// Say goodbye to the next stage for `server` (trainer: to that env server; env server: to
+    /// Say goodbye to the next stage for `member` (trainer: to that env server; env server: to
     /// the runner). After a goodbye, peers vanishing is expected.
-    pub fn send_bye(&mut self, server: usize) -> Result<(), RingError> {
+    pub fn send_bye(&mut self, member: usize) -> Result<(), RingError> {
         self.closing = true;
-        self.post(SlotMsg { kind: KIND_BYE, server: server as u32, slot: 0, _pad: 0, seq: 0 })
+        self.post(SlotMsg { kind: KIND_BYE, member: member as u32, slot: 0, _pad: 0, seq: 0 })
     }
 
     /// Env servers: send start-up tokens until one comes back around the ring, which proves
-    /// every hop of this server's ring is connected and listening.
+    /// every hop of this member's ring is connected and listening.
     pub fn handshake(&mut self, timeout: Duration) -> Result<(), RingError> {
         if self.spec.role != Stage::Env {
             return Err(RingError::Usage(format!("the {} cannot start the handshake: only env servers do", self.spec.role.name())));
         }
         let t0 = Instant::now();
-        let s = self.spec.server as u32;
+        let s = self.spec.member as u32;
         loop {
-            self.post(SlotMsg { kind: KIND_HELLO, server: s, slot: 0, _pad: 0, seq: 0 })?;
+            self.post(SlotMsg { kind: KIND_HELLO, member: s, slot: 0, _pad: 0, seq: 0 })?;
             let wait_until = Instant::now() + Duration::from_millis(20);
             while let Some(m) = self.recv_raw(wait_until)? {
-                if m.kind == KIND_HELLO && m.server == s {
+                if m.kind == KIND_HELLO && m.member == s {
                     // Drain the tokens still in flight so they cannot be mistaken later.
                     return Ok(());
                 }
             }
             if t0.elapsed() > timeout {
-                return Err(RingError::Handshake { server: self.spec.server, waited: timeout });
+                return Err(RingError::Handshake { member: self.spec.member, waited: timeout });
             }
         }
     }
@@ -370,7 +370,7 @@ impl Port {
                             self.post(m)?;
                         }
                         Stage::Runner => {
-                            self.departed.insert(node_name(&self.spec.run, Stage::Env, m.server as usize));
+                            self.departed.insert(node_name(&self.spec.run, Stage::Env, m.member as usize));
                         }
                         Stage::Trainer => {}
                     }
@@ -558,17 +558,17 @@ pub fn check_slot_msg(spec: &RingSpec, inbox: usize, m: &SlotMsg) -> Result<(), 
     if !matches!(m.kind, KIND_SLOT | KIND_HELLO | KIND_BYE) {
         return Err(("kind", m.kind as u64, format!("is not a message kind (slot {KIND_SLOT}, hello {KIND_HELLO}, goodbye {KIND_BYE})")));
     }
-    let n_servers = spec.n_servers;
-    if m.server as usize >= n_servers {
-        return Err(("server", m.server as u64, format!("is out of range: the ring has {n_servers} env server(s)")));
+    let n_members = spec.n_members;
+    if m.member as usize >= n_members {
+        return Err(("member", m.member as u64, format!("is out of range: the ring has {n_members} member(s)")));
     }
-    // Each inbox is the service of one env server; a message there speaks of that server only.
-    let expect = if spec.role == Stage::Env { spec.server } else { inbox };
-    if m.server as usize != expect {
-        return Err(("server", m.server as u64, format!("does not match the service it came on, which is env server {expect}'s")));
+    // Each inbox is the service of one ring member; a message there speaks of that member only.
+    let expect = if spec.role == Stage::Env { spec.member } else { inbox };
+    if m.member as usize != expect {
+        return Err(("member", m.member as u64, format!("does not match the service it came on, which is ring member {expect}'s")));
     }
     if m.slot as usize >= spec.n_slots {
-        return Err(("slot", m.slot as u64, format!("is out of range: each env server has {} slot(s)", spec.n_slots)));
+        return Err(("slot", m.slot as u64, format!("is out of range: each ring member has {} slot(s)", spec.n_slots)));
     }
     Ok(())
 }

@@ -1,5 +1,5 @@
 //! Hostile input on the ring is refused, never trusted: a real publisher process sends crafted
-//! slot messages (server, slot or kind out of range) to a real `Port`, which must return an
+//! slot messages (member, slot or kind out of range) to a real `Port`, which must return an
 //! error naming the sending node and the field, and keep working for the next good message.
 //! Clean-up of dead iceoryx2 nodes removes this run's dead nodes only, never those of another
 //! run or application on the same machine (real processes killed with SIGKILL).
@@ -44,13 +44,13 @@ fn wait_for_line(c: &mut Child, word: &str) {
     }
 }
 
-/// Child of `bad_messages_are_refused_naming_the_sender`: pose as env server `server` of the
-/// run and publish the crafted messages given as `kind,server,slot` triples separated by ';',
+/// Child of `bad_messages_are_refused_naming_the_sender`: pose as env server `member` of the
+/// run and publish the crafted messages given as `kind,member,slot` triples separated by ';',
 /// then stay alive (so the receiver can look the sender up) until stdin closes.
 fn sender_child(spec: &str) {
     set_log_level(LogLevel::Error);
     let mut it = spec.split(' ');
-    let (run, server, n_slots, msgs) = (it.next().unwrap(), it.next().unwrap(), it.next().unwrap(), it.next().unwrap());
+    let (run, member, n_slots, msgs) = (it.next().unwrap(), it.next().unwrap(), it.next().unwrap(), it.next().unwrap());
     let n_slots: usize = n_slots.parse().unwrap();
     // No machine-wide clean-up of dead nodes on creation or drop (iceoryx2's default): the
     // clean-up test running beside this one keeps dead foreign nodes that must stay listed.
@@ -59,13 +59,13 @@ fn sender_child(spec: &str) {
     config.global.node.cleanup_dead_nodes_on_destruction = false;
     let node = NodeBuilder::new()
         .config(&config)
-        .name(&NodeName::new(&format!("lmac-{run}-env{server}")).unwrap())
+        .name(&NodeName::new(&format!("lmac-{run}-env{member}")).unwrap())
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<ipc::Service>()
         .unwrap();
     // The same service settings as the ring's (ring.rs `pubsub`), as any peer must use.
     let service = node
-        .service_builder(&ServiceName::new(&format!("lmac/{run}/s{server}/to_runner")).unwrap())
+        .service_builder(&ServiceName::new(&format!("lmac/{run}/s{member}/to_runner")).unwrap())
         .publish_subscribe::<SlotMsg>()
         .subscriber_max_buffer_size(2 * n_slots + 16)
         .history_size(0)
@@ -77,7 +77,7 @@ fn sender_child(spec: &str) {
     let publisher = service.publisher_builder().create().unwrap();
     for m in msgs.split(';') {
         let v: Vec<u32> = m.split(',').map(|x| x.parse().unwrap()).collect();
-        publisher.send_copy(SlotMsg { kind: v[0], server: v[1], slot: v[2], _pad: 0, seq: 42 }).unwrap();
+        publisher.send_copy(SlotMsg { kind: v[0], member: v[1], slot: v[2], _pad: 0, seq: 42 }).unwrap();
     }
     println!("SENT");
     std::io::stdout().flush().unwrap();
@@ -92,18 +92,18 @@ fn bad_messages_are_refused_naming_the_sender() {
     }
     // (crafted message sent by "env server 1", the field the error must name)
     let cases: [((u32, u32, u32), &str); 4] = [
-        ((KIND_SLOT, 7, 0), "server = 7 is out of range"),
-        ((KIND_SLOT, 0, 1), "server = 0 does not match"),
+        ((KIND_SLOT, 7, 0), "member = 7 is out of range"),
+        ((KIND_SLOT, 0, 1), "member = 0 does not match"),
         ((KIND_SLOT, 1, 9), "slot = 9 is out of range"),
         ((77, 1, 0), "kind = 77 is not a message kind"),
     ];
-    for ((kind, server, slot), expect) in cases {
+    for ((kind, member, slot), expect) in cases {
         let run = unique_run("hr");
         let n_slots = 2;
-        let mut port = Port::new(RingSpec { run: run.clone(), n_servers: 2, n_slots, role: Stage::Runner, server: 0 }).unwrap();
+        let mut port = Port::new(RingSpec { run: run.clone(), n_members: 2, n_slots, role: Stage::Runner, member: 0 }).unwrap();
         port.set_startup_timeout(Duration::from_secs(600)); // the other peers never come
                                                             // The bad message, then a good one: the port must refuse the first and deliver the second.
-        let msgs = format!("{kind},{server},{slot};{KIND_SLOT},1,1");
+        let msgs = format!("{kind},{member},{slot};{KIND_SLOT},1,1");
         let mut c = child("bad_messages_are_refused_naming_the_sender", &[(SENDER, format!("{run} 1 {n_slots} {msgs}"))]);
         wait_for_line(&mut c, "SENT");
         let err = port.recv(Duration::from_secs(5)).expect_err("a bad message must be refused");
@@ -117,7 +117,7 @@ fn bad_messages_are_refused_naming_the_sender() {
         }
         assert!(text.contains(expect), "{text}");
         let good = port.recv(Duration::from_secs(5)).unwrap().expect("the good message after the bad one");
-        assert_eq!((good.kind, good.server, good.slot, good.seq), (KIND_SLOT, 1, 1, 42));
+        assert_eq!((good.kind, good.member, good.slot, good.seq), (KIND_SLOT, 1, 1, 42));
         drop(c.stdin.take());
         assert!(c.wait().unwrap().success());
     }
@@ -127,15 +127,15 @@ fn bad_messages_are_refused_naming_the_sender() {
 fn out_of_range_sends_and_specs_are_errors() {
     let run = unique_run("hs");
     for (spec, expect) in [
-        (RingSpec { run: run.clone(), n_servers: 0, n_slots: 2, role: Stage::Runner, server: 0 }, "n_servers = 0"),
-        (RingSpec { run: run.clone(), n_servers: 1, n_slots: 0, role: Stage::Runner, server: 0 }, "n_slots = 0"),
-        (RingSpec { run: run.clone(), n_servers: 2, n_slots: 2, role: Stage::Env, server: 2 }, "env server 2 does not exist"),
+        (RingSpec { run: run.clone(), n_members: 0, n_slots: 2, role: Stage::Runner, member: 0 }, "n_members = 0"),
+        (RingSpec { run: run.clone(), n_members: 1, n_slots: 0, role: Stage::Runner, member: 0 }, "n_slots = 0"),
+        (RingSpec { run: run.clone(), n_members: 2, n_slots: 2, role: Stage::Env, member: 2 }, "ring member 2 does not exist"),
     ] {
         let err = Port::new(spec).err().expect("refused");
         assert!(matches!(err, RingError::Usage(_)) && err.to_string().contains(expect), "{err}");
     }
-    let mut port = Port::new(RingSpec { run: run.clone(), n_servers: 2, n_slots: 2, role: Stage::Trainer, server: 0 }).unwrap();
-    assert!(port.send_slot(2, 0, 0).unwrap_err().to_string().contains("env server 2"));
+    let mut port = Port::new(RingSpec { run: run.clone(), n_members: 2, n_slots: 2, role: Stage::Trainer, member: 0 }).unwrap();
+    assert!(port.send_slot(2, 0, 0).unwrap_err().to_string().contains("ring member 2"));
     assert!(port.send_slot(1, 2, 0).unwrap_err().to_string().contains("slot 2"));
     assert!(port.send_bye(5).is_err());
     assert!(matches!(port.handshake(Duration::from_millis(10)), Err(RingError::Usage(_))));
@@ -215,7 +215,7 @@ fn cleanup_leaves_other_applications_dead_nodes_alone() {
     }
     // Everything our processes do about dead nodes: create a port (iceoryx2 would clean every
     // dead node on node creation by default), look at peers, clean up, drop the port.
-    let mut port = Port::new(RingSpec { run: run.clone(), n_servers: 1, n_slots: 2, role: Stage::Trainer, server: 0 }).unwrap();
+    let mut port = Port::new(RingSpec { run: run.clone(), n_members: 1, n_slots: 2, role: Stage::Trainer, member: 0 }).unwrap();
     port.set_startup_timeout(Duration::from_secs(600));
     let seen = port.check_peers();
     assert!(matches!(seen, Err(RingError::PeerDied { .. })), "our dead env server is reported: {seen:?}");

@@ -82,7 +82,7 @@ def test_random_episodes_through_driver(name):
         schema = env.schema
         out, rows = pipeline_batch(schema, b, schema.message_columns)
         meta = Meta.allocate(schema, b)
-        driver = Driver(env, server=0)
+        driver = Driver(env, member=0)
         driver.first(out, meta)
         rng = np.random.default_rng(0)
         ends = 0
@@ -134,7 +134,7 @@ def test_scripted_goal_gives_scoring_reward():
         schema = env.schema
         out = Batch.allocate(schema, b)
         meta = Meta.allocate(schema, b)
-        driver = Driver(env, server=0)
+        driver = Driver(env, member=0)
         driver.first(out, meta)
         goals = 0
         for _ in range(300):
@@ -160,7 +160,7 @@ def test_deterministic_and_worker_processes_agree():
         try:
             out = Batch.allocate(env.schema, b)
             meta = Meta.allocate(env.schema, b)
-            driver = Driver(env, server=0)
+            driver = Driver(env, member=0)
             driver.first(out, meta)
             rng = np.random.default_rng(5)
             rec = [out.state.copy()]
@@ -189,7 +189,7 @@ def test_through_shared_memory_slab():
     name = f"lmac-grftest-{os.getpid()}"
     slab = lmac_shm.Slab.create(name, str(spath), b, env.schema.message_columns, 2)
     try:
-        driver = Driver(env, server=0)
+        driver = Driver(env, member=0)
         lease = slab.lease(0, "env")
         server._write_first(driver, lease)
         st = np.array(lease.state)

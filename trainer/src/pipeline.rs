@@ -14,9 +14,9 @@ use std::time::{Duration, Instant};
 /// this too; `RandomActor` is the policy until a learner is attached.
 pub trait Actor {
     /// `slot` is owned by the trainer; write `num_envs * n_agents` actions into `actions`.
-    fn act(&mut self, server: usize, slot: &Slot<'_>, obs_width: usize, actions: &mut [i32]);
-    /// An episode of env `env` of server `server` finished (`won`: the env's success flag).
-    fn episode_done(&mut self, _server: usize, _env: usize, _ep: Episode, _won: bool) {}
+    fn act(&mut self, member: usize, slot: &Slot<'_>, obs_width: usize, actions: &mut [i32]);
+    /// An episode of env `env` of member `member` finished (`won`: the env's success flag).
+    fn episode_done(&mut self, _member: usize, _env: usize, _ep: Episode, _won: bool) {}
     /// True when the actor wants the run to end (e.g. a training budget is spent, an error).
     fn finished(&self) -> bool {
         false
@@ -35,7 +35,7 @@ impl RandomActor {
 }
 
 impl Actor for RandomActor {
-    fn act(&mut self, _server: usize, slot: &Slot<'_>, _obs_width: usize, actions: &mut [i32]) {
+    fn act(&mut self, _member: usize, slot: &Slot<'_>, _obs_width: usize, actions: &mut [i32]) {
         let na = slot.layout().n_actions;
         for (k, av) in slot.avail().chunks_exact(na).enumerate() {
             let n_avail = av.iter().filter(|&&a| a != 0).count();
@@ -55,7 +55,7 @@ pub enum MessageCheck {
     None,
     /// Built-in fullcomm: [obs_j, onehot(j)] for every other agent j.
     FullComm,
-    /// A compiled protocol: recompute the messages with an independent plan per server (it sees
+    /// A compiled protocol: recompute the messages with an independent plan per member (it sees
     /// the same steps, so it must agree column for column).
     Recompute,
 }
@@ -63,7 +63,7 @@ pub enum MessageCheck {
 pub struct TrainerArgs {
     pub run: String,
     pub schema: EnvSchema,
-    pub n_servers: usize,
+    pub n_members: usize,
     pub n_slots: usize,
     /// Message columns the plan writes (the episode's obs width is obs_dim + msg_used).
     pub msg_used: usize,
@@ -81,7 +81,7 @@ pub struct TrainerArgs {
 
 #[derive(Debug, Default, Serialize, Deserialize)]
 pub struct EpisodeSummary {
-    pub server: usize,
+    pub member: usize,
     pub env: usize,
     pub episode_id: u64,
     pub len: usize,
@@ -95,8 +95,8 @@ pub struct EpisodeSummary {
 #[derive(Debug, Default, Serialize, Deserialize)]
 pub struct TrainerReport {
     pub env: String,
-    pub servers: usize,
-    pub envs_per_server: usize,
+    pub members: usize,
+    pub envs_per_member: usize,
     pub env_steps: u64,
     pub batched_steps: u64,
     pub seconds: f64,
@@ -146,15 +146,15 @@ pub struct Assembler {
     dims: EpisodeDims,
     limit: usize,
     tracks: Vec<Vec<EnvTrack>>,
-    /// (server, env, episode id, episode, won)
+    /// (member, env, episode id, episode, won)
     pub finished: Vec<(usize, usize, u64, Episode, bool)>,
     violations: Vec<String>,
     violation_count: u64,
 }
 
 impl Assembler {
-    pub fn new(dims: EpisodeDims, limit: usize, n_servers: usize, num_envs: usize) -> Self {
-        let tracks = (0..n_servers)
+    pub fn new(dims: EpisodeDims, limit: usize, n_members: usize, num_envs: usize) -> Self {
+        let tracks = (0..n_members)
             .map(|_| {
                 (0..num_envs)
                     .map(|_| EnvTrack { ep: Episode::with_capacity(&dims, limit), episode_id: 0, expect_step: 0, phase: Phase::Fresh })
@@ -174,7 +174,7 @@ impl Assembler {
     /// Take in the step of every env in `slot`: close the previous transition with this row's
     /// reward (finishing the episode if it ended) and open the next one with this row's obs. A
     /// truncated episode's final row (`FLAG_FINAL`) becomes the episode's `next` step.
-    pub fn ingest(&mut self, server: usize, slot: &Slot<'_>) {
+    pub fn ingest(&mut self, member: usize, slot: &Slot<'_>) {
         let l = slot.layout().clone();
         let d = self.dims;
         let (obs, state, avail) = (slot.obs(), slot.state(), slot.avail());
@@ -193,11 +193,11 @@ impl Assembler {
             let (first, last) = (flags & FLAG_FIRST != 0, flags & FLAG_FINAL != 0);
             let (te, tr) = (term[e] != 0, trunc[e] != 0);
             let mut t = std::mem::replace(
-                &mut self.tracks[server][e],
+                &mut self.tracks[member][e],
                 EnvTrack { ep: Episode::default(), episode_id: 0, expect_step: 0, phase: Phase::Fresh },
             );
             if first && last {
-                self.violate(format!("server {server} env {e}: a row flagged both first and final (episode {eid})"));
+                self.violate(format!("member {member} env {e}: a row flagged both first and final (episode {eid})"));
             }
             match t.phase {
                 Phase::Open => {
@@ -205,17 +205,17 @@ impl Assembler {
                     t.ep.reward.push(reward[e]);
                     t.ep.len += 1;
                     if te && tr {
-                        self.violate(format!("server {server} env {e}: episode {} both terminated and truncated", t.episode_id));
+                        self.violate(format!("member {member} env {e}: episode {} both terminated and truncated", t.episode_id));
                     }
                     if tr && t.ep.len != self.limit {
                         self.violate(format!(
-                            "server {server} env {e}: episode {} truncated after {} steps, limit is {}",
+                            "member {member} env {e}: episode {} truncated after {} steps, limit is {}",
                             t.episode_id, t.ep.len, self.limit
                         ));
                     }
                     if t.ep.len > self.limit {
                         self.violate(format!(
-                            "server {server} env {e}: episode {} ran {} steps, limit is {}",
+                            "member {member} env {e}: episode {} ran {} steps, limit is {}",
                             t.episode_id, t.ep.len, self.limit
                         ));
                     }
@@ -223,7 +223,7 @@ impl Assembler {
                     // on the episode's own final row.
                     if te != first || tr != last {
                         self.violate(format!(
-                            "server {server} env {e}: episode {} end flags (terminated {te}, truncated {tr}) disagree with the row's flags (first {first}, final {last})",
+                            "member {member} env {e}: episode {} end flags (terminated {te}, truncated {tr}) disagree with the row's flags (first {first}, final {last})",
                             t.episode_id
                         ));
                     }
@@ -238,58 +238,58 @@ impl Assembler {
                             });
                         }
                         let done = std::mem::replace(&mut t.ep, Episode::with_capacity(&d, self.limit));
-                        self.finished.push((server, e, t.episode_id, done, flags & FLAG_PREV_WON != 0));
+                        self.finished.push((member, e, t.episode_id, done, flags & FLAG_PREV_WON != 0));
                     }
                 }
                 Phase::AwaitFirst => {
                     if !first || te || tr || reward[e] != 0.0 {
                         self.violate(format!(
-                            "server {server} env {e}: the row after episode {}'s final row is not a clean first step (first {first}, terminated {te}, truncated {tr}, reward {})",
+                            "member {member} env {e}: the row after episode {}'s final row is not a clean first step (first {first}, terminated {te}, truncated {tr}, reward {})",
                             t.episode_id, reward[e]
                         ));
                     }
                 }
                 Phase::Fresh => {
                     if !first {
-                        self.violate(format!("server {server} env {e}: the first step seen is not flagged as an episode start"));
+                        self.violate(format!("member {member} env {e}: the first step seen is not flagged as an episode start"));
                     }
                 }
             }
             if last {
                 // The final row is not a step of any episode: the next row starts one.
                 if eid != t.episode_id {
-                    self.violate(format!("server {server} env {e}: final row of episode {eid}, expected {}", t.episode_id));
+                    self.violate(format!("member {member} env {e}: final row of episode {eid}, expected {}", t.episode_id));
                 }
                 t.phase = Phase::AwaitFirst;
-                self.tracks[server][e] = t;
+                self.tracks[member][e] = t;
                 continue;
             }
             if first {
                 if t.phase != Phase::Fresh && eid == t.episode_id {
-                    self.violate(format!("server {server} env {e}: a new episode reuses id {eid}"));
+                    self.violate(format!("member {member} env {e}: a new episode reuses id {eid}"));
                 }
                 t.episode_id = eid;
                 t.expect_step = 0;
             } else if eid != t.episode_id {
-                self.violate(format!("server {server} env {e}: episode id changed {} -> {eid} without a first-step flag", t.episode_id));
+                self.violate(format!("member {member} env {e}: episode id changed {} -> {eid} without a first-step flag", t.episode_id));
             }
             if step != t.expect_step {
-                self.violate(format!("server {server} env {e}: episode {eid} step {step}, expected {}", t.expect_step));
+                self.violate(format!("member {member} env {e}: episode {eid} step {step}, expected {}", t.expect_step));
             }
             t.expect_step = step.wrapping_add(1);
             t.phase = Phase::Open;
             t.ep.obs.extend_from_slice(&rows_of(e));
             t.ep.state.extend_from_slice(&state[e * l.state_dim..(e + 1) * l.state_dim]);
             t.ep.avail.extend_from_slice(&avail[e * na..(e + 1) * na]);
-            self.tracks[server][e] = t;
+            self.tracks[member][e] = t;
         }
     }
 
     /// Record the actions chosen for the step just ingested (not on final rows: those actions
     /// are ignored by the env server).
-    pub fn record_actions(&mut self, server: usize, actions: &[i32]) {
+    pub fn record_actions(&mut self, member: usize, actions: &[i32]) {
         let n = self.dims.n_agents;
-        for (e, t) in self.tracks[server].iter_mut().enumerate() {
+        for (e, t) in self.tracks[member].iter_mut().enumerate() {
             if t.phase == Phase::Open {
                 t.ep.actions.extend_from_slice(&actions[e * n..(e + 1) * n]);
             }
@@ -297,7 +297,7 @@ impl Assembler {
     }
 
     /// Recompute the messages of `slot` with `plan` on a copy of its rows and compare.
-    pub fn recheck_messages(&mut self, server: usize, slot: &Slot<'_>, plan: &mut dyn lmac_protocol_runner::plan::MessagePlan) {
+    pub fn recheck_messages(&mut self, member: usize, slot: &Slot<'_>, plan: &mut dyn lmac_protocol_runner::plan::MessagePlan) {
         let l = slot.layout();
         let mut rows = slot.obs().to_vec();
         let first: Vec<bool> = (0..l.num_envs).map(|e| slot.env_meta(e).2 & FLAG_FIRST != 0).collect();
@@ -318,7 +318,7 @@ impl Assembler {
         for (k, (a, b)) in rows.chunks_exact(l.row_width).zip(got.chunks_exact(l.row_width)).enumerate() {
             if a[l.obs_dim..].iter().zip(&b[l.obs_dim..]).any(|(x, y)| x.to_bits() != y.to_bits()) {
                 self.violate(format!(
-                    "server {server} env {} agent {}: message columns differ from the recomputed protocol",
+                    "member {member} env {} agent {}: message columns differ from the recomputed protocol",
                     k / l.n_agents,
                     k % l.n_agents
                 ));
@@ -327,7 +327,7 @@ impl Assembler {
     }
 
     /// Check the message columns against the rule the runner applies.
-    pub fn check_messages(&mut self, server: usize, slot: &Slot<'_>, check: MessageCheck) {
+    pub fn check_messages(&mut self, member: usize, slot: &Slot<'_>, check: MessageCheck) {
         let l = slot.layout();
         let (n, od, rw) = (l.n_agents, l.obs_dim, l.row_width);
         let obs = slot.obs();
@@ -343,7 +343,7 @@ impl Assembler {
                 }
                 expect.resize(l.msg_dim, 0.0);
                 if row[od..] != expect[..] {
-                    self.violate(format!("server {server} env {e} agent {i}: message columns differ from the {check:?} rule"));
+                    self.violate(format!("member {member} env {e} agent {i}: message columns differ from the {check:?} rule"));
                 }
             }
         }
@@ -353,7 +353,7 @@ impl Assembler {
 /// Run the trainer loop with `actor` until `env_steps` env steps have been collected.
 pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, PipelineError> {
     let mut slabs = Vec::new();
-    for s in 0..args.n_servers {
+    for s in 0..args.n_members {
         slabs.push(Slab::open(&lmac_protocol_runner::runner::slab_name(&args.run, s), &args.schema, args.startup_timeout)?);
     }
     let l0 = slabs[0].layout().clone();
@@ -362,7 +362,7 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
     for (s, slab) in slabs.iter().enumerate() {
         let p = slab.layout().params();
         let problem = if p != l0.params() {
-            Some(format!("layout {p:?} differs from server 0's {:?}", l0.params()))
+            Some(format!("layout {p:?} differs from member 0's {:?}", l0.params()))
         } else if p.n_slots != args.n_slots {
             Some(format!("{} slots, the ring has {}", p.n_slots, args.n_slots))
         } else if p.msg_dim != args.msg_used {
@@ -381,18 +381,18 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
         n_actions: args.schema.n_actions,
     };
     let mut port =
-        Port::new(RingSpec { run: args.run.clone(), n_servers: args.n_servers, n_slots: args.n_slots, role: Stage::Trainer, server: 0 })?;
+        Port::new(RingSpec { run: args.run.clone(), n_members: args.n_members, n_slots: args.n_slots, role: Stage::Trainer, member: 0 })?;
     port.set_startup_timeout(args.startup_timeout);
     let mut recheck = Vec::new();
     if args.verify == Some(MessageCheck::Recompute) {
-        for _ in 0..args.n_servers {
+        for _ in 0..args.n_members {
             recheck.push(lmac_protocol_runner::plan_for(&args.protocol, &args.schema).map_err(PipelineError::Protocol)?);
         }
     }
-    let mut asm = Assembler::new(dims, args.schema.episode_limit, args.n_servers, l0.num_envs);
+    let mut asm = Assembler::new(dims, args.schema.episode_limit, args.n_members, l0.num_envs);
     let mut actions = vec![0i32; l0.num_envs * l0.n_agents];
     let mut report =
-        TrainerReport { env: args.schema.name.clone(), servers: args.n_servers, envs_per_server: l0.num_envs, ..Default::default() };
+        TrainerReport { env: args.schema.name.clone(), members: args.n_members, envs_per_member: l0.num_envs, ..Default::default() };
     let bar = if args.progress {
         let b = indicatif::ProgressBar::new(args.env_steps);
         b.set_style(
@@ -417,26 +417,26 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
             continue;
         }
         let t0 = Instant::now();
-        let (server, idx) = (m.server as usize, m.slot as usize);
+        let (member, idx) = (m.member as usize, m.slot as usize);
         {
-            let mut slot = slabs[server].slot(idx, Stage::Trainer)?;
+            let mut slot = slabs[member].slot(idx, Stage::Trainer)?;
             match args.verify {
-                Some(MessageCheck::Recompute) => asm.recheck_messages(server, &slot, recheck[server].as_mut()),
-                Some(check) => asm.check_messages(server, &slot, check),
+                Some(MessageCheck::Recompute) => asm.recheck_messages(member, &slot, recheck[member].as_mut()),
+                Some(check) => asm.check_messages(member, &slot, check),
                 None => {}
             }
-            asm.ingest(server, &slot);
-            actor.act(server, &slot, dims.obs_width, &mut actions);
+            asm.ingest(member, &slot);
+            actor.act(member, &slot, dims.obs_width, &mut actions);
             slot.actions_mut().copy_from_slice(&actions);
-            asm.record_actions(server, &actions);
+            asm.record_actions(member, &actions);
         }
-        slabs[server].set_stage(idx, Stage::Env);
-        port.send_slot(server, idx, m.seq)?;
+        slabs[member].set_stage(idx, Stage::Env);
+        port.send_slot(member, idx, m.seq)?;
         for (s, e, eid, ep, won) in asm.finished.drain(..) {
             report.episodes += 1;
             return_sum += ep.team_return() as f64;
             report.episode_log.push(EpisodeSummary {
-                server: s,
+                member: s,
                 env: e,
                 episode_id: eid,
                 len: ep.len,
@@ -464,7 +464,7 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
     if let Some(b) = bar {
         b.finish_and_clear();
     }
-    for s in 0..args.n_servers {
+    for s in 0..args.n_members {
         port.send_bye(s)?;
     }
     // Keep the publishers alive until the env servers have taken their goodbye.

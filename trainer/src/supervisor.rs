@@ -98,8 +98,9 @@ fn describe(status: &ExitStatus) -> String {
 }
 
 impl RunPlan {
-    /// The env servers the ring, the protocol runner and the trainer see: one per sub-batch.
-    pub fn ring_servers(&self) -> usize {
+    /// The ring members the protocol runner and the trainer serve: one per sub-batch of each env
+    /// server process.
+    pub fn ring_members(&self) -> usize {
         self.servers * self.sub_batches
     }
 }
@@ -165,7 +166,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
             let mut c = python_command()?;
             c.args(["-m", "lmac_env.server", "--env", &plan.env, "--run", &plan.run])
                 .args(["--envs", &plan.envs_per_server.to_string(), "--sub-batches", &h.to_string()])
-                .args(["--server", &(s * h).to_string(), "--n-servers", &plan.ring_servers().to_string()])
+                .args(["--first-member", &(s * h).to_string(), "--members", &plan.ring_members().to_string()])
                 .args(["--slots", &plan.slots.to_string()])
                 .args(["--msg-dim", &plan.msg_dim.to_string(), "--seed", &plan.seed.to_string()])
                 .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
@@ -181,7 +182,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
             procs.push(Proc { name, child, status: None });
         }
         let common = |c: &mut Command| {
-            c.args(["--run", &plan.run, "--env", &plan.env, "--servers", &plan.ring_servers().to_string()])
+            c.args(["--run", &plan.run, "--env", &plan.env, "--members", &plan.ring_members().to_string()])
                 .args(["--slots", &plan.slots.to_string(), "--protocol", &plan.protocol])
                 .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
                 .stdin(Stdio::null());
@@ -205,7 +206,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
         Ok(()) => supervise(&mut procs, trainer_idx, &interrupted),
     };
     stop_all(&mut procs);
-    cleanup_run(&plan.run, plan.ring_servers());
+    cleanup_run(&plan.run, plan.ring_members());
     let path = report_path(&plan.run);
     let report = std::fs::read(&path);
     let _ = std::fs::remove_file(&path);

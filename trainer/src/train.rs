@@ -549,7 +549,7 @@ pub struct TrainActor {
     controllers: Vec<Controller>,
     rng: LearnRng,
     dims: EpisodeDims,
-    /// Per server, per env: is the current episode a greedy test episode?
+    /// Per member, per env: is the current episode a greedy test episode?
     testing: Vec<Vec<bool>>,
     test_pending: usize,
     test_returns: Vec<(f32, bool)>,
@@ -652,7 +652,7 @@ impl TrainActor {
 }
 
 impl Actor for TrainActor {
-    fn act(&mut self, server: usize, slot: &Slot<'_>, obs_width: usize, actions: &mut [i32]) {
+    fn act(&mut self, member: usize, slot: &Slot<'_>, obs_width: usize, actions: &mut [i32]) {
         if let Some(agent) = self.shared.lock().agent.take() {
             // Each env switches to these weights when its next episode starts.
             for c in &mut self.controllers {
@@ -667,7 +667,7 @@ impl Actor for TrainActor {
             self.scratch_first.push(first);
             if first {
                 // Start a greedy test episode here if a test phase wants more.
-                self.testing[server][e] = self.test_pending > 0;
+                self.testing[member][e] = self.test_pending > 0;
                 if self.test_pending > 0 {
                     self.test_pending -= 1;
                 }
@@ -675,7 +675,7 @@ impl Actor for TrainActor {
         }
         let state = if self.learn.agent_sees_state { Some(slot.state()) } else { None };
         let eps = self.epsilon();
-        let acts = self.controllers[server].select_actions(
+        let acts = self.controllers[member].select_actions(
             slot.obs(),
             state,
             slot.last_actions(),
@@ -687,9 +687,9 @@ impl Actor for TrainActor {
         actions.copy_from_slice(&acts);
         // Test envs act greedily on the same Q-values.
         let (n, a) = (self.dims.n_agents, self.dims.n_actions);
-        let q = self.controllers[server].last_q();
+        let q = self.controllers[member].last_q();
         let avail = slot.avail();
-        for e in (0..l.num_envs).filter(|&e| self.testing[server][e]) {
+        for e in (0..l.num_envs).filter(|&e| self.testing[member][e]) {
             for ag in 0..n {
                 let r = e * n + ag;
                 let (qs, av) = (&q[r * a..(r + 1) * a], &avail[r * a..(r + 1) * a]);
@@ -698,9 +698,9 @@ impl Actor for TrainActor {
         }
     }
 
-    fn episode_done(&mut self, server: usize, env: usize, ep: Episode, won: bool) {
-        if self.testing[server][env] {
-            self.testing[server][env] = false;
+    fn episode_done(&mut self, member: usize, env: usize, ep: Episode, won: bool) {
+        if self.testing[member][env] {
+            self.testing[member][env] = false;
             self.test_returns.push((ep.team_return(), won));
             if self.test_returns.len() >= self.cfg.run.test_episodes {
                 let n = self.test_returns.len() as f64;
@@ -841,10 +841,10 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     }
     let schedule =
         UpdateSchedule::new(cfg.run.updates_per_episode, learn.batch_size, counters.episodes, counters.updates, learner.buffer().len());
-    // One controller per ring server (sub-batch), each driving that sub-batch's environments.
-    // The ring has servers x sub-batches members (`args.n_servers`).
-    let envs_per_slab = cfg.run.envs * cfg.run.servers / args.n_servers;
-    let controllers = (0..args.n_servers).map(|_| Controller::new(&learner, envs_per_slab)).collect();
+    // One controller per ring member (a sub-batch of an env server), each driving its environments.
+    // The ring has env servers x sub-batches members (`args.n_members`).
+    let envs_per_slab = cfg.run.envs * cfg.run.servers / args.n_members;
+    let controllers = (0..args.n_members).map(|_| Controller::new(&learner, envs_per_slab)).collect();
     let shared = Arc::new(Mutex::new(Shared { updates: counters.updates, ..Default::default() }));
     let (tx, rx) = mpsc::channel::<ToLearner>();
     let learner_thread = {
@@ -863,7 +863,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         b
     });
     let mut actor = TrainActor {
-        testing: vec![vec![false; envs_per_slab]; args.n_servers],
+        testing: vec![vec![false; envs_per_slab]; args.n_members],
         test_pending: if counters.t_env == 0 { cfg.run.test_episodes } else { 0 },
         test_returns: Vec::new(),
         next_test: (counters.t_env / cfg.run.test_interval + 1) * cfg.run.test_interval,

@@ -342,10 +342,10 @@ struct Port {
 #[pymethods]
 impl Port {
     #[new]
-    #[pyo3(signature = (run, role, server, n_servers, n_slots, startup_timeout=60.0))]
-    fn new(run: &str, role: &str, server: usize, n_servers: usize, n_slots: usize, startup_timeout: f64) -> PyResult<Port> {
+    #[pyo3(signature = (run, role, member, n_members, n_slots, startup_timeout=60.0))]
+    fn new(run: &str, role: &str, member: usize, n_members: usize, n_slots: usize, startup_timeout: f64) -> PyResult<Port> {
         let mut inner =
-            RingPort::new(RingSpec { run: run.into(), n_servers, n_slots, role: parse_stage(role)?, server }).map_err(ring_err)?;
+            RingPort::new(RingSpec { run: run.into(), n_members, n_slots, role: parse_stage(role)?, member }).map_err(ring_err)?;
         inner.set_startup_timeout(Duration::from_secs_f64(startup_timeout));
         Ok(Port { inner })
     }
@@ -355,7 +355,7 @@ impl Port {
         self.inner.handshake(Duration::from_secs_f64(timeout)).map_err(ring_err)
     }
 
-    /// Next message: None on timeout, else (kind, server, slot, seq) with kind "slot" or "bye".
+    /// Next message: None on timeout, else (kind, member, slot, seq) with kind "slot" or "bye".
     fn recv(&mut self, py: Python<'_>, timeout: f64) -> PyResult<Option<(String, u32, u32, u64)>> {
         let r = self.inner.recv(Duration::from_secs_f64(timeout)).map_err(ring_err)?;
         py.check_signals()?;
@@ -366,16 +366,16 @@ impl Port {
                 KIND_HELLO => "hello",
                 _ => "unknown",
             };
-            (kind.to_string(), m.server, m.slot, m.seq)
+            (kind.to_string(), m.member, m.slot, m.seq)
         }))
     }
 
-    fn send_slot(&self, server: usize, slot: usize, seq: u64) -> PyResult<()> {
-        self.inner.send_slot(server, slot, seq).map_err(ring_err)
+    fn send_slot(&self, member: usize, slot: usize, seq: u64) -> PyResult<()> {
+        self.inner.send_slot(member, slot, seq).map_err(ring_err)
     }
 
-    fn send_bye(&mut self, server: usize) -> PyResult<()> {
-        self.inner.send_bye(server).map_err(ring_err)
+    fn send_bye(&mut self, member: usize) -> PyResult<()> {
+        self.inner.send_bye(member).map_err(ring_err)
     }
 
     fn check_peers(&mut self) -> PyResult<()> {

@@ -737,7 +737,7 @@ impl Target for CheckpointTarget {
 
 /// The 24-byte slot messages a ring member receives from its peers: any bytes, checked by
 /// `ring::check_slot_msg` against a ring of random sizes seen from a random member. A message it
-/// accepts must be safe to index with: its server and slot inside the ring.
+/// accepts must be safe to index with: its member and slot inside the ring.
 pub struct RingMessageTarget;
 
 fn ring_case(bytes: &[u8]) -> Option<(lmac_shm_schema::ring::RingSpec, usize, lmac_shm_schema::SlotMsg)> {
@@ -746,13 +746,13 @@ fn ring_case(bytes: &[u8]) -> Option<(lmac_shm_schema::ring::RingSpec, usize, lm
         return None;
     }
     let u32_at = |i: usize| u32::from_le_bytes(bytes[i..i + 4].try_into().expect("4 bytes"));
-    let (n_servers, n_slots) = (1 + (bytes[24] as usize % 8), 1 + (bytes[25] as usize % 8));
+    let (n_members, n_slots) = (1 + (bytes[24] as usize % 8), 1 + (bytes[25] as usize % 8));
     let role = [Stage::Env, Stage::Runner, Stage::Trainer][bytes[26] as usize % 3];
-    let (server, inbox) = (bytes[27] as usize % n_servers, bytes[28] as usize % n_servers);
-    let spec = RingSpec { run: "fuzz".into(), n_servers, n_slots, role, server };
+    let (member, inbox) = (bytes[27] as usize % n_members, bytes[28] as usize % n_members);
+    let spec = RingSpec { run: "fuzz".into(), n_members, n_slots, role, member };
     let msg = SlotMsg {
         kind: u32_at(0),
-        server: u32_at(4),
+        member: u32_at(4),
         slot: u32_at(8),
         _pad: u32_at(12),
         seq: u64::from_le_bytes(bytes[16..24].try_into().ok()?),
@@ -778,7 +778,7 @@ impl Target for RingMessageTarget {
     fn run(&mut self, case: &Case) -> Result<(), String> {
         let (spec, inbox, msg) = ring_case(&case.files[0].1).ok_or("not 32 bytes")?;
         match lmac_shm_schema::ring::check_slot_msg(&spec, inbox, &msg) {
-            Ok(()) if msg.server as usize >= spec.n_servers || msg.slot as usize >= spec.n_slots => {
+            Ok(()) if msg.member as usize >= spec.n_members || msg.slot as usize >= spec.n_slots => {
                 panic!("accepted a message outside the ring: {msg:?} for {spec:?}")
             }
             Ok(()) => Ok(()),

@@ -15,7 +15,7 @@ pub(crate) struct ChildOpts {
     #[arg(long)]
     env: String,
     #[arg(long)]
-    servers: usize,
+    members: usize,
     #[arg(long)]
     slots: usize,
     #[arg(long)]
@@ -57,14 +57,14 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
     let code = match c {
         ChildCmd::Runner(o) => {
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
-            let mut plans = (0..o.servers)
+            let mut plans = (0..o.members)
                 .map(|_| lmac_protocol_runner::plan_for(&o.protocol, &schema))
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(anyhow::Error::msg)?;
             let args = RunnerArgs {
                 run: o.run,
                 schema,
-                n_servers: o.servers,
+                n_members: o.members,
                 n_slots: o.slots,
                 startup_timeout: Duration::from_secs_f64(o.startup_timeout),
             };
@@ -88,7 +88,7 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
             let args = TrainerArgs {
                 run: o.run,
                 schema,
-                n_servers: o.servers,
+                n_members: o.members,
                 n_slots: o.slots,
                 msg_used: plan.msg_dim(),
                 env_steps: steps,
