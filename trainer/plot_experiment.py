@@ -17,29 +17,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from plot_runs import group_curves  # noqa: E402
+from plot_runs import plot_curves  # noqa: E402
 
 
 def main(exp: pathlib.Path) -> None:
     table = json.loads((exp / "comparison.json").read_text())
     env = table["env"]
-    fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    for row in table["rows"]:
-        gc = group_curves(exp / "runs" / row["label"])
-        if gc is None:
-            continue
-        grid, ys, _ = gc
-        m, s = ys.mean(0), ys.std(0)
-        ax.plot(grid, m, label=f"{row['label']} ({len(ys)} seeds)")
-        ax.fill_between(grid, m - s, m + s, alpha=0.2)
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("test return")
-    ax.set_title(f"{env}: mean and std over seeds")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(exp / "curves.png", dpi=120)
-    plt.close(fig)
-    print(f"wrote {exp / 'curves.png'}")
+    plot_curves(exp / "curves.png", env, [(r["label"], exp / "runs" / r["label"]) for r in table["rows"]])
 
     rows = {r["label"]: r for r in table["rows"]}
     phases = [(k, rows.get(label)) for k, label in [(0, "lmac-k0"), (1, "lmac-k1"), (2, "lmac")]]

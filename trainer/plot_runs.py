@@ -55,25 +55,30 @@ def group_curves(group: pathlib.Path):
     return grid, ys, wins
 
 
-def compare(out: pathlib.Path, groups: list[pathlib.Path]) -> None:
+def plot_curves(out: pathlib.Path, env: str, labelled: list[tuple[str, pathlib.Path]]) -> None:
+    """Test return of each (label, group of seeds): mean with a std band, one line each."""
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    env = None
-    for g in groups:
+    for label, g in labelled:
         gc = group_curves(g)
         if gc is None:
             continue
         grid, ys, _ = gc
-        env = g.parents[1].name
         m, s = ys.mean(0), ys.std(0)
-        ax.plot(grid, m, label=f"{g.parent.name} ({len(ys)} seeds)")
+        ax.plot(grid, m, label=f"{label} ({len(ys)} seeds)")
         ax.fill_between(grid, m - s, m + s, alpha=0.2)
     ax.set_xlabel("env steps")
     ax.set_ylabel("test return")
     ax.set_title(f"{env}: mean and std over seeds")
-    ax.legend()
+    ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out, dpi=120)
+    plt.close(fig)
     print(f"wrote {out}")
+
+
+def compare(out: pathlib.Path, groups: list[pathlib.Path]) -> None:
+    # `lmac train` groups are runs/<env>/<algo>/<time>.
+    plot_curves(out, groups[0].parents[1].name if groups else "", [(g.parent.name, g) for g in groups])
 
 
 def main(group: pathlib.Path) -> None:
