@@ -1,0 +1,304 @@
+//! The configuration of a training run: `[run]` (everything that is not a learner
+//! hyperparameter), `[learn]` (the learner's, `learn/config.rs`) and `[method]` (the method's own
+//! settings, checked by the method), presets, `key=value` overrides, and the protocol a run's
+//! method gets.
+
+use crate::learn::methods::{self, AgentConfig, Messages, MethodContext};
+use crate::learn::LearnConfig;
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Everything about a run that is not a learner hyperparameter.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RunSection {
+    pub env: String,
+    /// A method of `learn::methods::REGISTRY`: qmix, vdn, qplex, fullcomm, qmix-state, lmac.
+    pub algo: String,
+    /// Environment steps to train for.
+    pub steps: u64,
+    /// Environments per env server.
+    pub envs: usize,
+    /// Env server processes.
+    pub servers: usize,
+    /// Sub-batches per env server (double buffering, see `supervisor::RunPlan`); 0: two when
+    /// `envs` is even and the schema allows it (`double_buffer`), else one.
+    pub sub_batches: usize,
+    /// Gradient updates per collected (training) episode. The default 0.125 is pymarl's parallel
+    /// runner with 8 environments (one update per 8 episodes); EPyMARL's episode runner does 1
+    /// (`--preset epymarl`). The target network is copied every
+    /// `learn.target_update_interval_episodes` episodes, so at 0.125 its 200 episodes are 25
+    /// updates, at 1 they are 200.
+    pub updates_per_episode: f64,
+    /// Env steps between greedy test phases.
+    pub test_interval: u64,
+    /// Greedy episodes per test phase.
+    pub test_episodes: usize,
+    /// Env steps between training-metric rows.
+    pub log_interval: u64,
+    /// Env steps between checkpoints.
+    pub checkpoint_interval: u64,
+    /// Also store the replay buffer in checkpoints (exact resumption; large).
+    pub save_buffer: bool,
+    /// Message protocol for the runner: empty = the algorithm's own (`none` for qmix, vdn,
+    /// qplex and qmix-state, `fullcomm` for fullcomm); else a design directory (its
+    /// `phase<k>/protocol.json` files) or protocol files joined by '+'
+    /// (`phase0.json+phase1.json`). Required by lmac; not allowed with fullcomm.
+    pub protocol: String,
+    /// Use the design's phases 0..=k only (the paper's k: 0, 1 or 2); absent = all of them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub design_k: Option<usize>,
+    /// After `steps`, keep acting epsilon-greedy without learning for this many episodes and
+    /// store them as the trajectory dataset B in `<run dir>/dataset` (protocol design).
+    pub dataset_episodes: usize,
+    /// Epsilon while collecting the dataset; absent = the schedule's value at the end of training.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dataset_epsilon: Option<f32>,
+}
+
+impl Default for RunSection {
+    fn default() -> Self {
+        RunSection {
+            env: "lbf:8x8-2p-2f-s1-coop".into(),
+            algo: "qmix".into(),
+            steps: 2_000_000,
+            envs: 16,
+            servers: 2,
+            sub_batches: 0,
+            updates_per_episode: 0.125,
+            test_interval: 10_000,
+            test_episodes: 32,
+            log_interval: 5_000,
+            checkpoint_interval: 100_000,
+            save_buffer: false,
+            protocol: String::new(),
+            design_k: None,
+            dataset_episodes: 0,
+            dataset_epsilon: None,
+        }
+    }
+}
+
+/// The resolved configuration of one run, saved as `config.toml` in its directory.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainConfig {
+    pub run: RunSection,
+    pub learn: LearnConfig,
+    /// The settings of `run.algo`'s method (see its file in `learn/methods/`); checked by the
+    /// method, unknown keys are errors.
+    #[serde(skip_serializing_if = "toml::Table::is_empty")]
+    pub method: toml::Table,
+}
+
+/// Named bundles of settings (`lmac train --preset NAME`), applied before `--set` overrides.
+pub const PRESETS: &[(&str, &str)] = &[(
+    "epymarl",
+    "EPyMARL's episode-runner learning schedule: one update of 32 episodes per collected episode \
+     (updates start once the buffer holds 32), target copy every 200 episodes = 200 updates",
+)];
+
+/// The `key=value` overrides of a preset.
+pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
+    Ok(match name {
+        "epymarl" => {
+            vec!["run.updates_per_episode=1.0".into(), "learn.batch_size=32".into(), "learn.target_update_interval_episodes=200".into()]
+        }
+        other => bail!("--preset: unknown preset {other:?}; known: {}", PRESETS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")),
+    })
+}
+
+
+/// The environment a design directory was made for (its `summary.json` or `options.json`).
+fn design_env(dir: &Path) -> Option<String> {
+    ["summary.json", "options.json"].iter().find_map(|f| {
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join(f)).ok()?).ok()?;
+        v.get("env")?.as_str().map(str::to_string)
+    })
+}
+
+/// The protocol files of `spec`: a design directory gives its `phase<i>/protocol.json` for
+/// i = 0..=k (all phases present when `k` is absent); files joined by '+' give the first k + 1.
+pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
+    let path = Path::new(spec);
+    let files: Vec<String> = if path.is_dir() {
+        let found: Vec<String> = (0..)
+            .map(|i| path.join(format!("phase{i}")).join("protocol.json"))
+            .take_while(|p| p.exists())
+            .map(|p| p.display().to_string())
+            .collect();
+        if found.is_empty() {
+            bail!("run.protocol: {spec} is a directory without phase0/protocol.json (not a design directory)");
+        }
+        found
+    } else {
+        spec.split('+').map(str::to_string).collect()
+    };
+    match k {
+        Some(k) if k + 1 > files.len() => bail!("run.design_k: {k} asks for {} phases but {spec} has {}", k + 1, files.len()),
+        Some(k) => Ok(files[..=k].to_vec()),
+        None => Ok(files),
+    }
+}
+
+impl TrainConfig {
+    /// Read a config file (TOML), apply `key=value` overrides (dotted paths such as
+    /// `learn.lr=0.001`, `run.envs=8`), then check it. Errors name the field.
+    pub fn resolve(file: Option<&Path>, overrides: &[String]) -> Result<TrainConfig> {
+        let mut v: toml::Value = match file {
+            Some(p) => toml::from_str(&std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?)
+                .with_context(|| format!("{}: not valid TOML", p.display()))?,
+            None => toml::Value::Table(Default::default()),
+        };
+        for o in overrides {
+            let (key, val) = o.split_once('=').with_context(|| format!("override {o:?} must look like section.key=value"))?;
+            // A TOML value, else the text as a string. Exactly one key: a value with a newline
+            // cannot smuggle in other keys (`1\nother = 2`) or leave `x` out.
+            let parsed: toml::Value = toml::from_str::<toml::Table>(&format!("x = {val}"))
+                .ok()
+                .filter(|t| t.len() == 1)
+                .and_then(|mut t| t.remove("x"))
+                .unwrap_or_else(|| toml::Value::String(val.to_string()));
+            let mut cur = &mut v;
+            let parts: Vec<&str> = key.split('.').collect();
+            for (i, part) in parts.iter().enumerate() {
+                let table = cur.as_table_mut().with_context(|| format!("override {key}: {part} is not a section"))?;
+                if i + 1 == parts.len() {
+                    table.insert(part.to_string(), parsed.clone());
+                    break;
+                }
+                cur = table.entry(part.to_string()).or_insert(toml::Value::Table(Default::default()));
+            }
+        }
+        let text = toml::to_string(&v).map_err(|e| anyhow::anyhow!("config: cannot re-serialize after the overrides: {e}"))?;
+        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| {
+            // toml's message does not name the key of a mistyped value; its span does: the key
+            // is on the span's line, under the last [section] above it.
+            let before = e.span().and_then(|s| text.get(..s.start)).unwrap_or("");
+            let key = before.lines().last().and_then(|l| l.split_once('=')).map(|(k, _)| k.trim().trim_matches('"'));
+            let section = before.lines().rev().find_map(|l| l.trim().strip_prefix('[').and_then(|l| l.strip_suffix(']')));
+            match (section, key) {
+                (Some(s), Some(k)) => anyhow::anyhow!("config: {s}.{k}: {}", e.message()),
+                _ => anyhow::anyhow!("config: {}", e.message()),
+            }
+        })?;
+        cfg.check()?;
+        Ok(cfg)
+    }
+
+    /// Validate everything: the run, the learner, the protocol against the environment and the
+    /// method's settings.
+    pub fn check(&self) -> Result<()> {
+        methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
+        self.learn.validate()?;
+        let r = &self.run;
+        for (field, v) in [
+            ("run.steps", r.steps),
+            ("run.test_interval", r.test_interval),
+            ("run.log_interval", r.log_interval),
+            ("run.checkpoint_interval", r.checkpoint_interval),
+        ] {
+            if v == 0 {
+                bail!("{field}: must be at least 1");
+            }
+        }
+        if r.envs == 0 || r.servers == 0 {
+            bail!("run.envs and run.servers: must be at least 1");
+        }
+        // 0 takes the default, which always divides (supervisor::default_sub_batches).
+        if r.sub_batches != 0 && r.envs % r.sub_batches != 0 {
+            bail!("run.sub_batches: {} does not divide run.envs {}", r.sub_batches, r.envs);
+        }
+        if !(r.updates_per_episode.is_finite() && r.updates_per_episode > 0.0) {
+            bail!("run.updates_per_episode: must be positive, got {}", r.updates_per_episode);
+        }
+        if let Some(e) = r.dataset_epsilon {
+            if !(0.0..=1.0).contains(&e) {
+                bail!("run.dataset_epsilon: must be in [0, 1], got {e}");
+            }
+        }
+        let schema = lmac_shm_schema::schema::load_env(&r.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
+        let protocol = self.protocol()?;
+        let plan = lmac_protocol_runner::plan_for(&protocol, &schema).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))?;
+        if plan.msg_dim() > schema.message_columns {
+            bail!("run.protocol: {protocol} writes {} message columns but {} allows {}", plan.msg_dim(), r.env, schema.message_columns);
+        }
+        self.agent_config(&schema, plan.msg_dim())?;
+        Ok(())
+    }
+
+    /// The protocol the runner applies: the method's own, or `run.protocol` resolved to files.
+    pub fn protocol(&self) -> Result<String> {
+        let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
+        let given = !self.run.protocol.is_empty();
+        match m.messages {
+            Messages::FullComm if given => {
+                bail!("run.protocol: {} fixes its protocol (fullcomm); give a protocol to qmix, vdn, qplex, qmix-state or lmac", m.name)
+            }
+            Messages::FullComm => Ok("fullcomm".into()),
+            Messages::Designed if !given => bail!(
+                "run.protocol: {} needs a designed protocol: --protocol <design directory> (from `lmac design`) or phase files a.json+b.json",
+                m.name
+            ),
+            Messages::Optional if !given => {
+                if self.run.design_k.is_some() {
+                    bail!("run.design_k: set, but run.protocol is empty");
+                }
+                Ok("none".into())
+            }
+            _ => {
+                let dir = Path::new(&self.run.protocol);
+                if let Some(env) = design_env(dir).filter(|e| *e != self.run.env) {
+                    bail!("run.protocol: the design in {} was made for {env}, this run is on {}", dir.display(), self.run.env);
+                }
+                Ok(protocol_files(&self.run.protocol, self.run.design_k)?.join("+"))
+            }
+        }
+    }
+
+    /// The learner config with the method's backbone and inputs applied.
+    pub fn effective_learn(&self) -> Result<LearnConfig> {
+        let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
+        let mut l = self.learn.clone();
+        if let Some(mixer) = m.mixer {
+            l.mixer = mixer;
+        }
+        l.agent_sees_state |= m.agent_sees_state;
+        Ok(l)
+    }
+
+    /// The method's agent network for this run: its `[method]` settings checked against what
+    /// the environment and the protocol (`msg_cols` message columns) give it.
+    pub fn agent_config(&self, schema: &lmac_shm_schema::EnvSchema, msg_cols: usize) -> Result<AgentConfig> {
+        let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
+        let protocol = self.protocol()?;
+        let mut critical = std::collections::BTreeSet::new();
+        if protocol != "none" && protocol != "fullcomm" {
+            let files: Vec<&str> = protocol.split('+').collect();
+            let env = lmac_protocol_runner::protocol_env(schema);
+            for phase in lmac_protocol_runner::load_phases(&files, &env).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))? {
+                critical.extend(phase.critical_dims);
+            }
+        }
+        let ctx = MethodContext { msg_cols, alpha: schema.alpha, critical_dims: critical.into_iter().collect(), state_dim: schema.state_dim };
+        (m.configure)(&self.method, &ctx).map_err(|e| anyhow::anyhow!("{}: {e}", m.name))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_epymarl_preset_sets_one_update_per_episode_and_can_be_overridden() {
+        let mut o = preset_overrides("epymarl").unwrap();
+        let c = TrainConfig::resolve(None, &o).unwrap();
+        assert_eq!(c.run.updates_per_episode, 1.0);
+        assert_eq!(c.learn.target_update_interval_episodes, 200);
+        o.push("run.updates_per_episode=0.5".into());
+        assert_eq!(TrainConfig::resolve(None, &o).unwrap().run.updates_per_episode, 0.5, "--set comes after the preset");
+        assert!(preset_overrides("pymarl2").unwrap_err().to_string().contains("known: epymarl"));
+    }
+
+}
