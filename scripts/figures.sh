@@ -5,6 +5,7 @@
 # rates move with the load. Takes about 20 minutes (plus the ndarray build).
 #   bash scripts/figures.sh            # everything
 #   FIGURES="pipeline grf" bash scripts/figures.sh   # some of: pipeline smaclite grf train criterion
+#   FIGURES=lmac bash scripts/figures.sh   # the LMAC comparisons (hours; not in the default set)
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -70,5 +71,23 @@ fi
 if want criterion; then
   log "criterion benches (short measurement windows)"
   cargo bench -q -p lmac-benches --bench data_plane --bench protocol --bench learner -- --warm-up-time 1 --measurement-time 4 2>&1 | grep -v "^Benchmarking" | tee "$OUT/criterion.txt"
+fi
+if want lmac; then
+  # LMAC against the baselines on the committed offline designs, 3 seeds x 1M env steps, seed by
+  # seed; rerunning continues an interrupted experiment. Then LMAC's options on seed 0.
+  EV="$ROOT/runs-evidence"
+  log "lmac experiment on LBF 8x8 (about 2 hours here)"
+  "$LMAC" experiment --env lbf:8x8-2p-2f-s1-coop --seeds 0,1,2 --steps 1M --design docs/figures/design_lbf8x8 --out "$EV/lbf8x8"
+  "$LMAC" experiment --env lbf:8x8-2p-2f-s1-coop --seeds 0 --steps 1M --design docs/figures/design_lbf8x8 --out "$EV/lbf8x8" \
+    --algos lmac --variant lmac-raw=lmac,method.raw_messages=true --variant lmac-td=lmac,method.td_to_encoder=true \
+    --variant lmac-window=lmac,method.encoder='"window"'
+  log "lmac experiment on smaclite:1o_10b_vs_1r with Table 1(a)'s ablations (many hours here)"
+  "$LMAC" experiment --env smaclite:1o_10b_vs_1r --seeds 0,1,2 --steps 1M --design docs/figures/design_1o_10b_vs_1r --ablations \
+    --out "$EV/1o10b"
+  for e in lbf8x8 1o10b; do
+    mkdir -p "$OUT/lmac_$e"
+    cp "$EV/$e"/comparison.* "$EV/$e"/*.png "$OUT/lmac_$e/"
+    for r in "$EV/$e"/runs/*/seed*; do cp "$r/metrics.csv" "$OUT/lmac_$e/$(basename "$(dirname "$r")")_$(basename "$r").csv"; done
+  done
 fi
 log "figures in $OUT"
