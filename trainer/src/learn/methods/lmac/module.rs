@@ -192,46 +192,62 @@ impl LmacAgent {
     pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
         assert!(!inputs.is_empty(), "unroll needs at least one step");
         let mut rng = train.map(|c| LearnRng::seed_from(c.seed ^ 0xD80F_0000_0000_0001));
-        let zs = self.latent(&inputs, rng.as_mut());
-        let agent_inputs: Vec<Tensor<2>> = inputs.into_iter().zip(&zs).map(|(u, z)| self.agent_input(u, z.clone())).collect();
+        let z = self.latents(&inputs, rng.as_mut());
+        let [_, n, l] = z.dims();
+        // Detached once before the per-step split (unless TD trains the encoder): slices of an
+        // untracked tensor are free, while each slice of a gradient-carrying one costs a
+        // full-size zero tensor in the backward pass.
+        let z_agent = if self.cfg.settings.td_to_encoder { z.clone() } else { z.clone().detach() };
+        let agent_inputs: Vec<Tensor<2>> =
+            inputs.into_iter().zip(z_agent.split(1, 0)).map(|(u, z_t)| self.agent_input(u, z_t.reshape([n, l]))).collect();
         let q = self.agent.unroll(agent_inputs);
         let aux = match train {
-            Some(ctx) => self.losses(Tensor::stack(zs, 0), ctx),
+            Some(ctx) => self.losses(z, ctx),
             None => Vec::new(),
         };
         (q, aux)
     }
 
-    /// The latent z of every step (`rng`: dropout, in training).
-    pub fn latent(&self, inputs: &[Tensor<2>], mut rng: Option<&mut LearnRng>) -> Vec<Tensor<2>> {
+    /// The latent z of every step, one tensor per step (`rng`: dropout, in training).
+    pub fn latent(&self, inputs: &[Tensor<2>], rng: Option<&mut LearnRng>) -> Vec<Tensor<2>> {
+        let z = self.latents(inputs, rng);
+        let [_, n, l] = z.dims();
+        z.split(1, 0).into_iter().map(|z_t| z_t.reshape([n, l])).collect()
+    }
+
+    /// The latent z of every step, [T, N, L] (`rng`: dropout, in training). Everything that does
+    /// not depend on the encoder's recurrence runs once over all steps (one matmul each instead
+    /// of one per step). Dropout draws in the per-step order either way: rows are time-major.
+    pub fn latents(&self, inputs: &[Tensor<2>], mut rng: Option<&mut LearnRng>) -> Tensor<3> {
         let t_len = inputs.len();
         let n = inputs[0].dims()[0];
+        let e = self.embed_dim();
         let device = inputs[0].device();
-        let xs: Vec<Tensor<2>> = inputs.iter().map(|u| self.embed(u.clone(), rng.as_deref_mut())).collect();
-        match &self.encoder {
+        let z = match &self.encoder {
             Encoder::GruGate(g) => {
-                let mut h: Tensor<2> = Tensor::zeros([n, self.embed_dim()], &device);
-                xs.iter()
+                // The embedding stays per step: batched, it would reach the GRU as per-step
+                // slices of a gradient-carrying [T*N, E] tensor, and burn's backward of each
+                // slice writes a zero tensor of the full size (measured slower). The gate reads
+                // only x and h, so it runs once after the recurrence.
+                let xs: Vec<Tensor<2>> = inputs.iter().map(|u| self.embed(u.clone(), rng.as_deref_mut())).collect();
+                let mut h: Tensor<2> = Tensor::zeros([n, e], &device);
+                let hs: Vec<Tensor<2>> = xs
+                    .iter()
                     .map(|x| {
                         h = g.gru.forward(x.clone(), h.clone());
-                        gate(g, x.clone(), h.clone())
+                        h.clone()
                     })
-                    .collect()
+                    .collect();
+                gate(g, Tensor::cat(xs, 0), Tensor::cat(hs, 0))
             }
             Encoder::Window(w) => {
-                let zero: Tensor<2> = Tensor::zeros([n, self.embed_dim()], &device);
-                let no: Tensor<2, Bool> = Tensor::<2>::zeros([n, 1], &device).greater_elem(0.0);
-                let yes: Tensor<2, Bool> = no.clone().bool_not();
-                (0..t_len)
-                    .map(|t| {
-                        let entries: Vec<Tensor<2>> =
-                            (0..w.window).map(|o| if o <= t { xs[t - o].clone() } else { zero.clone() }).collect();
-                        let valid: Vec<Tensor<2, Bool>> = (0..w.window).map(|o| if o <= t { yes.clone() } else { no.clone() }).collect();
-                        window_attend(w, xs[t].clone(), &entries, &valid)
-                    })
-                    .collect()
+                // No recurrence: embedding and attention run over all steps at once.
+                let x = self.embed(Tensor::cat(inputs.to_vec(), 0), rng);
+                window_attend_all(w, x.reshape([t_len, n, e]))
             }
-        }
+        };
+        let l = z.dims()[1];
+        z.reshape([t_len, n, l])
     }
 
     /// Decode the latent: (s_hat, xi_hat logits), each [.., critical dims].
@@ -276,7 +292,8 @@ impl LmacAgent {
         // The latent's size: the consistency loss alone is smallest for a z shrunk towards 0,
         // so its value only means something next to ||z||^2.
         let z_sq = (z.clone().detach().square().sum_dim(2).reshape([t, b, n, 1]) * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32);
-        let cyc = (z_hat - z).square().sum_dim(2).reshape([t, b, n, 1]);
+        let z_target = if s.detach_consistency_target { z.detach() } else { z };
+        let cyc = (z_hat - z_target).square().sum_dim(2).reshape([t, b, n, 1]);
         let cons = if s.mask_consistency {
             (cyc * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32)
         } else {
@@ -322,4 +339,44 @@ fn window_attend(w: &WindowEncoder, x: Tensor<2>, entries: &[Tensor<2>], valid: 
     let att = softmax(scores, 0).reshape([w.window, n, h, 1]);
     let out = (att * v).sum_dim(0).reshape([n, a]);
     w.out.forward(out)
+}
+
+/// [`window_attend`] for all T steps of an unroll at once: x [T, N, E] (time-major) ->
+/// z [T * N, L]. Query, key and value are one matmul each over all steps (the per-step form
+/// projects every embedding once per window entry); the window is a shift of the keys and values
+/// by o steps, so the only sequence slices are the W shifts.
+fn window_attend_all(w: &WindowEncoder, x: Tensor<3>) -> Tensor<2> {
+    let [t, n, _] = x.dims();
+    let device = x.device();
+    let a = w.query.weight.dims()[1];
+    let (h, dh) = (w.heads, a / w.heads);
+    // Entries older than the unroll's first step are masked out; with fewer steps than the
+    // window they are dropped altogether (a masked entry has weight exactly 0).
+    let window = w.window.min(t);
+    let q = w.query.forward(x.clone()).reshape([t, n, h, dh]);
+    let k = w.key.forward(x.clone()).reshape([t, n, h, dh]);
+    let v = w.value.forward(x).reshape([t, n, h, dh]);
+    // Entry o of step s is step s - o: shifted down by o steps, zeros before the first step.
+    let shift = |m: &Tensor<4>, o: usize| -> Tensor<4> {
+        match o {
+            0 => m.clone(),
+            _ => Tensor::cat(vec![Tensor::zeros([o, n, h, dh], &device), m.clone().narrow(0, 0, t - o)], 0),
+        }
+    };
+    let scores: Vec<Tensor<3>> =
+        (0..window).map(|o| (shift(&k, o) * q.clone()).sum_dim(3).reshape([t, n, h]).div_scalar((dh as f32).sqrt())).collect();
+    let scores = Tensor::stack::<4>(scores, 0); // [W, T, N, heads]
+    let invalid: Vec<bool> = (0..window).flat_map(|o| (0..t).map(move |s| o > s)).collect();
+    let invalid: Tensor<4, Bool> = Tensor::from_data(TensorData::new(invalid, [window, t, 1, 1]), &device);
+    let att = softmax(scores.mask_fill(invalid.expand([window, t, n, h]), -1e9), 0);
+    // Weighted values accumulated entry by entry: stacking the W shifted copies first costs a
+    // [W, T, N, A] tensor and measured slower.
+    let out = att
+        .split(1, 0)
+        .into_iter()
+        .enumerate()
+        .map(|(o, att_o)| att_o.reshape([t, n, h, 1]) * shift(&v, o))
+        .reduce(|acc, term| acc + term)
+        .expect("a window of at least one entry");
+    w.out.forward(out.reshape([t * n, a]))
 }
