@@ -350,10 +350,10 @@ def main(argv=None) -> int:
     p.add_argument("--envs", type=int, default=8, help="environments stepped together (B)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--run", help="run id (names the shared memory and iceoryx2 services)")
-    p.add_argument("--first-member", "--server", type=int, default=0, help="ring member index of this process's first sub-batch (--server: the name before 2026-12)")
+    p.add_argument("--first-member", type=int, default=0, help="ring member index of this process's first sub-batch")
     p.add_argument("--sub-batches", type=int, default=1,
                    help="split --envs into this many sub-batches stepped in turn (2: double buffering)")
-    p.add_argument("--members", "--n-servers", type=int, default=1, help="ring members in the run: env server processes x sub-batches (--n-servers: the name before 2026-12)")
+    p.add_argument("--members", type=int, default=1, help="ring members in the run: env server processes x sub-batches")
     p.add_argument("--slots", type=int, default=4, help="slots in the slab")
     p.add_argument("--msg-dim", type=int, default=0, help="message columns reserved per row")
     p.add_argument("--startup-timeout", type=float, default=60.0)
