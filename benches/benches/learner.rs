@@ -7,8 +7,8 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use lmac_trainer::episode::{Episode, EpisodeDims};
-use lmac_trainer::learn::Device;
 use lmac_trainer::learn::methods::lmac::{EncoderKind, LmacConfig, LmacSettings};
+use lmac_trainer::learn::Device;
 use lmac_trainer::learn::{AgentConfig, Controller, LearnConfig, LearnRng, Learner, MixerKind};
 
 const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 30, state_dim: 48, n_actions: 9 };

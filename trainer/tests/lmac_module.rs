@@ -117,7 +117,19 @@ fn the_consistency_loss_is_zero_when_the_cycle_encoder_inverts_the_decoder() {
         }
         w
     };
-    let join: Vec<f32> = (0..h).flat_map(|r| (0..l).map(move |c| if r == c { 1.0 } else if r == c + l { -1.0 } else { 0.0 })).collect();
+    let join: Vec<f32> = (0..h)
+        .flat_map(|r| {
+            (0..l).map(move |c| {
+                if r == c {
+                    1.0
+                } else if r == c + l {
+                    -1.0
+                } else {
+                    0.0
+                }
+            })
+        })
+        .collect();
     let ident: Vec<f32> = (0..h * h).map(|k| if k / h == k % h { 1.0 } else { 0.0 }).collect();
     set(&mut a.dec1, split(l), l, h, &device);
     set(&mut a.dec2, ident, h, h, &device);
@@ -126,7 +138,8 @@ fn the_consistency_loss_is_zero_when_the_cycle_encoder_inverts_the_decoder() {
     set(&mut a.cycle1, split(2 * l), 2 * l, h, &device); // the reliability half has zero weights
     set(&mut a.cycle2, join, h, l, &device);
     let mut rng = LearnRng::seed_from(2);
-    let z: Tensor<3> = Tensor::from_data(TensorData::new((0..2 * 4 * l).map(|_| rng.uniform() * 4.0 - 2.0).collect::<Vec<f32>>(), [2, 4, l]), &device);
+    let z: Tensor<3> =
+        Tensor::from_data(TensorData::new((0..2 * 4 * l).map(|_| rng.uniform() * 4.0 - 2.0).collect::<Vec<f32>>(), [2, 4, l]), &device);
     let (s_hat, xi) = a.decode(z.clone());
     let z_hat = a.cycle(s_hat, xi);
     let err: f32 = (z_hat - z.clone()).square().sum().into_scalar();
@@ -216,7 +229,8 @@ fn lmac_without_a_protocol_or_with_another_environments_design_is_a_clear_error(
     let design = concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/figures/design_lbf8x8");
     let ok = TrainConfig::resolve(None, &["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}")]).unwrap();
     assert!(ok.protocol().unwrap().contains("phase2"), "all three phases by default");
-    let k0 = TrainConfig::resolve(None, &["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "run.design_k=0".into()]).unwrap();
+    let k0 =
+        TrainConfig::resolve(None, &["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "run.design_k=0".into()]).unwrap();
     assert_eq!(k0.protocol().unwrap().split('+').count(), 1, "k = 0: phase 0 alone");
     let other = ["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "run.env=\"smaclite:1o_10b_vs_1r\"".into()];
     let e = format!("{:#}", TrainConfig::resolve(None, &other).unwrap_err());

@@ -18,7 +18,10 @@ fn cases() -> Vec<(String, LearnConfig, AgentConfig)> {
     let ctx = MethodContext { msg_cols: MSG_COLS, alpha: 0.1, critical_dims: vec![1, 3, 4], state_dim: DIMS.state_dim };
     let mut out = Vec::new();
     let mut tables = vec![(String::new(), toml::Table::new())];
-    for (name, extra) in [("window", "encoder = \"window\"\nwindow = 3\nheads = 2\nattention_dim = 8"), ("td-raw", "td_to_encoder = true\nraw_messages = true")] {
+    for (name, extra) in [
+        ("window", "encoder = \"window\"\nwindow = 3\nheads = 2\nattention_dim = 8"),
+        ("td-raw", "td_to_encoder = true\nraw_messages = true"),
+    ] {
         tables.push((name.to_string(), toml::from_str(extra).unwrap()));
     }
     for spec in REGISTRY {

@@ -210,7 +210,8 @@ pub(crate) fn bench_train(
     let interrupted = interrupt_flag();
     let mut overrides = vec![format!("run.env={env:?}"), format!("run.algo={algo_name:?}")];
     if let Some(p) = protocol {
-        overrides.push(format!("run.protocol={:?}", std::fs::canonicalize(p).with_context(|| format!("--protocol {p}"))?.display().to_string()));
+        overrides
+            .push(format!("run.protocol={:?}", std::fs::canonicalize(p).with_context(|| format!("--protocol {p}"))?.display().to_string()));
     }
     let cfg = TrainConfig::resolve(None, &overrides)?;
     let schema = load_env(env).map_err(anyhow::Error::msg)?;

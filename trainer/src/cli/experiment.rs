@@ -130,7 +130,8 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     let spec = ExperimentSpec { env: a.env.clone(), steps: a.steps, set: a.set.clone(), preset: a.preset.clone() };
     let spec_path = dir.join("experiment.json");
     if spec_path.exists() {
-        let old: ExperimentSpec = serde_json::from_slice(&std::fs::read(&spec_path)?).with_context(|| format!("reading {}", spec_path.display()))?;
+        let old: ExperimentSpec =
+            serde_json::from_slice(&std::fs::read(&spec_path)?).with_context(|| format!("reading {}", spec_path.display()))?;
         if old != spec {
             bail!("{} was made for {old:?}; this command asks for {spec:?}: give another --out", dir.display());
         }
@@ -198,7 +199,9 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     std::fs::write(dir.join("comparison.md"), &table)?;
     std::fs::write(
         dir.join("comparison.json"),
-        serde_json::to_string_pretty(&serde_json::json!({"env": a.env, "steps": a.steps, "threshold": threshold, "design": design, "rows": rows}))?,
+        serde_json::to_string_pretty(
+            &serde_json::json!({"env": a.env, "steps": a.steps, "threshold": threshold, "design": design, "rows": rows}),
+        )?,
     )?;
     let mut csv = String::from("label,algo,seeds,final_return_mean,final_return_std,final_win_rate_mean,final_win_rate_std,reached,steps_to_threshold,wall_s_to_threshold,wall_s_total\n");
     let o = |v: Option<f64>| v.map(|x| format!("{x:.4}")).unwrap_or_default();

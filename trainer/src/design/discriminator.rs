@@ -292,7 +292,8 @@ impl Standardize {
     fn fit(width: usize, rows: impl Iterator<Item = Vec<f32>>) -> Self {
         let m = crate::stats::ColumnMoments::of_rows(width, rows);
         let mean = m.mean.iter().map(|&x| x as f32).collect();
-        let inv_std = m.sd.iter().zip(&m.mean).map(|(&sd, &mu)| if sd > 1e-6 * (1.0 + mu.abs()) { (1.0 / sd) as f32 } else { 1.0 }).collect();
+        let inv_std =
+            m.sd.iter().zip(&m.mean).map(|(&sd, &mu)| if sd > 1e-6 * (1.0 + mu.abs()) { (1.0 / sd) as f32 } else { 1.0 }).collect();
         Standardize { mean, inv_std }
     }
 

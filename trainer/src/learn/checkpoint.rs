@@ -13,8 +13,8 @@ use serde::{Deserialize, Serialize};
 
 use super::buffer::ReplayBuffer;
 use super::config::LearnConfig;
-use super::methods::AgentConfig;
 use super::learner::{make_optimizer, Counters, LearnError, Learner, QNet};
+use super::methods::AgentConfig;
 use super::LearnRng;
 use crate::episode::{Episode, EpisodeDims, NextStep};
 
@@ -195,10 +195,13 @@ impl Learner {
         let ad = l.device.clone().autodiff();
         let mut scratch = LearnRng::seed_from(0); // initial values are overwritten by the load
         let p = dir.join("net.bpk");
-        l.net = guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &l.agent_cfg, &ad).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?;
+        l.net =
+            guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &l.agent_cfg, &ad).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?;
         let p = dir.join("target.bpk");
-        l.target =
-            guarded(&p, || QNet::new(&mut scratch, &l.dims, &l.cfg, &l.agent_cfg, &l.device).try_load_file(&p).map_err(|e| ck(e, "load", &p)))?.valid();
+        l.target = guarded(&p, || {
+            QNet::new(&mut scratch, &l.dims, &l.cfg, &l.agent_cfg, &l.device).try_load_file(&p).map_err(|e| ck(e, "load", &p))
+        })?
+        .valid();
         let p = dir.join("optim.bpk");
         l.optim = guarded(&p, || make_optimizer(&l.cfg).load(&p).map_err(|e| ck(e, "load", &p)))?;
         l.counters = st.counters;

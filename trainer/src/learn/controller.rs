@@ -4,8 +4,8 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 
-use super::methods::AgentNet;
 use super::learner::Learner;
+use super::methods::AgentNet;
 use super::{InputLayout, LearnRng};
 
 pub struct Controller {

@@ -109,7 +109,6 @@ pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
     })
 }
 
-
 /// The environment a design directory was made for (its `summary.json` or `options.json`).
 fn design_env(dir: &Path) -> Option<String> {
     ["summary.json", "options.json"].iter().find_map(|f| {
@@ -281,7 +280,8 @@ impl TrainConfig {
                 critical.extend(phase.critical_dims);
             }
         }
-        let ctx = MethodContext { msg_cols, alpha: schema.alpha, critical_dims: critical.into_iter().collect(), state_dim: schema.state_dim };
+        let ctx =
+            MethodContext { msg_cols, alpha: schema.alpha, critical_dims: critical.into_iter().collect(), state_dim: schema.state_dim };
         (m.configure)(&self.method, &ctx).map_err(|e| anyhow::anyhow!("{}: {e}", m.name))
     }
 }
@@ -300,5 +300,4 @@ mod tests {
         assert_eq!(TrainConfig::resolve(None, &o).unwrap().run.updates_per_episode, 0.5, "--set comes after the preset");
         assert!(preset_overrides("pymarl2").unwrap_err().to_string().contains("known: epymarl"));
     }
-
 }

@@ -139,7 +139,10 @@ impl Metrics {
         if resume_t_env > 0 {
             tb.session_start(resume_t_env + 1).with_context(|| format!("writing {}", tb.path().display()))?;
         }
-        Ok((Metrics { method_columns, csv, jsonl, tb, dir: dir.to_path_buf() }, MetricsResume { dropped_rows: dropped_csv.max(dropped_json), wall_s }))
+        Ok((
+            Metrics { method_columns, csv, jsonl, tb, dir: dir.to_path_buf() },
+            MetricsResume { dropped_rows: dropped_csv.max(dropped_json), wall_s },
+        ))
     }
 
     pub fn write(&mut self, r: &MetricsRow) -> Result<()> {
@@ -176,9 +179,7 @@ impl Metrics {
             ("q_taken_mean", f(r.q_taken_mean.map(f64::from))),
         ];
         scalars.extend(self.method_columns.iter().map(|c| (c.as_str(), f(r.method.get(c).map(|&v| f64::from(v))))));
-        self.tb
-            .scalars(r.t_env, &scalars)
-            .map_err(|e| anyhow::anyhow!("writing {}: {e}", self.tb.path().display()))?;
+        self.tb.scalars(r.t_env, &scalars).map_err(|e| anyhow::anyhow!("writing {}: {e}", self.tb.path().display()))?;
         Ok(())
     }
 

@@ -565,5 +565,4 @@ mod tests {
         let kept = UpdateSchedule::new(1.0, 32, 1000, 969, 5000);
         assert_eq!([kept.due(1000), kept.due(1001)], [969, 970]);
     }
-
 }

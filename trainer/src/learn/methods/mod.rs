@@ -77,9 +77,11 @@ pub const REGISTRY: &[&MethodSpec] = &[
 
 /// The method called `name`, or an error listing the known ones.
 pub fn method(name: &str) -> Result<&'static MethodSpec, String> {
-    REGISTRY.iter().copied().find(|m| m.name == name).ok_or_else(|| {
-        format!("unknown algorithm {name:?}; known: {}", REGISTRY.iter().map(|m| m.name).collect::<Vec<_>>().join(", "))
-    })
+    REGISTRY
+        .iter()
+        .copied()
+        .find(|m| m.name == name)
+        .ok_or_else(|| format!("unknown algorithm {name:?}; known: {}", REGISTRY.iter().map(|m| m.name).collect::<Vec<_>>().join(", ")))
 }
 
 /// A method without settings: any key in `[method]` is an error.

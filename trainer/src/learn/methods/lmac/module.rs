@@ -294,11 +294,7 @@ impl LmacAgent {
         let z_sq = (z.clone().detach().square().sum_dim(2).reshape([t, b, n, 1]) * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32);
         let z_target = if s.detach_consistency_target { z.detach() } else { z };
         let cyc = (z_hat - z_target).square().sum_dim(2).reshape([t, b, n, 1]);
-        let cons = if s.mask_consistency {
-            (cyc * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32)
-        } else {
-            cyc.mean()
-        };
+        let cons = if s.mask_consistency { (cyc * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32) } else { cyc.mean() };
 
         let scalar = |x: &Tensor<1>| x.clone().detach().into_scalar::<f32>();
         let recovered = scalar(&(xi * mask.clone()).sum().div_scalar(denom));
