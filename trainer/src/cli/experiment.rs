@@ -10,6 +10,7 @@ use super::parse_steps;
 use super::train::train_dirs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use lmac_trainer::stats::{mean, variance};
 use lmac_trainer::train::{read_metrics, TrainConfig};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -253,10 +254,9 @@ fn shared_design(a: &ExperimentArgs, dir: &Path, interrupted: std::sync::Arc<std
 /// run.test_episodes episodes), as plot_runs.py does.
 const FINAL_TESTS: usize = 5;
 
+/// Mean and population standard deviation over seeds.
 fn mean_std(v: &[f64]) -> (f64, f64) {
-    let n = v.len().max(1) as f64;
-    let m = v.iter().sum::<f64>() / n;
-    (m, (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / n).sqrt())
+    (mean(v), variance(v).sqrt())
 }
 
 fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
@@ -286,7 +286,7 @@ fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
         reached: 0,
         steps_to_threshold: None,
         wall_s_to_threshold: None,
-        wall_s_total: mean_std(&wall).0,
+        wall_s_total: mean(&wall),
     })
 }
 
@@ -299,8 +299,8 @@ fn reach(row: &mut Row, dirs: &[PathBuf], threshold: f64) -> Result<()> {
         }
     }
     row.reached = steps.len();
-    row.steps_to_threshold = (!steps.is_empty()).then(|| mean_std(&steps).0);
-    row.wall_s_to_threshold = (!wall.is_empty()).then(|| mean_std(&wall).0);
+    row.steps_to_threshold = (!steps.is_empty()).then(|| mean(&steps));
+    row.wall_s_to_threshold = (!wall.is_empty()).then(|| mean(&wall));
     Ok(())
 }
 
