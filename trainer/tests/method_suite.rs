@@ -8,7 +8,7 @@ use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor, TensorData};
 use lmac_trainer::episode::{Episode, EpisodeDims};
 use lmac_trainer::learn::methods::{lmac::EncoderKind, AgentConfig, MethodContext, REGISTRY};
-use lmac_trainer::learn::{Batch, Controller, InputLayout, LearnConfig, LearnRng, Learner};
+use lmac_trainer::learn::{Batch, Controller, InputLayout, LearnConfig, LearnRng, Learner, RowParts};
 
 const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 9, state_dim: 6, n_actions: 4 };
 const MSG_COLS: usize = 4;
@@ -159,7 +159,8 @@ fn acting_step_by_step_equals_the_unrolled_forward() {
             for r in 0..rows {
                 let (e, ag) = (r / DIMS.n_agents, r % DIMS.n_agents);
                 let st = layout.state.then(|| &state[e * DIMS.state_dim..(e + 1) * DIMS.state_dim]);
-                layout.write(&mut x[r * iw..(r + 1) * iw], &obs[r * DIMS.obs_width..(r + 1) * DIMS.obs_width], st, last[r], ag);
+                let o = &obs[r * DIMS.obs_width..(r + 1) * DIMS.obs_width];
+                layout.write(&mut x[r * iw..(r + 1) * iw], RowParts::step(o, st, last[r], ag));
             }
             inputs.push(Tensor::<2>::from_data(TensorData::new(x, [rows, iw]), l.device()));
             last = (0..rows).map(|i| ((i * 3 + t) % DIMS.n_actions) as i32).collect();

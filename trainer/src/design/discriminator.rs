@@ -4,6 +4,8 @@
 //! meta-information chi ([`super::meta`]).
 //!
 //! # Input encoding (one row per episode, step t and agent i)
+//! The agents' shared row layout ([`crate::learn::input_row`]) with a history window and a
+//! message block:
 //! `[o_t | o_{t-1} .. o_{t-h} | valid_{t-1} .. valid_{t-h} | a_{t-1} one-hot | m_t | one-hot(i)]`
 //! - `o`: agent i's raw observation (`obs_dim`); `h` = [`DiscriminatorConfig::history`]
 //!   previous observations, zeros before the episode start, with one 0/1 column per history slot
@@ -38,7 +40,8 @@
 //! to trajectories the discriminator never saw, not memorization.
 
 use crate::dataset::Dataset;
-use crate::learn::{init::linear, LearnRng};
+use crate::episode::EpisodeDims;
+use crate::learn::{init::linear, InputLayout, LearnRng, RowParts};
 use anyhow::{bail, Result};
 use burn::module::Module;
 use burn::nn::Linear;
@@ -194,51 +197,31 @@ impl<'a> DiscInput<'a> {
     }
 }
 
-/// Column layout of one input row (see the module doc).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-struct Encoding {
-    n_agents: usize,
-    obs_dim: usize,
-    n_actions: usize,
-    msg_dim: usize,
-    history: usize,
+/// The discriminator's input row: the agents' shared row layout ([`InputLayout`]) with
+/// `history` previous observations and a separate block for the received message.
+fn row_layout(input: &DiscInput, history: usize) -> InputLayout {
+    let h = &input.data.header;
+    let dims = EpisodeDims { n_agents: h.n_agents, obs_width: h.obs_dim, state_dim: h.state_dim, n_actions: h.n_actions };
+    InputLayout { dims, state: false, last_action: true, agent_id: true, history, messages: input.msg_dim }
 }
 
-impl Encoding {
-    fn width(&self) -> usize {
-        (self.history + 1) * self.obs_dim + self.history + self.n_actions + self.msg_dim + self.n_agents
-    }
-
-    /// Write the row of (episode `e`, step `t`, agent `i`) into `out` (length `width()`).
-    fn write(&self, input: &DiscInput, e: usize, t: usize, i: usize, out: &mut [f32]) {
-        let (n, od) = (self.n_agents, self.obs_dim);
-        let ep = &input.data.episodes[e];
-        out.fill(0.0);
-        for back in 0..=self.history {
-            if back > t {
-                break;
-            }
-            let s = ((t - back) * n + i) * od;
-            out[back * od..(back + 1) * od].copy_from_slice(&ep.obs[s..s + od]);
-            if back > 0 {
-                out[(self.history + 1) * od + back - 1] = 1.0;
-            }
-        }
-        let mut o = (self.history + 1) * od + self.history;
-        if t > 0 {
-            let a = ep.actions[(t - 1) * n + i];
-            if a >= 0 && (a as usize) < self.n_actions {
-                out[o + a as usize] = 1.0;
-            }
-        }
-        o += self.n_actions;
-        if let Some(m) = input.messages {
-            let md = self.msg_dim;
-            out[o..o + md].copy_from_slice(&m[e][(t * n + i) * md..(t * n + i + 1) * md]);
-        }
-        o += self.msg_dim;
-        out[o + i] = 1.0;
-    }
+/// Write the row of (episode `e`, step `t`, agent `i`) into `out` (length `layout.width()`).
+fn write_row(layout: &InputLayout, input: &DiscInput, (e, t, i): (usize, usize, usize), out: &mut [f32]) {
+    let (n, od, md) = (layout.dims.n_agents, layout.dims.obs_width, layout.messages);
+    let ep = &input.data.episodes[e];
+    let obs_at = |step: usize| &ep.obs[(step * n + i) * od..(step * n + i + 1) * od];
+    let past = |back: usize| (back <= t).then(|| obs_at(t - back));
+    layout.write(
+        out,
+        RowParts {
+            obs: obs_at(t),
+            past_obs: &past,
+            state: None,
+            last_action: if t > 0 { ep.actions[(t - 1) * n + i] } else { -1 },
+            messages: input.messages.map(|m| &m[e][(t * n + i) * md..(t * n + i + 1) * md]),
+            agent: i,
+        },
+    );
 }
 
 /// The autoencoder: encoder to the latent, decoder to the state.
@@ -327,7 +310,7 @@ pub struct TrainReport {
 /// A trained discriminator (weights on the plain device, no autodiff).
 pub struct Discriminator {
     model: StateAutoencoder,
-    enc: Encoding,
+    layout: InputLayout,
     inputs: Standardize,
     targets: Standardize,
     state_dim: usize,
@@ -369,12 +352,11 @@ impl Discriminator {
         if rows.is_empty() {
             bail!("no training rows: the {} training episodes are empty", train_episodes.len());
         }
-        let enc =
-            Encoding { n_agents: h.n_agents, obs_dim: h.obs_dim, n_actions: h.n_actions, msg_dim: input.msg_dim, history: cfg.history };
-        let (iw, sd) = (enc.width(), h.state_dim);
+        let layout = row_layout(input, cfg.history);
+        let (iw, sd) = (layout.width(), h.state_dim);
         let row_in = |&(e, t, i): &(u32, u32, u32)| {
             let mut r = vec![0f32; iw];
-            enc.write(input, e as usize, t as usize, i as usize, &mut r);
+            write_row(&layout, input, (e as usize, t as usize, i as usize), &mut r);
             r
         };
         let inputs = Standardize::fit(iw, rows.iter().map(row_in));
@@ -412,7 +394,7 @@ impl Discriminator {
                 let r = &rows[order[cursor]];
                 cursor += 1;
                 let x = &mut xb[k * iw..(k + 1) * iw];
-                enc.write(input, r.0 as usize, r.1 as usize, r.2 as usize, x);
+                write_row(&layout, input, (r.0 as usize, r.1 as usize, r.2 as usize), x);
                 inputs.apply(x);
                 let y = &mut yb[k * sd..(k + 1) * sd];
                 y.copy_from_slice(state_of(r));
@@ -454,12 +436,12 @@ impl Discriminator {
             ms_per_update: seconds * 1000.0 / cfg.updates as f64,
             final_loss: tail_sum / tail_n.max(1) as f64,
         };
-        Ok((Discriminator { model: model.valid(), enc, inputs, targets, state_dim: sd, eval_batch: cfg.eval_batch, device: dev }, report))
+        Ok((Discriminator { model: model.valid(), layout, inputs, targets, state_dim: sd, eval_batch: cfg.eval_batch, device: dev }, report))
     }
 
     /// Input columns per row (see the module doc).
     pub fn input_width(&self) -> usize {
-        self.enc.width()
+        self.layout.width()
     }
 
     /// Reconstructed states, in the state's own units, for every (episode, step, agent) row of
@@ -467,20 +449,19 @@ impl Discriminator {
     /// values. `input` must have the widths the discriminator was trained with.
     pub fn predict(&self, input: &DiscInput, episodes: &[usize]) -> Result<Vec<f32>> {
         input.check()?;
-        let h = &input.data.header;
-        if (h.n_agents, h.obs_dim, h.n_actions, input.msg_dim, h.state_dim)
-            != (self.enc.n_agents, self.enc.obs_dim, self.enc.n_actions, self.enc.msg_dim, self.state_dim)
-        {
+        let (want, got) = (self.layout, row_layout(input, self.layout.history));
+        if want != got {
+            let (w, g) = (want.dims, got.dims);
             bail!(
                 "the discriminator was trained for {} agents, obs {}, {} actions, {} message columns, state {}; this input has {}, {}, {}, {}, {}",
-                self.enc.n_agents, self.enc.obs_dim, self.enc.n_actions, self.enc.msg_dim, self.state_dim, h.n_agents, h.obs_dim, h.n_actions, input.msg_dim, h.state_dim
+                w.n_agents, w.obs_width, w.n_actions, want.messages, w.state_dim, g.n_agents, g.obs_width, g.n_actions, got.messages, g.state_dim
             );
         }
         if let Some(&e) = episodes.iter().find(|&&e| e >= input.data.episodes.len()) {
             bail!("episode {e} is out of range: the dataset has {} episodes", input.data.episodes.len());
         }
         let rows = rows_of(input.data, episodes);
-        let (iw, sd) = (self.enc.width(), self.state_dim);
+        let (iw, sd) = (self.layout.width(), self.state_dim);
         let mut out = Vec::with_capacity(rows.len() * sd);
         let mut xb = Vec::new();
         for chunk in rows.chunks(self.eval_batch) {
@@ -488,7 +469,7 @@ impl Discriminator {
             xb.resize(chunk.len() * iw, 0.0);
             for (k, r) in chunk.iter().enumerate() {
                 let x = &mut xb[k * iw..(k + 1) * iw];
-                self.enc.write(input, r.0 as usize, r.1 as usize, r.2 as usize, x);
+                write_row(&self.layout, input, (r.0 as usize, r.1 as usize, r.2 as usize), x);
                 self.inputs.apply(x);
             }
             let x: Tensor<2> = Tensor::from_data(TensorData::new(xb.clone(), [chunk.len(), iw]), &self.device);

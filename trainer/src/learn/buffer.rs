@@ -3,7 +3,7 @@
 
 use crate::episode::{Episode, EpisodeDims};
 
-use super::{InputLayout, LearnRng};
+use super::{InputLayout, LearnRng, RowParts};
 
 pub struct ReplayBuffer {
     capacity: usize,
@@ -138,7 +138,7 @@ impl Batch {
                     let row = tb * n + ag;
                     let obs = &ep.obs[(ti * n + ag) * ow..(ti * n + ag + 1) * ow];
                     let last = if ti == 0 { -1 } else { ep.actions[(ti - 1) * n + ag] };
-                    layout.write(&mut batch.inputs[row * iw..(row + 1) * iw], obs, Some(st), last, ag);
+                    layout.write(&mut batch.inputs[row * iw..(row + 1) * iw], RowParts::step(obs, Some(st), last, ag));
                     batch.actions[row] = ep.actions[ti * n + ag];
                     batch.avail[row * a..(row + 1) * a].copy_from_slice(&ep.avail[(ti * n + ag) * a..(ti * n + ag + 1) * a]);
                 }
@@ -162,13 +162,8 @@ impl Batch {
                 for ag in 0..n {
                     let row = tb * n + ag;
                     let last = ep.actions[(ep.len - 1) * n + ag];
-                    layout.write(
-                        &mut batch.inputs[row * iw..(row + 1) * iw],
-                        &next.obs[ag * ow..(ag + 1) * ow],
-                        Some(&next.state),
-                        last,
-                        ag,
-                    );
+                    let obs = &next.obs[ag * ow..(ag + 1) * ow];
+                    layout.write(&mut batch.inputs[row * iw..(row + 1) * iw], RowParts::step(obs, Some(&next.state), last, ag));
                     batch.avail[row * a..(row + 1) * a].copy_from_slice(&next.avail[ag * a..(ag + 1) * a]);
                 }
             }

@@ -6,7 +6,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use super::learner::Learner;
 use super::methods::AgentNet;
-use super::{InputLayout, LearnRng};
+use super::{InputLayout, LearnRng, RowParts};
 
 pub struct Controller {
     /// Acting weights in use, oldest first; the last is the newest. Each env acts with one of
@@ -134,13 +134,8 @@ impl Controller {
             for ag in 0..n {
                 let row = e * n + ag;
                 let last = if first[e] { -1 } else { last_actions[row] };
-                self.layout.write(
-                    &mut self.inputs[row * iw..(row + 1) * iw],
-                    &obs[row * d.obs_width..(row + 1) * d.obs_width],
-                    st,
-                    last,
-                    ag,
-                );
+                let o = &obs[row * d.obs_width..(row + 1) * d.obs_width];
+                self.layout.write(&mut self.inputs[row * iw..(row + 1) * iw], RowParts::step(o, st, last, ag));
             }
         }
         if self.env_agent.iter().all(|&k| k == newest) {

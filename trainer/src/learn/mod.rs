@@ -25,6 +25,7 @@ pub mod buffer;
 pub mod checkpoint;
 pub mod config;
 pub mod controller;
+pub mod input_row;
 pub mod learner;
 pub mod methods;
 pub mod mixer;
@@ -32,10 +33,10 @@ pub mod mixer;
 pub use buffer::{Batch, ReplayBuffer};
 pub use config::{ConfigError, LearnConfig, MixerKind, OptimizerKind};
 pub use controller::Controller;
+pub use input_row::{InputLayout, RowParts};
 pub use learner::{Counters, LearnError, Learner, QNet, TrainStats};
 pub use methods::{AgentConfig, AgentNet};
 
-use crate::episode::EpisodeDims;
 /// The burn device type (re-exported so callers need no direct burn dependency).
 pub use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
@@ -119,50 +120,3 @@ pub mod init {
     }
 }
 
-/// Layout of one agent's network input: obs (+ message columns) | state (qmix-state only) |
-/// last action one-hot | agent id one-hot (pymarl order, with the state after the observation).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct InputLayout {
-    pub dims: EpisodeDims,
-    pub state: bool,
-    pub last_action: bool,
-    pub agent_id: bool,
-}
-
-impl InputLayout {
-    pub fn new(dims: EpisodeDims, cfg: &LearnConfig) -> Self {
-        InputLayout { dims, state: cfg.agent_sees_state, last_action: cfg.obs_last_action, agent_id: cfg.obs_agent_id }
-    }
-
-    pub fn width(&self) -> usize {
-        let d = &self.dims;
-        d.obs_width
-            + if self.state { d.state_dim } else { 0 }
-            + if self.last_action { d.n_actions } else { 0 }
-            + if self.agent_id { d.n_agents } else { 0 }
-    }
-
-    /// Write one agent's input row into `out` (length `width()`, overwritten entirely).
-    /// `last_action < 0` means none (first step): the one-hot stays zero.
-    pub fn write(&self, out: &mut [f32], obs: &[f32], state: Option<&[f32]>, last_action: i32, agent: usize) {
-        let d = &self.dims;
-        out.fill(0.0);
-        out[..d.obs_width].copy_from_slice(obs);
-        let mut o = d.obs_width;
-        if self.state {
-            if let Some(s) = state {
-                out[o..o + d.state_dim].copy_from_slice(s);
-            }
-            o += d.state_dim;
-        }
-        if self.last_action {
-            if last_action >= 0 && (last_action as usize) < d.n_actions {
-                out[o + last_action as usize] = 1.0;
-            }
-            o += d.n_actions;
-        }
-        if self.agent_id {
-            out[o + agent] = 1.0;
-        }
-    }
-}
