@@ -436,7 +436,10 @@ impl Discriminator {
             ms_per_update: seconds * 1000.0 / cfg.updates as f64,
             final_loss: tail_sum / tail_n.max(1) as f64,
         };
-        Ok((Discriminator { model: model.valid(), layout, inputs, targets, state_dim: sd, eval_batch: cfg.eval_batch, device: dev }, report))
+        Ok((
+            Discriminator { model: model.valid(), layout, inputs, targets, state_dim: sd, eval_batch: cfg.eval_batch, device: dev },
+            report,
+        ))
     }
 
     /// Input columns per row (see the module doc).

@@ -137,10 +137,7 @@ mod tests {
         let past = |back: usize| if back == 1 { Some(&prev[..]) } else { None };
         let mut out = vec![9.0; l.width()];
         let m = [0.5f32];
-        l.write(
-            &mut out,
-            RowParts { obs: &[1.0, 2.0], past_obs: &past, state: None, last_action: 0, messages: Some(&m), agent: 0 },
-        );
+        l.write(&mut out, RowParts { obs: &[1.0, 2.0], past_obs: &past, state: None, last_action: 0, messages: Some(&m), agent: 0 });
         let want = [1.0, 2.0, 7.0, 8.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.5, 1.0, 0.0, 0.0];
         assert_eq!(out, want);
     }
