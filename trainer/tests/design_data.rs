@@ -399,7 +399,7 @@ fn meta_json_shape() {
         &env,
         &[],
     );
-    let cfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 2 };
+    let cfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 2, ..Default::default() };
     let m = meta::evaluate(&ctx(&schema, &env, &data), &[p0], &cfg).unwrap();
     let dims = &m.dimensions;
     // Critical dims 0, 3, 4 capped to the 2 worst recovered with messages: s[3] (agent 0
@@ -463,7 +463,7 @@ fn offline_designer_three_phases() {
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
     let ocfg = OfflineConfig { discriminator: quick_disc(), ..Default::default() };
-    let mcfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 8 };
+    let mcfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 8, ..Default::default() };
     let mut designer = OfflineDesigner::new(ocfg);
     assert!(designer.needs_data_for_initial());
     let mut phases: Vec<PhaseProtocol> = Vec::new();

@@ -56,6 +56,11 @@ pub(crate) struct DesignArgs {
     /// Design phases (paper: 3).
     #[arg(long, default_value_t = 3)]
     pub(crate) phases: usize,
+    /// Which recovery "without messages" the designer is shown: `retrained` (a second
+    /// discriminator trained without messages) or `zeroed` (the paper's: the with-messages
+    /// discriminator given zeroed messages). Both are measured and written to recovery.json.
+    #[arg(long, default_value = "retrained")]
+    pub(crate) without: lmac_trainer::design::meta::NoMessages,
     #[arg(long, default_value_t = 0)]
     pub(crate) seed: u64,
     /// Where design directories go.
@@ -101,6 +106,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
         servers: a.servers,
         dataset: a.dataset.clone(),
         phases: a.phases,
+        without: a.without,
     };
     // One discriminator configuration for the offline designer's phase-0 measurement and for
     // every phase's meta-information.
@@ -108,6 +114,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
     if let Some(u) = a.disc_updates {
         meta_cfg.discriminator.updates = u;
     }
+    meta_cfg.without = a.without;
     meta_cfg.discriminator.validate()?;
     let mut designer: Box<dyn Designer> = if a.llm == "offline" {
         let cfg = OfflineConfig { discriminator: meta_cfg.discriminator.clone(), phases: a.phases, ..Default::default() };
@@ -121,7 +128,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
     };
     let train = |dir: &std::path::Path| train_dirs(&[dir.to_path_buf()], interrupted.clone());
     let evaluate = |ctx: &lmac_trainer::design::DesignContext, phases: &[lmac_protocol_runner::protocol::ValidatedProtocol]| {
-        meta::evaluate(ctx, phases, &meta_cfg)
+        meta::evaluate_all(ctx, phases, &meta_cfg)
     };
     let dir = run_design(&opts, designer.as_mut(), &train, &evaluate)?;
     super::plot("plot_design.py", &dir);

@@ -17,7 +17,7 @@
 
 use super::discriminator::{split_episodes, DiscInput, Discriminator, DiscriminatorConfig, TrainReport};
 use super::meta_info::{
-    round3, round5, DimRecovery, DiscriminatorReports, EvaluationFacts, MetaInfo, MetaSummary, RecoverySummary, SideRecovery,
+    round3, round5, DimRates, DimRecovery, DiscriminatorReports, EvaluationFacts, MetaInfo, MetaSummary, RecoverySummary, SideRecovery,
 };
 use super::DesignContext;
 use crate::dataset::Dataset;
@@ -33,11 +33,39 @@ pub struct MetaConfig {
     pub discriminator: DiscriminatorConfig,
     /// Most target dims in the meta-information (each costs a few hundred characters of prompt).
     pub max_target_dims: usize,
+    /// Which "without messages" the designers are shown (both are always measured and written
+    /// to `recovery.json`).
+    pub without: NoMessages,
 }
 
 impl Default for MetaConfig {
     fn default() -> Self {
-        MetaConfig { discriminator: DiscriminatorConfig::default(), max_target_dims: 32 }
+        MetaConfig { discriminator: DiscriminatorConfig::default(), max_target_dims: 32, without: NoMessages::Retrained }
+    }
+}
+
+/// The two definitions of recovery "without messages".
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum NoMessages {
+    /// A second discriminator, trained and evaluated with the message columns zeroed: what an
+    /// agent can infer without the messages at all.
+    #[default]
+    Retrained,
+    /// The paper's: the with-messages discriminator evaluated with the message columns zeroed
+    /// (s_hat_0 = D(tau, 0, i)), which also counts what that discriminator relies on the
+    /// messages for even where the agent's own view would have sufficed.
+    Zeroed,
+}
+
+impl std::str::FromStr for NoMessages {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "retrained" => Ok(NoMessages::Retrained),
+            "zeroed" => Ok(NoMessages::Zeroed),
+            _ => Err(format!("{s:?}: use \"retrained\" (a second discriminator without messages) or \"zeroed\" (the paper's: the same discriminator, messages zeroed)")),
+        }
     }
 }
 
@@ -277,7 +305,13 @@ pub fn meta_info(facts: &MetaFacts, with: &Recovery, without: &Recovery, guess: 
         evaluation: EvaluationFacts {
             held_out_episodes: facts.held_out_episodes,
             held_out_rows: rows,
-            note: "chi = 1[(s_hat - s)^2 <= alpha] in the state's own units, measured on episodes of the dataset that neither discriminator trained on; with_communication: the discriminator given the agent's received messages; without_communication: the same architecture trained and evaluated with the message columns zeroed; constant_guess_rate: the success rate of always guessing the dim's median, the level a rate must beat to show any recovery".into(),
+            note: format!(
+                "chi = 1[(s_hat - s)^2 <= alpha] in the state's own units, measured on episodes of the dataset that neither discriminator trained on; with_communication: the discriminator given the agent's received messages; without_communication: {}; constant_guess_rate: the success rate of always guessing the dim's median, the level a rate must beat to show any recovery",
+                match facts.config.without {
+                    NoMessages::Retrained => "the same architecture trained and evaluated with the message columns zeroed",
+                    NoMessages::Zeroed => "the with-messages discriminator evaluated with the message columns zeroed",
+                }
+            ),
         },
         discriminators: DiscriminatorReports {
             with_communication: facts.with_report.clone(),
@@ -318,7 +352,10 @@ pub fn check_dataset(data: &Dataset, ctx: &DesignContext) -> Result<()> {
 /// Both discriminators of one protocol and their recoveries on the held-out episodes.
 pub struct Measured {
     pub with: Recovery,
+    /// [`NoMessages::Retrained`].
     pub without: Recovery,
+    /// [`NoMessages::Zeroed`].
+    pub zeroed: Recovery,
     pub with_report: TrainReport,
     pub without_report: TrainReport,
     pub held_out: Vec<usize>,
@@ -346,30 +383,47 @@ pub fn measure(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &Discrimi
     let all: Vec<usize> = if dims.is_empty() { (0..data.header.state_dim).collect() } else { dims.to_vec() };
     let device = Device::default();
     let alpha = ctx.schema.alpha;
-    let run = |input: &DiscInput, seed: u64| -> Result<(Recovery, TrainReport)> {
-        let (d, report) = Discriminator::train(input, &train, cfg, seed, &device)?;
-        Ok((Recovery::measure(&d, input, &test, &all, alpha)?, report))
-    };
-    let (without, without_report) = run(&DiscInput::without_messages(data, msg_dim), ctx.seed ^ 0x2)?;
-    let (with, with_report) = if phases.is_empty() {
-        (without.clone(), without_report.clone())
+    let zeroed_input = DiscInput::without_messages(data, msg_dim);
+    let (d0, without_report) = Discriminator::train(&zeroed_input, &train, cfg, ctx.seed ^ 0x2, &device)?;
+    let without = Recovery::measure(&d0, &zeroed_input, &test, &all, alpha)?;
+    let (with, zeroed, with_report) = if phases.is_empty() {
+        (without.clone(), without.clone(), without_report.clone())
     } else {
-        run(&DiscInput::with_messages(data, &messages, msg_dim), ctx.seed ^ 0x1)?
+        let input = DiscInput::with_messages(data, &messages, msg_dim);
+        let (d1, report) = Discriminator::train(&input, &train, cfg, ctx.seed ^ 0x1, &device)?;
+        let with = Recovery::measure(&d1, &input, &test, &all, alpha)?;
+        (with, Recovery::measure(&d1, &zeroed_input, &test, &all, alpha)?, report)
     };
     let guess = constant_guess(data, &train, &test, &all, alpha);
-    Ok(Measured { with, without, with_report, without_report, held_out: test, message_columns: msg_dim, guess })
+    Ok(Measured { with, without, zeroed, with_report, without_report, held_out: test, message_columns: msg_dim, guess })
 }
 
 /// The design loop's evaluation of phases 0..=k on B: the meta-information.
 pub fn evaluate(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &MetaConfig) -> Result<MetaInfo> {
+    evaluate_all(ctx, phases, cfg).map(|e| e.meta)
+}
+
+/// An evaluation: the meta-information the designers read (target dims only) and every
+/// measured dim with both definitions of "without messages" (the figures).
+pub struct Evaluation {
+    pub meta: MetaInfo,
+    pub dims: Vec<DimRates>,
+}
+
+/// [`evaluate`], keeping every measured dim.
+pub fn evaluate_all(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &MetaConfig) -> Result<Evaluation> {
     if cfg.max_target_dims == 0 {
         bail!("meta.max_target_dims must be at least 1");
     }
     let m = measure(ctx, phases, &cfg.discriminator, &[])?;
+    let without = match cfg.without {
+        NoMessages::Retrained => &m.without,
+        NoMessages::Zeroed => &m.zeroed,
+    };
     let mut critical: Vec<usize> = phases.iter().flat_map(|p| p.critical_dims.iter().copied()).collect();
     critical.sort_unstable();
     critical.dedup();
-    let (targets, selection) = select_targets(&m.with, &m.without, &m.guess, &critical, cfg.max_target_dims);
+    let (targets, selection) = select_targets(&m.with, without, &m.guess, &critical, cfg.max_target_dims);
     let names = ctx.schema.state_meanings();
     let facts = MetaFacts {
         env: ctx.env_name,
@@ -382,5 +436,16 @@ pub fn evaluate(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &MetaCon
         without_report: &m.without_report,
         config: cfg,
     };
-    Ok(meta_info(&facts, &m.with, &m.without, &m.guess, &targets, &selection))
+    let meta = meta_info(&facts, &m.with, without, &m.guess, &targets, &selection);
+    let r4 = |v: Vec<f64>| v.into_iter().map(|x| (x * 1e4).round() / 1e4).collect::<Vec<f64>>();
+    let dims = (0..m.with.dims.len())
+        .map(|k| DimRates {
+            dim: m.with.dims[k],
+            constant_guess_rate: (m.guess[k] * 1e4).round() / 1e4,
+            with_messages: r4(m.with.rates(k)),
+            without_retrained: r4(m.without.rates(k)),
+            without_zeroed: r4(m.zeroed.rates(k)),
+        })
+        .collect();
+    Ok(Evaluation { meta, dims })
 }

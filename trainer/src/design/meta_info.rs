@@ -19,7 +19,7 @@
 //! is exactly what the file and the prompt show.
 
 use super::discriminator::{DiscriminatorConfig, TrainReport};
-use super::meta::{variance, THIRDS};
+use super::meta::{mean, variance, THIRDS};
 use serde::{Deserialize, Serialize};
 
 /// The meta-information of phases 0..=k on held-out episodes of B.
@@ -139,6 +139,79 @@ pub struct MetaSummary {
 pub struct RecoverySummary {
     pub mean_recovery: f64,
     pub mean_variance_across_agents: f64,
+}
+
+/// Every measured state dim of one evaluation, unselected: what the fixed-dim trend and the
+/// figures are computed from (`phase<k>/recovery.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DimRates {
+    pub dim: usize,
+    /// E[chi] of always guessing the dim's median.
+    pub constant_guess_rate: f64,
+    /// Per-agent E_t[chi] with the agent's received messages.
+    pub with_messages: Vec<f64>,
+    /// Per-agent E_t[chi] of a second discriminator trained and evaluated with the message
+    /// columns zeroed (lmac's default "without").
+    pub without_retrained: Vec<f64>,
+    /// Per-agent E_t[chi] of the with-messages discriminator given zeroed message columns (the
+    /// paper's definition: s_hat_0 = D(tau, 0, i)).
+    pub without_zeroed: Vec<f64>,
+}
+
+/// One side of a [`SetTrend`]: means over a fixed set of dims.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SideTrend {
+    /// Mean over dims and agents of E_t[chi].
+    pub mean_recovery: f64,
+    /// Mean over dims of the skill over the constant guess ([`super::meta::skill`] of the
+    /// dim's mean rate over agents): 0 = no better than guessing the median, 1 = always within alpha.
+    pub mean_skill: f64,
+    /// Mean over dims of the variance of E_t[chi] across agents.
+    pub mean_variance_across_agents: f64,
+    /// Per agent: mean over dims of E_t[chi].
+    pub per_agent: Vec<f64>,
+}
+
+/// Recovery over one fixed set of dims, with and without messages (both definitions).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SetTrend {
+    pub dims: usize,
+    /// Mean constant-guess rate over the dims: the level `mean_recovery` must beat.
+    pub constant_guess_rate: f64,
+    pub with_messages: SideTrend,
+    pub without_retrained: SideTrend,
+    pub without_zeroed: SideTrend,
+}
+
+impl SetTrend {
+    /// Means over the entries of `table` whose dim is in `dims` (all entries when `dims` is
+    /// empty); rates rounded to 4 decimals, variances to 6.
+    pub fn over(table: &[DimRates], dims: &[usize]) -> SetTrend {
+        let rows: Vec<&DimRates> = table.iter().filter(|r| dims.is_empty() || dims.contains(&r.dim)).collect();
+        let r4 = |x: f64| (x * 1e4).round() / 1e4;
+        let side = |pick: fn(&DimRates) -> &Vec<f64>| -> SideTrend {
+            let n_agents = rows.first().map(|r| pick(r).len()).unwrap_or(0);
+            let means: Vec<f64> = rows.iter().map(|r| mean(pick(r))).collect();
+            let skills: Vec<f64> = rows.iter().map(|r| super::meta::skill(mean(pick(r)), r.constant_guess_rate)).collect();
+            let vars: Vec<f64> = rows.iter().map(|r| variance(pick(r))).collect();
+            SideTrend {
+                mean_recovery: r4(mean(&means)),
+                mean_skill: r4(mean(&skills)),
+                mean_variance_across_agents: (mean(&vars) * 1e6).round() / 1e6,
+                per_agent: (0..n_agents).map(|i| r4(mean(&rows.iter().map(|r| pick(r)[i]).collect::<Vec<f64>>()))).collect(),
+            }
+        };
+        SetTrend {
+            dims: rows.len(),
+            constant_guess_rate: r4(mean(&rows.iter().map(|r| r.constant_guess_rate).collect::<Vec<f64>>())),
+            with_messages: side(|r| &r.with_messages),
+            without_retrained: side(|r| &r.without_retrained),
+            without_zeroed: side(|r| &r.without_zeroed),
+        }
+    }
 }
 
 /// Rounding of rates (3 decimals) in the meta-information.

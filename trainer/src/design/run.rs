@@ -8,15 +8,20 @@
 //!   phase<k>/protocol.json  the phase's protocol (validated), protocol.txt its explanation,
 //!                           reasoning.md the designer's reasoning, feedback.json (k >= 1) the
 //!                           feedback that led to it, meta.json the meta-information of
-//!                           phases 0..=k on B
+//!                           phases 0..=k on B (its target dims), recovery.json every state
+//!                           dim's per-agent recovery with messages and without (both
+//!                           definitions) and its constant-guess rate
 //!   final.txt               the final protocol (all phases) explained; final_protocol.txt the
 //!                           `--protocol` / `run.protocol` value that trains with it
 //!   transcript.json         every prompt and reply (or the offline designer's account)
-//!   summary.json            per phase: mean recovery and variance across agents, with and
-//!                           without messages; recovery.png plots it (the paper's Figure 3)
+//!   summary.json            per phase: recovery, skill over a constant guess and variance
+//!                           across agents, with and without messages, on fixed dims (phase 0's
+//!                           critical dims, and all dims) and on the phase's target dims;
+//!                           recovery.png plots the fixed-dim trend (the paper's Figure 3)
 //! ```
 
-use super::meta_info::{MetaInfo, RecoverySummary};
+use super::meta::Evaluation;
+use super::meta_info::{RecoverySummary, SetTrend};
 use super::{DesignContext, Designer, PhaseProtocol};
 use crate::dataset::Dataset;
 use anyhow::{bail, Context, Result};
@@ -44,20 +49,28 @@ pub struct DesignOptions {
     pub dataset: Option<PathBuf>,
     /// Number of phases: 3 in the paper (initialization, recognition, sharing).
     pub phases: usize,
+    /// Which "without messages" the designer is shown (both are measured).
+    pub without: super::meta::NoMessages,
 }
 
 /// How the design runs the pipeline: train the run directory (a `config.toml` inside) through
 /// the real processes. Given by the CLI, which owns the process supervision.
 pub type TrainRun<'a> = &'a dyn Fn(&Path) -> Result<()>;
 
-/// How a phase's protocol is evaluated on B: returns the meta-information (see `meta`).
-pub type Evaluate<'a> = &'a dyn Fn(&DesignContext, &[ValidatedProtocol]) -> Result<MetaInfo>;
+/// How a phase's protocol is evaluated on B: the meta-information and every dim (see `meta`).
+pub type Evaluate<'a> = &'a dyn Fn(&DesignContext, &[ValidatedProtocol]) -> Result<Evaluation>;
 
-/// One phase's line of `summary.json` (read by `plot_design.py`).
+/// One phase's line of `summary.json` (read by `plot_design.py`). The target dims change from
+/// phase to phase (they steer the designer); the trend is read on `fixed_dims` and `all_dims`.
 #[derive(Serialize)]
 struct PhaseEvaluation {
     phase: usize,
     message_columns: usize,
+    /// On the summary's `fixed_dims`, the same for every phase.
+    fixed_dims: SetTrend,
+    /// On every state dim.
+    all_dims: SetTrend,
+    /// On this phase's target dims (what the designer was shown).
     with_messages: RecoverySummary,
     without_messages: RecoverySummary,
     target_dims: Vec<usize>,
@@ -157,18 +170,40 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
     }
 
     let mut evaluations = Vec::new();
+    // The dims the trend is read on, fixed at phase 0: its task-critical dims (all dims when it
+    // names none), so "k = 0 -> 1 -> 2" compares the same set.
+    let mut fixed: Vec<usize> = phases[0].validated.critical_dims.clone();
+    fixed.sort_unstable();
+    fixed.dedup();
+    let fixed_source = if fixed.is_empty() { "all state dims (phase 0 names no critical dims)" } else { "phase 0's critical state dims" };
     for k in 0..opts.phases {
         let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
-        let meta = evaluate(&ctx, &validated).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
-        write(&dir.join(format!("phase{k}")).join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
-        eprintln!("lmac: phase {k}: {}", meta.summary_line());
-        evaluations.push(PhaseEvaluation {
+        let Evaluation { meta, dims } = evaluate(&ctx, &validated).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
+        let pd = dir.join(format!("phase{k}"));
+        write(&pd.join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
+        write(&pd.join("recovery.json"), &serde_json::to_string_pretty(&serde_json::json!({ "alpha": schema.alpha, "dims": dims }))?)?;
+        let ev = PhaseEvaluation {
             phase: k,
             message_columns: validated.iter().map(|v| v.width).sum::<usize>(),
+            fixed_dims: SetTrend::over(&dims, &fixed),
+            all_dims: SetTrend::over(&dims, &[]),
             with_messages: meta.summary.with_communication.clone(),
             without_messages: meta.summary.without_communication.clone(),
             target_dims: meta.summary.target_dims.clone(),
-        });
+        };
+        let f = &ev.fixed_dims;
+        eprintln!("lmac: phase {k}: {}", meta.summary_line());
+        eprintln!(
+            "lmac: phase {k}: on the {} fixed dims: recovery {:.3} with messages, {:.3} without (retrained), {:.3} (zeroed); skill over the constant guess {:.3} / {:.3} / {:.3}",
+            f.dims,
+            f.with_messages.mean_recovery,
+            f.without_retrained.mean_recovery,
+            f.without_zeroed.mean_recovery,
+            f.with_messages.mean_skill,
+            f.without_retrained.mean_skill,
+            f.without_zeroed.mean_skill
+        );
+        evaluations.push(ev);
         persist_transcript(designer)?;
         if k + 1 == opts.phases {
             break;
@@ -199,6 +234,8 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
         "dataset": data_dir.display().to_string(),
         "dataset_episodes": data.episodes.len(),
         "target_dims": evaluations.last().map(|e| e.target_dims.clone()).unwrap_or_default(),
+        "fixed_dims": fixed,
+        "fixed_dims_source": fixed_source,
         "evaluations": evaluations,
         "final_protocol": spec,
     });
