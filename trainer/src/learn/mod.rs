@@ -119,4 +119,3 @@ pub mod init {
         Linear { weight: uniform(rng, [d_in, d_out], bound, device), bias: Some(uniform(rng, [d_out], bound, device)) }
     }
 }
-
