@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import os
 import pathlib
 import tomllib
 
@@ -46,12 +47,19 @@ class Schema:
             raise ValueError(f"{path}: missing field {e.args[0]!r}") from None
 
 
+def schema_dir() -> pathlib.Path:
+    """$LMAC_SCHEMA_DIR, else env-server/schemas. `lmac` sets LMAC_SCHEMA_DIR for the env servers
+    it starts to the directory its Rust side reads, so both sides read the same files."""
+    d = os.environ.get("LMAC_SCHEMA_DIR")
+    return pathlib.Path(d) if d else SCHEMA_DIR
+
+
 def schema_path(env_name: str) -> pathlib.Path:
     """`lbf:8x8-2p-2f-s1-coop` -> env-server/schemas/lbf/8x8-2p-2f-s1-coop.toml"""
     family, sep, variant = env_name.partition(":")
     if not sep or not family or not variant:
         raise ValueError(f"environment name {env_name!r} must look like FAMILY:VARIANT")
-    return SCHEMA_DIR / family / f"{variant}.toml"
+    return schema_dir() / family / f"{variant}.toml"
 
 
 @dataclasses.dataclass

@@ -49,6 +49,16 @@ enum Cmd {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
+        /// Write the schema of a PettingZoo parallel environment, pz:<module>[,key=value]...
+        /// (e.g. pz:mpe2.simple_spread_v3), from its spaces, with placeholder descriptions to edit.
+        #[arg(long, value_name = "ENV", conflicts_with_all = ["check", "json"])]
+        generate: Option<String>,
+        /// With --generate: overwrite an existing schema file.
+        #[arg(long, requires = "generate")]
+        force: bool,
+        /// With --generate: the episode limit, when the environment has no max_cycles.
+        #[arg(long, requires = "generate", value_name = "STEPS")]
+        episode_limit: Option<usize>,
     },
     /// Benchmarks.
     #[command(subcommand)]
@@ -79,7 +89,8 @@ fn main() {
 
 fn dispatch(cli: Cli) -> Result<i32> {
     match cli.cmd {
-        Cmd::Envs { check, json } => cli::envs::envs(check, json),
+        Cmd::Envs { generate: Some(name), force, episode_limit, .. } => cli::envs::generate(&name, force, episode_limit),
+        Cmd::Envs { check, json, .. } => cli::envs::envs(check, json),
         Cmd::Run(a) => cli::run::run(a),
         Cmd::Train(a) => cli::train::train(a),
         Cmd::Protocol(p) => cli::protocol::protocol_cmd(p),

@@ -70,6 +70,11 @@ pub fn python_command() -> Result<Command> {
         pp.push(old);
     }
     c.env("PYTHONPATH", pp);
+    // One rule for where schemas live (`schema::schema_dir`), used by both sides: the Python
+    // side reads $LMAC_SCHEMA_DIR, so it reads the files this process validated.
+    if let Some(dir) = lmac_shm_schema::schema::schema_dir() {
+        c.env("LMAC_SCHEMA_DIR", dir);
+    }
     Ok(c)
 }
 
