@@ -650,3 +650,36 @@ fn design_sized_run() {
     }
     eprintln!("design total {:.1} s", t0.elapsed().as_secs_f64());
 }
+
+// ------------------------------------------------------------------------------------------
+// Dead fields
+
+#[test]
+fn dead_fields_are_constant_or_copied_links() {
+    let data = synthetic(40, 3);
+    let schema = synthetic_schema(24);
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    // Agent 0 -> agent 1: o[2] (always 0 for agent 0), o[1] (the shared bit agent 1 sees
+    // itself), o[0] (hidden value A: information), and [o[0], o[2]] (one live column).
+    let p0 = phase_from(
+        r#"{"message_design_instruction": "x", "critical_state_dims": [0], "fields": [
+            {"name": "zero", "description": "z", "senders": [0], "receivers": {"peer": [{"from": 0, "to": [1]}]}, "value": {"obs": [2]}},
+            {"name": "bit", "description": "b", "senders": [0], "receivers": {"peer": [{"from": 0, "to": [1]}]}, "value": {"obs": [1]}},
+            {"name": "value", "description": "v", "senders": [0], "receivers": {"peer": [{"from": 0, "to": [1]}]}, "value": {"obs": [0]}},
+            {"name": "mixed", "description": "m", "senders": [0], "receivers": {"peer": [{"from": 0, "to": [1]}]}, "value": {"obs": [0, 2]}}]}"#,
+        &env,
+        &[],
+    );
+    let dead = lmac_trainer::design::dead_fields::find(&data, &[p0.clone()], &env).unwrap();
+    let names: Vec<(&str, usize, usize)> = dead.iter().map(|d| (d.field.as_str(), d.sender, d.receiver)).collect();
+    assert_eq!(names, vec![("zero", 0, 1), ("bit", 0, 1)], "{dead:?}");
+    use lmac_trainer::design::dead_fields::DeadColumn;
+    assert_eq!(dead[0].columns, vec![DeadColumn::Constant(0.0)]);
+    assert_eq!(dead[1].columns, vec![DeadColumn::CopyOfObs(1)]);
+    assert!(dead[1].describe().contains("equals the receiver's own o[1]"), "{}", dead[1].describe());
+    // In the design loop the designer reads them with the meta-information.
+    let cfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 2, ..Default::default() };
+    let m = meta::evaluate(&ctx(&schema, &env, &data), &[p0], &cfg).unwrap();
+    assert_eq!(m.dead_fields.len(), 2, "{:?}", m.dead_fields);
+    assert!(m.json()["dead_fields"][0].as_str().unwrap().contains("field `zero` from agent 0 to agent 1"));
+}

@@ -204,6 +204,7 @@ fn meta(phase: usize) -> MetaInfo {
             with_communication: RecoverySummary { mean_recovery: 0.52, mean_variance_across_agents: 0.009 },
             without_communication: RecoverySummary { mean_recovery: 0.39, mean_variance_across_agents: 0.001 },
         },
+        dead_fields: vec!["phase 0 field `x` from agent 0 to agent 1 carries nothing on the dataset: [0] always 0".into()],
     }
 }
 
@@ -323,6 +324,8 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
         "{fb1}"
     );
     assert!(fb1.contains("Missing_Information_Hypothesis"));
+    // Dead fields reach the designer with the meta-information.
+    assert!(fb1.contains("carries nothing on the dataset"), "{fb1}");
     // The feedback missing a key went back naming it.
     assert!(reqs[6].last_message().contains("Missing_Information_Hypothesis"), "{}", reqs[6].last_message());
     // Phase 1 generation: continues from the critical-dims reasoning, shows phase 0 and the

@@ -123,6 +123,30 @@ enum Seg {
     },
 }
 
+/// Where one column of a receiver's message comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Column {
+    /// The phase (0-based) and its name (`phase<k>` when it has none).
+    pub phase: usize,
+    pub phase_name: String,
+    pub sender: usize,
+    /// The field's index in its phase; None for the sender one-hot.
+    pub field: Option<usize>,
+    /// Field name (`sender_one_hot` for the one-hot).
+    pub name: String,
+    /// Position inside the field (or the one-hot).
+    pub q: usize,
+    /// The sender sends this to the receiver; false: the column is zero by layout.
+    pub linked: bool,
+}
+
+impl Column {
+    /// `phase/fromJ/field[q]`.
+    pub fn label(&self) -> String {
+        format!("{}/from{}/{}[{}]", self.phase_name, self.sender, self.name, self.q)
+    }
+}
+
 /// A compiled protocol (one or more phases), ready to run.
 #[derive(Debug, Clone)]
 pub struct ProtocolPlan {
@@ -138,6 +162,8 @@ pub struct ProtocolPlan {
     segs: Vec<Vec<Seg>>,
     /// Column labels per receiving agent.
     labels: Vec<Vec<String>>,
+    /// Column sources per receiving agent.
+    columns: Vec<Vec<Column>>,
     // --- run state ---
     regs: Vec<f32>,
     /// Per env: steps of the current episode seen (saturating at the deepest ring).
@@ -187,7 +213,7 @@ pub fn compile_plan(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<P
         into: None,
     };
     let mut segs = vec![Vec::new(); n];
-    let mut labels = vec![Vec::new(); n];
+    let mut columns: Vec<Vec<Column>> = vec![Vec::new(); n];
     let mut base = 0usize;
     for (k, ph) in phases.iter().enumerate() {
         let p = &ph.protocol;
@@ -210,25 +236,29 @@ pub fn compile_plan(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<P
             let mut col = base;
             for j in (0..n).filter(|&j| j != i) {
                 if onehot > 0 {
-                    if ph.links(j, i) {
+                    let linked = ph.links(j, i);
+                    if linked {
                         segs[i].push(Seg::Copy { dst: col, sender: j, src: blk, len: n });
                     } else {
                         segs[i].push(Seg::Zero { dst: col, len: n });
                     }
                     for a in 0..n {
-                        labels[i].push(format!("{pname}/from{j}/sender_one_hot[{a}]"));
+                        let name = "sender_one_hot".to_string();
+                        columns[i].push(Column { phase: k, phase_name: pname.clone(), sender: j, field: None, name, q: a, linked });
                     }
                     col += n;
                 }
                 for (f, fld) in p.fields.iter().enumerate() {
                     let w = ph.field_widths[f];
-                    if ph.sends[f][j][i] {
+                    let linked = ph.sends[f][j][i];
+                    if linked {
                         segs[i].push(Seg::Copy { dst: col, sender: j, src: field_at[f], len: w });
                     } else {
                         segs[i].push(Seg::Zero { dst: col, len: w });
                     }
                     for q in 0..w {
-                        labels[i].push(format!("{pname}/from{j}/{}[{q}]", fld.name));
+                        let name = fld.name.clone();
+                        columns[i].push(Column { phase: k, phase_name: pname.clone(), sender: j, field: Some(f), name, q, linked });
                     }
                     col += w;
                 }
@@ -257,7 +287,8 @@ pub fn compile_plan(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<P
         n_regs: c.n_regs,
         channels: c.channels,
         segs,
-        labels,
+        labels: columns.iter().map(|c| c.iter().map(Column::label).collect()).collect(),
+        columns,
         regs: Vec::new(),
         count: Vec::new(),
         max_depth,
@@ -458,6 +489,10 @@ impl ProtocolPlan {
     /// Column labels of receiver `i`'s message (`phase/fromJ/field[q]`).
     pub fn column_labels(&self, receiver: usize) -> &[String] {
         &self.labels[receiver]
+    }
+    /// Where each column of receiver `i`'s message comes from.
+    pub fn columns(&self, receiver: usize) -> &[Column] {
+        &self.columns[receiver]
     }
     /// Number of distinct history channels and the deepest window.
     pub fn history_shape(&self) -> (usize, usize) {

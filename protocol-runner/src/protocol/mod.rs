@@ -39,7 +39,7 @@ pub mod schema;
 pub mod validate;
 
 pub use ast::*;
-pub use compile::{compile, compile_plan, ProtocolPlan};
+pub use compile::{compile, compile_plan, Column, ProtocolPlan};
 pub use explain::{explain, explain_expr, explain_phases};
 pub use reference::language_reference;
 pub use schema::{schema_json, schema_value};

@@ -325,6 +325,7 @@ pub fn meta_info(facts: &MetaFacts, with: &Recovery, without: &Recovery, guess: 
             with_communication: summary(&mw, &vw),
             without_communication: summary(&mo, &vo),
         },
+        dead_fields: Vec::new(),
     }
 }
 
@@ -436,7 +437,10 @@ pub fn evaluate_all(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &Met
         without_report: &m.without_report,
         config: cfg,
     };
-    let meta = meta_info(&facts, &m.with, without, &m.guess, &targets, &selection);
+    let mut meta = meta_info(&facts, &m.with, without, &m.guess, &targets, &selection);
+    if let Some(data) = ctx.dataset {
+        meta.dead_fields = super::dead_fields::find(data, phases, ctx.env)?.iter().map(|d| d.describe()).collect();
+    }
     let r4 = |v: Vec<f64>| v.into_iter().map(|x| (x * 1e4).round() / 1e4).collect::<Vec<f64>>();
     let dims = (0..m.with.dims.len())
         .map(|k| DimRates {

@@ -41,6 +41,10 @@ pub struct MetaInfo {
     /// One entry per target dim, by increasing dim.
     pub dimensions: Vec<DimRecovery>,
     pub summary: MetaSummary,
+    /// Links of the protocol that carry nothing on B (constant, or a copy of what the receiver
+    /// observes; see `dead_fields`), one line each: candidates to replace.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub dead_fields: Vec<String>,
 }
 
 /// Which data chi was measured on.
@@ -283,5 +287,6 @@ pub(crate) fn example(dims: &[(usize, String)], with: &[f64], without: &[f64]) -
             with_communication: mean_side(with),
             without_communication: mean_side(without),
         },
+        dead_fields: Vec::new(),
     }
 }

@@ -15,6 +15,7 @@
 //! the embedded offline designer ([`offline`]), a deterministic algorithm over the
 //! meta-information that needs no network and is labelled as what it is.
 
+pub mod dead_fields;
 pub mod discriminator;
 pub mod llm;
 pub mod llm_designer;

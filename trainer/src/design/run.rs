@@ -193,6 +193,9 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
         };
         let f = &ev.fixed_dims;
         eprintln!("lmac: phase {k}: {}", meta.summary_line());
+        for d in &meta.dead_fields {
+            eprintln!("lmac: phase {k}: warning: {d}");
+        }
         eprintln!(
             "lmac: phase {k}: on the {} fixed dims: recovery {:.3} with messages, {:.3} without (retrained), {:.3} (zeroed); skill over the constant guess {:.3} / {:.3} / {:.3}",
             f.dims,
