@@ -9,8 +9,22 @@ because lbforaging 2.0.0's ``grid_observation`` is broken:
   then the agent's own field row and column scaled to [0, 1] (lbforaging's vector observation
   also starts each agent's own entry with its position; without it a receiver could not place a
   teammate's 3x3 view anywhere on the grid, so no message could say where food or teammates are);
-- state (3 x (S+2)^2): the same three layers over the whole padded grid (300 for 8x8, 507 for
-  11x11).
+- state, one of two kinds chosen by the variant's name (dynamics, observation, actions, rewards
+  and episode limit are the same for both):
+  - ``grid`` (``lbf:8x8-2p-2f-s1-coop``): the same three layers over the whole padded grid,
+    3 x (S+2)^2 values (300 for 8x8, 507 for 11x11);
+  - ``entity`` (``lbf:8x8-2p-2f-s1-coop-entity``): the entities themselves, in raw field cells
+    and levels: per agent (lbforaging's player order = agent id) row, col, level; then per food
+    row, col, level, on-field flag. Foods are numbered in row-major order of the cells they
+    spawned on (foods never move, so the numbering holds for the whole episode). An eaten food
+    keeps its row and col, its level becomes 0 and its flag 0 (so its position dims stay a
+    fact of the episode instead of jumping to an arbitrary value). A food slot lbforaging
+    failed to spawn (it gives up after 1000 attempts; never seen on these fields) is all zeros.
+    3 x players + 4 x foods values (14 for 8x8, 34 for 11x11).
+
+  The grid state is a few sparse cells among hundreds, which a small state reconstructor (the
+  protocol designer's discriminator) recovers no better than a constant guess; the entity state
+  says the same thing in dims that each carry one fact.
 
 Variant choices (the paper's reference code uses MASIA's LBF): every player has level 1, so with
 ``force_coop`` every food has the sum of the players' levels capped at three, i.e. level 2 with
@@ -32,6 +46,28 @@ VARIANTS = {
     "8x8-2p-2f-s1-coop": (8, 2, 2),
     "11x11-6p-4f-s1-coop": (11, 6, 4),
 }
+# state kind: variant-name suffix ("" for the grid state, the original variants' names)
+STATE_KINDS = {"grid": "", "entity": "-entity"}
+AGENT_FIELDS = 3  # row, col, level
+FOOD_FIELDS = 4   # row, col, level, on-field flag
+OBS_DIM = 3 * (2 * SIGHT + 1) ** 2 + 2
+
+
+def split_variant(variant: str) -> tuple[str, str]:
+    """`8x8-2p-2f-s1-coop-entity` -> (`8x8-2p-2f-s1-coop`, `entity`); no suffix -> grid."""
+    for kind, suffix in STATE_KINDS.items():
+        if suffix and variant.endswith(suffix) and variant[:-len(suffix)] in VARIANTS:
+            return variant[:-len(suffix)], kind
+    if variant in VARIANTS:
+        return variant, "grid"
+    known = [base + suffix for base in VARIANTS for suffix in STATE_KINDS.values()]
+    raise ValueError(f"unknown LBF variant {variant!r}; known: {', '.join(known)}")
+
+
+def state_dim(size: int, players: int, foods: int, kind: str) -> int:
+    if kind == "grid":
+        return 3 * (size + 2 * SIGHT) ** 2
+    return AGENT_FIELDS * players + FOOD_FIELDS * foods
 
 
 class _Foraging(ForagingEnv):
@@ -42,13 +78,17 @@ class _Foraging(ForagingEnv):
 
 
 class LbfVecEnv(VecEnv):
+    """B lbforaging envs. ``variant`` names the field, the team and the state kind
+    (see the module doc): `8x8-2p-2f-s1-coop` (grid state) or `8x8-2p-2f-s1-coop-entity`."""
+
     def __init__(self, variant: str, num_envs: int, seed: int):
-        if variant not in VARIANTS:
-            raise ValueError(f"unknown LBF variant {variant!r}; known: {', '.join(VARIANTS)}")
+        base, self.state_kind = split_variant(variant)
+        size, players, foods = VARIANTS[base]
         self.schema = Schema.load(schema_path(f"lbf:{variant}"))
+        self._check_schema(variant, players, state_dim(size, players, foods, self.state_kind))
         self.num_envs = num_envs
-        size, players, foods = VARIANTS[variant]
         self.size = size
+        self.n_foods = foods
         self.envs = []
         for _ in range(num_envs):
             env = _Foraging(players=players, min_player_level=1, max_player_level=1,
@@ -61,9 +101,23 @@ class LbfVecEnv(VecEnv):
         self._seeded = np.zeros(num_envs, bool)
         p = size + 2 * SIGHT
         self._grid = np.zeros((num_envs, 3, p, p), np.float32)
+        # entity state: each env's food cells (row, col), row-major, fixed at reset
+        self._food_cells = [np.zeros((0, 2), np.int64)] * num_envs
         self._actions = list(Action)
 
-    # -- observation building from the environment's fields ------------------------------------
+    def _check_schema(self, variant: str, players: int, sdim: int) -> None:
+        """The schema file must describe what this env writes (the shared-memory layout is
+        computed from it): a mismatch would misplace every row, so it fails here, by name."""
+        s = self.schema
+        expected = {"n_agents": players, "obs_dim": OBS_DIM, "state_dim": sdim,
+                    "n_actions": len(Action)}
+        for field, want in expected.items():
+            got = getattr(s, field)
+            if got != want:
+                raise ValueError(f"{s.path}: {field} = {got}, but lbf:{variant} ({self.state_kind} "
+                                 f"state) writes {want}; fix the schema file")
+
+    # -- observation and state building from the environment's fields --------------------------
     def _write(self, e: int, out: Batch) -> None:
         env = self.envs[e]
         g = self._grid[e]
@@ -78,7 +132,10 @@ class LbfVecEnv(VecEnv):
             r, c = pl.position
             g[0, r + s, c + s] = pl.level
             g[2, r + s, c + s] = 0.0
-        out.state[e] = g.reshape(-1)
+        if self.state_kind == "grid":
+            out.state[e] = g.reshape(-1)
+        else:
+            self._write_entities(e, out.state[e])
         view = 3 * (2 * s + 1) ** 2
         scale = 1.0 / (self.size - 1)
         for i, pl in enumerate(env.players):
@@ -91,6 +148,18 @@ class LbfVecEnv(VecEnv):
             for a in env._valid_actions[pl]:
                 av[a.value] = 1
 
+    def _write_entities(self, e: int, st: np.ndarray) -> None:
+        env = self.envs[e]
+        players = env.players
+        agents = st[:AGENT_FIELDS * len(players)].reshape(len(players), AGENT_FIELDS)
+        for i, pl in enumerate(players):
+            agents[i] = (pl.position[0], pl.position[1], pl.level)
+        foods = st[AGENT_FIELDS * len(players):].reshape(self.n_foods, FOOD_FIELDS)
+        foods[:] = 0.0
+        for j, (r, c) in enumerate(self._food_cells[e]):
+            level = env.field[r, c]
+            foods[j] = (r, c, level, 1.0 if level > 0 else 0.0)
+
     def reset(self, env_ids: np.ndarray, out: Batch) -> None:
         for e in env_ids:
             e = int(e)
@@ -100,6 +169,7 @@ class LbfVecEnv(VecEnv):
                 self._seeded[e] = True
             else:
                 env.reset()
+            self._food_cells[e] = np.argwhere(env.field > 0)[:self.n_foods]  # row-major
             self._write(e, out)
 
     def step(self, actions: np.ndarray, out: Batch, active: np.ndarray | None = None) -> None:

@@ -1,5 +1,8 @@
 """Level-Based Foraging in the paper's variant, built on lbforaging's own dynamics."""
+import hashlib
+
 import numpy as np
+import pytest
 
 from lmac_env.core import Batch
 from lmac_env.registry import make
@@ -62,3 +65,37 @@ def test_episodes_truncate_at_limit_and_reset():
     firsts = [t for t, (_, _, _, f) in enumerate(trace) if f[0]]
     assert firsts, "episodes reset automatically"
     assert all(b - a <= 25 for a, b in zip([-1] + firsts, firsts))
+
+
+def digest(name, seed, envs=3, steps=80, limit=25):
+    """sha256 of every row (obs, state, avail, reward, terminated) of `steps` batched steps with
+    random available actions, resetting at termination and after `limit` steps."""
+    env = make(name, envs, seed=seed)
+    out = Batch.allocate(env.schema, envs)
+    env.reset(np.arange(envs), out)
+    rng = np.random.default_rng(seed)
+    h = hashlib.sha256()
+    t = np.zeros(envs, int)
+    for _ in range(steps):
+        for a in (out.obs, out.state, out.avail, out.reward, out.terminated):
+            h.update(np.ascontiguousarray(a).tobytes())
+        keys = rng.random(out.avail.shape) + out.avail
+        env.step(keys.argmax(-1).astype(np.int32), out)
+        t += 1
+        done = np.flatnonzero((out.terminated == 1) | (t >= limit))
+        for a in (out.obs, out.state, out.avail, out.reward, out.terminated):
+            h.update(np.ascontiguousarray(a).tobytes())
+        if len(done):
+            env.reset(done, out)
+            t[done] = 0
+    return h.hexdigest()
+
+
+@pytest.mark.parametrize("name,seed,expected", [
+    ("lbf:8x8-2p-2f-s1-coop", 5, "15d19e3777e531ef5d048013d7f22f4cf682e8742e560d0aae52aa27275cd548"),
+    ("lbf:11x11-6p-4f-s1-coop", 6, "43f02df0af99abece29ea55a1c0576dac8247c2b753ba7009b65525aaa93b1ac"),
+])
+def test_grid_variant_unchanged(name, seed, expected):
+    """The same numbers as before the entity-state variant was added (digests recorded with the
+    grid-only lbf.py of commit b233096), so datasets and results on the grid variants stay valid."""
+    assert digest(name, seed) == expected

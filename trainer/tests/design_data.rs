@@ -683,3 +683,59 @@ fn dead_fields_are_constant_or_copied_links() {
     assert_eq!(m.dead_fields.len(), 2, "{:?}", m.dead_fields);
     assert!(m.json()["dead_fields"][0].as_str().unwrap().contains("field `zero` from agent 0 to agent 1"));
 }
+
+// ------------------------------------------------------------------------------------------
+// The fixed-dim trend
+
+#[test]
+fn phase_evaluation_reads_the_trend_on_fixed_dims_with_both_definitions() {
+    use lmac_trainer::design::run::{evaluate_phase, fixed_dims};
+    let data = synthetic(300, 6);
+    let schema = synthetic_schema(24);
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    // Phase 0 sends hidden value A (s[0], seen by agent 0 only) to agent 1 and names s[0] and
+    // s[3] as critical; phase 1 adds a field about s[3] but names other critical dims, which
+    // must not move the fixed set.
+    let p0 = phase_from(
+        r#"{"message_design_instruction": "x", "critical_state_dims": [3, 0], "fields": [
+            {"name": "a", "description": "v", "senders": [0], "receivers": {"peer": [{"from": 0, "to": [1]}]}, "value": {"obs": [0]}}]}"#,
+        &env,
+        &[],
+    );
+    let p1 = phase_from(
+        r#"{"message_design_instruction": "y", "critical_state_dims": [4], "fields": [
+            {"name": "b", "description": "v", "senders": [1], "receivers": {"peer": [{"from": 1, "to": [0]}]}, "value": {"obs": [2]}}]}"#,
+        &env,
+        &[p0.clone()],
+    );
+    let (fixed, source) = fixed_dims(&p0);
+    assert_eq!((fixed.clone(), source), (vec![0, 3], "phase 0's critical state dims"));
+    let cfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 8, ..Default::default() };
+    let evaluate = |c: &DesignContext, p: &[ValidatedProtocol]| meta::evaluate_all(c, p, &cfg);
+    let dir = tmp_dir("trend");
+    let c = ctx(&schema, &env, &data);
+    let (_, e0) = evaluate_phase(&c, &[p0.clone()], &fixed, &evaluate, &dir.join("phase0")).unwrap();
+    let (_, e1) = evaluate_phase(&c, &[p0, p1], &fixed, &evaluate, &dir.join("phase1")).unwrap();
+    assert_eq!((e0.fixed_dims.dims, e1.fixed_dims.dims), (2, 2));
+    assert_eq!(e1.all_dims.dims, 5);
+    // Phase 1 brings s[3] to agent 0: the fixed-dim recovery of agent 0 rises with messages, not
+    // without (a retrained discriminator never sees them).
+    let (a0, a1) = (e0.fixed_dims.with_messages.per_agent[0], e1.fixed_dims.with_messages.per_agent[0]);
+    assert!(a1 > a0 + 0.2, "agent 0 on the fixed dims: {a0} after phase 0, {a1} after phase 1");
+    let w = &e1.fixed_dims;
+    assert!(w.with_messages.mean_skill > w.without_retrained.mean_skill + 0.2, "{w:?}");
+    // The paper's definition: the with-messages discriminator given zeroed messages loses what
+    // the messages carried.
+    assert!(w.without_zeroed.mean_recovery < w.with_messages.mean_recovery, "{w:?}");
+    // Every dim is written, with its constant guess and per-agent rates for all three.
+    let rec: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("phase1/recovery.json")).unwrap()).unwrap();
+    let dims = rec["dims"].as_array().unwrap();
+    assert_eq!(dims.len(), 5);
+    for d in dims {
+        for side in ["with_messages", "without_retrained", "without_zeroed"] {
+            assert_eq!(d[side].as_array().unwrap().len(), 2, "{d}");
+        }
+        assert!(d["constant_guess_rate"].is_number());
+    }
+    assert!(dir.join("phase1/meta.json").exists());
+}

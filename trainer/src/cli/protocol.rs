@@ -29,6 +29,33 @@ pub(crate) enum ProtocolCmd {
         #[arg(long, value_name = "DIR", requires = "env")]
         dataset: Option<std::path::PathBuf>,
     },
+    /// Measure what protocol phases tell each agent on a trajectory dataset, as the design loop
+    /// does for its own phases: for phases 0..=k (each k), per agent and state dim, how often a
+    /// discriminator recovers the state with the messages and without them (both definitions),
+    /// against a constant guess; dead fields too. Writes <out>/phase<k>/{meta,recovery}.json and
+    /// <out>/summary.json.
+    Measure {
+        /// Protocol JSON files: phase 0, then phase 1, ...
+        #[arg(required = true)]
+        files: Vec<String>,
+        #[arg(long)]
+        env: String,
+        /// A trajectory dataset of this environment (e.g. <design>/collect/dataset).
+        #[arg(long, value_name = "DIR")]
+        dataset: std::path::PathBuf,
+        /// Where the results go.
+        #[arg(long, value_name = "DIR")]
+        out: std::path::PathBuf,
+        /// The dims the trend is summarised on (default: phase 0's critical dims, all when none).
+        #[arg(long, value_delimiter = ',', value_name = "D,D,...")]
+        dims: Vec<usize>,
+        /// Discriminator updates per training (default: the design loop's).
+        #[arg(long)]
+        disc_updates: Option<usize>,
+        /// Seed of the held-out split and the discriminators.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
     /// Print the protocol language's JSON Schema.
     Schema,
 }
@@ -64,6 +91,9 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
                     Ok(1)
                 }
             }
+        }
+        ProtocolCmd::Measure { files, env, dataset, out, dims, disc_updates, seed } => {
+            measure(&files, &env, &dataset, &out, dims, disc_updates, seed)
         }
         ProtocolCmd::Explain { files, env, dataset } => {
             let mut ps = Vec::new();
@@ -108,4 +138,74 @@ fn dead_fields_on(
     let mut lines = vec![format!("dead fields on {} ({steps} steps): {}", dir.display(), dead.len())];
     lines.extend(dead.iter().map(|d| format!("warning: {}", d.describe())));
     Ok(lines)
+}
+
+/// `lmac protocol measure`.
+fn measure(
+    files: &[String],
+    env: &str,
+    dataset: &std::path::Path,
+    out: &std::path::Path,
+    dims: Vec<usize>,
+    disc_updates: Option<usize>,
+    seed: u64,
+) -> Result<i32> {
+    use lmac_trainer::design::{meta, run, DesignContext};
+    let schema = load_env(env).map_err(anyhow::Error::msg)?;
+    let penv = lmac_protocol_runner::protocol_env(&schema);
+    let refs: Vec<&str> = files.iter().map(|s| s.as_str()).collect();
+    let phases = lmac_protocol_runner::load_phases(&refs, &penv).map_err(anyhow::Error::msg)?;
+    let data = lmac_trainer::dataset::Dataset::load(dataset).with_context(|| format!("loading the dataset {}", dataset.display()))?;
+    if data.header.env != env {
+        anyhow::bail!("dataset {} was collected on {}, not {env}", dataset.display(), data.header.env);
+    }
+    if let Some(&d) = dims.iter().find(|&&d| d >= schema.state_dim) {
+        anyhow::bail!("--dims: state dim {d} is out of range (state_dim {})", schema.state_dim);
+    }
+    let mut cfg = meta::MetaConfig::default();
+    if let Some(u) = disc_updates {
+        cfg.discriminator.updates = u;
+    }
+    cfg.discriminator.validate()?;
+    let ctx = DesignContext { env_name: env, schema: &schema, env: &penv, dataset: Some(&data), seed };
+    let (fixed, source) = if dims.is_empty() { run::fixed_dims(&phases[0]) } else { (dims, "--dims") };
+    let evaluate = |c: &DesignContext, p: &[lmac_protocol_runner::protocol::ValidatedProtocol]| meta::evaluate_all(c, p, &cfg);
+    let mut evaluations = Vec::new();
+    for k in 0..phases.len() {
+        let (_, ev) = run::evaluate_phase(&ctx, &phases[..=k], &fixed, &evaluate, &out.join(format!("phase{k}")))?;
+        evaluations.push(ev);
+    }
+    let summary = serde_json::json!({
+        "env": env,
+        "designer": "given protocol",
+        "protocol": files,
+        "alpha": schema.alpha,
+        "dataset": dataset.display().to_string(),
+        "dataset_episodes": data.episodes.len(),
+        "fixed_dims": fixed,
+        "fixed_dims_source": source,
+        "evaluations": evaluations,
+    });
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    println!("| phases | message columns | fixed dims | recovery with / without (retrained) / without (zeroed) | skill with / retrained / zeroed | constant guess |");
+    println!("| --- | --- | --- | --- | --- | --- |");
+    for e in &evaluations {
+        let f = &e.fixed_dims;
+        println!(
+            "| 0..={} | {} | {} | {:.3} / {:.3} / {:.3} | {:.3} / {:.3} / {:.3} | {:.3} |",
+            e.phase,
+            e.message_columns,
+            f.dims,
+            f.with_messages.mean_recovery,
+            f.without_retrained.mean_recovery,
+            f.without_zeroed.mean_recovery,
+            f.with_messages.mean_skill,
+            f.without_retrained.mean_skill,
+            f.without_zeroed.mean_skill,
+            f.constant_guess_rate
+        );
+    }
+    super::plot("plot_design.py", out);
+    println!("written: {}/summary.json, recovery.png, phase<k>/{{meta,recovery}}.json", out.display());
+    Ok(0)
 }

@@ -62,18 +62,71 @@ pub type Evaluate<'a> = &'a dyn Fn(&DesignContext, &[ValidatedProtocol]) -> Resu
 
 /// One phase's line of `summary.json` (read by `plot_design.py`). The target dims change from
 /// phase to phase (they steer the designer); the trend is read on `fixed_dims` and `all_dims`.
-#[derive(Serialize)]
-struct PhaseEvaluation {
-    phase: usize,
-    message_columns: usize,
-    /// On the summary's `fixed_dims`, the same for every phase.
-    fixed_dims: SetTrend,
+#[derive(Clone, Debug, Serialize)]
+pub struct PhaseEvaluation {
+    pub phase: usize,
+    pub message_columns: usize,
+    /// On the fixed dims ([`fixed_dims`]), the same for every phase.
+    pub fixed_dims: SetTrend,
     /// On every state dim.
-    all_dims: SetTrend,
+    pub all_dims: SetTrend,
     /// On this phase's target dims (what the designer was shown).
-    with_messages: RecoverySummary,
-    without_messages: RecoverySummary,
-    target_dims: Vec<usize>,
+    pub with_messages: RecoverySummary,
+    pub without_messages: RecoverySummary,
+    pub target_dims: Vec<usize>,
+}
+
+/// The dims the trend is read on, fixed at phase 0: its task-critical dims (all dims when it
+/// names none), so "k = 0 -> 1 -> 2" compares the same set. Returns (dims, where they come from).
+pub fn fixed_dims(phase0: &ValidatedProtocol) -> (Vec<usize>, &'static str) {
+    let mut fixed = phase0.critical_dims.clone();
+    fixed.sort_unstable();
+    fixed.dedup();
+    let source = if fixed.is_empty() { "all state dims (phase 0 names no critical dims)" } else { "phase 0's critical state dims" };
+    (fixed, source)
+}
+
+/// Evaluate phases 0..=k (`phases`) on B and write `meta.json` and `recovery.json` into
+/// `phase_dir`; log the result. Returns the meta-information (for the designer) and the phase's
+/// `summary.json` line.
+pub fn evaluate_phase(
+    ctx: &DesignContext,
+    phases: &[ValidatedProtocol],
+    fixed: &[usize],
+    evaluate: Evaluate,
+    phase_dir: &Path,
+) -> Result<(super::meta_info::MetaInfo, PhaseEvaluation)> {
+    let k = phases.len().saturating_sub(1);
+    let Evaluation { meta, dims } = evaluate(ctx, phases).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
+    std::fs::create_dir_all(phase_dir).with_context(|| format!("creating {}", phase_dir.display()))?;
+    write(&phase_dir.join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
+    let recovery = serde_json::json!({ "alpha": ctx.schema.alpha, "dims": dims });
+    write(&phase_dir.join("recovery.json"), &serde_json::to_string_pretty(&recovery)?)?;
+    let ev = PhaseEvaluation {
+        phase: k,
+        message_columns: phases.iter().map(|v| v.width).sum::<usize>(),
+        fixed_dims: SetTrend::over(&dims, fixed),
+        all_dims: SetTrend::over(&dims, &[]),
+        with_messages: meta.summary.with_communication.clone(),
+        without_messages: meta.summary.without_communication.clone(),
+        target_dims: meta.summary.target_dims.clone(),
+    };
+    let f = &ev.fixed_dims;
+    eprintln!("lmac: phase {k}: {}", meta.summary_line());
+    for d in &meta.dead_fields {
+        eprintln!("lmac: phase {k}: warning: {d}");
+    }
+    eprintln!(
+        "lmac: phase {k}: on the {} fixed dims: recovery {:.3} with messages, {:.3} without (retrained), {:.3} (zeroed); skill over the constant guess {:.3} / {:.3} / {:.3}",
+        f.dims,
+        f.with_messages.mean_recovery,
+        f.without_retrained.mean_recovery,
+        f.without_zeroed.mean_recovery,
+        f.with_messages.mean_skill,
+        f.without_retrained.mean_skill,
+        f.without_zeroed.mean_skill
+    );
+    Ok((meta, ev))
 }
 
 fn write(path: &Path, text: &str) -> Result<()> {
@@ -170,42 +223,10 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
     }
 
     let mut evaluations = Vec::new();
-    // The dims the trend is read on, fixed at phase 0: its task-critical dims (all dims when it
-    // names none), so "k = 0 -> 1 -> 2" compares the same set.
-    let mut fixed: Vec<usize> = phases[0].validated.critical_dims.clone();
-    fixed.sort_unstable();
-    fixed.dedup();
-    let fixed_source = if fixed.is_empty() { "all state dims (phase 0 names no critical dims)" } else { "phase 0's critical state dims" };
+    let (fixed, fixed_source) = fixed_dims(&phases[0].validated);
     for k in 0..opts.phases {
         let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
-        let Evaluation { meta, dims } = evaluate(&ctx, &validated).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
-        let pd = dir.join(format!("phase{k}"));
-        write(&pd.join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
-        write(&pd.join("recovery.json"), &serde_json::to_string_pretty(&serde_json::json!({ "alpha": schema.alpha, "dims": dims }))?)?;
-        let ev = PhaseEvaluation {
-            phase: k,
-            message_columns: validated.iter().map(|v| v.width).sum::<usize>(),
-            fixed_dims: SetTrend::over(&dims, &fixed),
-            all_dims: SetTrend::over(&dims, &[]),
-            with_messages: meta.summary.with_communication.clone(),
-            without_messages: meta.summary.without_communication.clone(),
-            target_dims: meta.summary.target_dims.clone(),
-        };
-        let f = &ev.fixed_dims;
-        eprintln!("lmac: phase {k}: {}", meta.summary_line());
-        for d in &meta.dead_fields {
-            eprintln!("lmac: phase {k}: warning: {d}");
-        }
-        eprintln!(
-            "lmac: phase {k}: on the {} fixed dims: recovery {:.3} with messages, {:.3} without (retrained), {:.3} (zeroed); skill over the constant guess {:.3} / {:.3} / {:.3}",
-            f.dims,
-            f.with_messages.mean_recovery,
-            f.without_retrained.mean_recovery,
-            f.without_zeroed.mean_recovery,
-            f.with_messages.mean_skill,
-            f.without_retrained.mean_skill,
-            f.without_zeroed.mean_skill
-        );
+        let (meta, ev) = evaluate_phase(&ctx, &validated, &fixed, evaluate, &dir.join(format!("phase{k}")))?;
         evaluations.push(ev);
         persist_transcript(designer)?;
         if k + 1 == opts.phases {
