@@ -6,6 +6,7 @@
 #   bash scripts/figures.sh            # everything
 #   FIGURES="pipeline grf" bash scripts/figures.sh   # some of: pipeline smaclite grf train criterion
 #   FIGURES=lmac bash scripts/figures.sh   # the LMAC comparisons (hours; not in the default set)
+#   FIGURES=design bash scripts/figures.sh   # offline designs and what FullComm's messages reveal (minutes)
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -80,7 +81,7 @@ if want lmac; then
   "$LMAC" experiment --env lbf:8x8-2p-2f-s1-coop --seeds 0,1,2 --steps 1M --design docs/figures/design_lbf8x8 --out "$EV/lbf8x8"
   "$LMAC" experiment --env lbf:8x8-2p-2f-s1-coop --seeds 0 --steps 1M --design docs/figures/design_lbf8x8 --out "$EV/lbf8x8" \
     --algos lmac --variant lmac-raw=lmac,method.raw_messages=true --variant lmac-td=lmac,method.td_to_encoder=true \
-    --variant lmac-window=lmac,method.encoder='"window"'
+    --variant lmac-gru-gate=lmac,method.encoder='"gru-gate"'
   log "lmac experiment on smaclite:1o_10b_vs_1r with Table 1(a)'s ablations (many hours here)"
   "$LMAC" experiment --env smaclite:1o_10b_vs_1r --seeds 0,1,2 --steps 1M --design docs/figures/design_1o_10b_vs_1r --ablations \
     --out "$EV/1o10b"
@@ -88,6 +89,23 @@ if want lmac; then
     mkdir -p "$OUT/lmac_$e"
     cp "$EV/$e"/comparison.* "$EV/$e"/*.png "$OUT/lmac_$e/"
     for r in "$EV/$e"/runs/*/seed*; do cp "$r/metrics.csv" "$OUT/lmac_$e/$(basename "$(dirname "$r")")_$(basename "$r").csv"; done
+  done
+fi
+if want design; then
+  # The design loop's fixed-dim trend on three maps (per phase: recovery with messages and
+  # without, both definitions, skill over a constant guess, variance across agents), and
+  # whether the LBF state gives the discriminator a signal: FullComm written as a protocol,
+  # measured on the grid state and on the entity state.
+  DS="$ROOT/runs-evidence/designs"
+  for e in smaclite:bane_vs_hM smaclite:1o_10b_vs_1r lbf:8x8-2p-2f-s1-coop lbf:8x8-2p-2f-s1-coop-entity; do
+    log "offline design of $e"
+    /usr/bin/time -v "$LMAC" design --env "$e" --out "$DS" 2>&1 | tee "$DS.${e//:/_}.log" | grep -E "^lmac: phase|Maximum resident|Elapsed"
+  done
+  S="$OUT/design_signal_lbf"
+  for v in grid entity; do
+    env=lbf:8x8-2p-2f-s1-coop; [ "$v" = entity ] && env=lbf:8x8-2p-2f-s1-coop-entity
+    data="$(ls -d "$DS/${env//:/_}"/*/collect/dataset | tail -n 1)"
+    "$LMAC" protocol measure --env "$env" "$S/fullcomm_$v.protocol.json" --dataset "$data" --out "$S/${v}_fullcomm"
   done
 fi
 log "figures in $OUT"

@@ -22,7 +22,7 @@ SIDES = [("with_messages", "with messages", "#4C72B0"),
          ("without_retrained", "without (retrained)", "#999999"),
          ("without_zeroed", "without (zeroed, the paper's)", "#DD8452")]
 PANELS = [("mean_recovery", "mean recovery E_t[chi]"),
-          ("mean_skill", "skill over a constant guess"),
+          ("skill", "skill over a constant guess"),
           ("mean_variance_across_agents", "variance across agents")]
 
 

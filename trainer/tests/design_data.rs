@@ -723,7 +723,7 @@ fn phase_evaluation_reads_the_trend_on_fixed_dims_with_both_definitions() {
     let (a0, a1) = (e0.fixed_dims.with_messages.per_agent[0], e1.fixed_dims.with_messages.per_agent[0]);
     assert!(a1 > a0 + 0.2, "agent 0 on the fixed dims: {a0} after phase 0, {a1} after phase 1");
     let w = &e1.fixed_dims;
-    assert!(w.with_messages.mean_skill > w.without_retrained.mean_skill + 0.2, "{w:?}");
+    assert!(w.with_messages.skill > w.without_retrained.skill + 0.2, "{w:?}");
     // The paper's definition: the with-messages discriminator given zeroed messages loses what
     // the messages carried.
     assert!(w.without_zeroed.mean_recovery < w.with_messages.mean_recovery, "{w:?}");

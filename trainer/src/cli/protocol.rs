@@ -199,9 +199,9 @@ fn measure(
             f.with_messages.mean_recovery,
             f.without_retrained.mean_recovery,
             f.without_zeroed.mean_recovery,
-            f.with_messages.mean_skill,
-            f.without_retrained.mean_skill,
-            f.without_zeroed.mean_skill,
+            f.with_messages.skill,
+            f.without_retrained.skill,
+            f.without_zeroed.skill,
             f.constant_guess_rate
         );
     }

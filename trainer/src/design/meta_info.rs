@@ -169,8 +169,12 @@ pub struct DimRates {
 pub struct SideTrend {
     /// Mean over dims and agents of E_t[chi].
     pub mean_recovery: f64,
-    /// Mean over dims of the skill over the constant guess ([`super::meta::skill`] of the
-    /// dim's mean rate over agents): 0 = no better than guessing the median, 1 = always within alpha.
+    /// Skill over the constant guess of the set ([`super::meta::skill`] of `mean_recovery`
+    /// against the set's mean constant-guess rate): 0 = no better than guessing each dim's
+    /// median, 1 = always within alpha, negative = worse than the guess.
+    pub skill: f64,
+    /// Mean over dims of each dim's own skill (dominated by dims whose guess is nearly always
+    /// right, where one miss costs a lot; per-dim values are in recovery.json).
     pub mean_skill: f64,
     /// Mean over dims of the variance of E_t[chi] across agents.
     pub mean_variance_across_agents: f64,
@@ -201,8 +205,10 @@ impl SetTrend {
             let means: Vec<f64> = rows.iter().map(|r| mean(pick(r))).collect();
             let skills: Vec<f64> = rows.iter().map(|r| super::meta::skill(mean(pick(r)), r.constant_guess_rate)).collect();
             let vars: Vec<f64> = rows.iter().map(|r| variance(pick(r))).collect();
+            let guess = mean(&rows.iter().map(|r| r.constant_guess_rate).collect::<Vec<f64>>());
             SideTrend {
                 mean_recovery: r4(mean(&means)),
+                skill: r4(super::meta::skill(mean(&means), guess)),
                 mean_skill: r4(mean(&skills)),
                 mean_variance_across_agents: (mean(&vars) * 1e6).round() / 1e6,
                 per_agent: (0..n_agents).map(|i| r4(mean(&rows.iter().map(|r| pick(r)[i]).collect::<Vec<f64>>()))).collect(),

@@ -122,9 +122,9 @@ pub fn evaluate_phase(
         f.with_messages.mean_recovery,
         f.without_retrained.mean_recovery,
         f.without_zeroed.mean_recovery,
-        f.with_messages.mean_skill,
-        f.without_retrained.mean_skill,
-        f.without_zeroed.mean_skill
+        f.with_messages.skill,
+        f.without_retrained.skill,
+        f.without_zeroed.skill
     );
     Ok((meta, ev))
 }
