@@ -84,6 +84,9 @@ pub struct TrainActor {
     testing: Vec<Vec<bool>>,
     test_pending: usize,
     test_returns: Vec<(f32, bool)>,
+    /// The run reached its step budget and asked for its final test phase (a run always ends
+    /// with a test at its last step, so its final return is measured there).
+    final_test: bool,
     next_test: u64,
     next_log: u64,
     next_checkpoint: u64,
@@ -112,6 +115,11 @@ pub struct TrainActor {
 
 impl TrainActor {
     /// Training is done and the dataset is being collected (no learning, no test phases).
+    /// A test phase is asked for or under way.
+    fn test_in_progress(&self) -> bool {
+        self.test_pending > 0 || !self.test_returns.is_empty() || self.testing.iter().flatten().any(|&t| t)
+    }
+
     fn collecting(&self) -> bool {
         self.t_env >= self.cfg.run.steps && self.cfg.run.dataset_episodes > 0
     }
@@ -252,6 +260,10 @@ impl Actor for TrainActor {
             }
             return;
         }
+        if self.t_env >= self.cfg.run.steps {
+            // Past the budget, waiting for the final test phase: not trained on, not counted.
+            return;
+        }
         self.t_env += ep.len as u64;
         self.episodes += 1;
         self.train_returns.push(ep.team_return());
@@ -261,6 +273,12 @@ impl Actor for TrainActor {
         if self.t_env >= self.next_test {
             self.next_test += self.cfg.run.test_interval;
             self.test_pending = self.cfg.run.test_episodes;
+        }
+        if self.t_env >= self.cfg.run.steps && !self.final_test {
+            self.final_test = true;
+            if !self.test_in_progress() {
+                self.test_pending = self.cfg.run.test_episodes;
+            }
         }
         if self.t_env >= self.next_log {
             self.next_log += self.cfg.run.log_interval;
@@ -284,7 +302,7 @@ impl Actor for TrainActor {
     }
 
     fn finished(&self) -> bool {
-        (self.t_env >= self.cfg.run.steps && self.dataset.len() >= self.cfg.run.dataset_episodes)
+        (self.t_env >= self.cfg.run.steps && self.dataset.len() >= self.cfg.run.dataset_episodes && !self.test_in_progress())
             || self.failed.is_some()
             || self.shared.lock().error.is_some()
     }
@@ -397,6 +415,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         testing: vec![vec![false; envs_per_slab]; args.n_members],
         test_pending: if counters.t_env == 0 { cfg.run.test_episodes } else { 0 },
         test_returns: Vec::new(),
+        final_test: false,
         next_test: (counters.t_env / cfg.run.test_interval + 1) * cfg.run.test_interval,
         next_log: (counters.t_env / cfg.run.log_interval + 1) * cfg.run.log_interval,
         next_checkpoint: (counters.t_env / cfg.run.checkpoint_interval + 1) * cfg.run.checkpoint_interval,
