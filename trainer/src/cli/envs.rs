@@ -64,20 +64,29 @@ pub(crate) fn envs(check: bool, json: bool) -> Result<i32> {
             .map(|s| {
                 serde_json::json!({
                     "name": s.name, "n_agents": s.n_agents, "obs_dim": s.obs_dim, "state_dim": s.state_dim,
-                    "n_actions": s.n_actions, "episode_limit": s.episode_limit, "message_columns": s.message_columns, "alpha": s.alpha,
+                    "n_actions": s.n_actions, "episode_limit": s.episode_limit, "message_columns": s.message_columns,
+                    "fullcomm_columns": s.fullcomm_columns(), "alpha": s.alpha,
                 })
             })
             .collect();
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         println!(
-            "{:<42} {:>6} {:>5} {:>6} {:>7} {:>6} {:>5} {:>6}",
-            "environment", "agents", "obs", "state", "actions", "limit", "msg", "alpha"
+            "{:<42} {:>6} {:>5} {:>6} {:>7} {:>6} {:>5} {:>8} {:>6}",
+            "environment", "agents", "obs", "state", "actions", "limit", "msg", "fullcomm", "alpha"
         );
         for s in &rows {
             println!(
-                "{:<42} {:>6} {:>5} {:>6} {:>7} {:>6} {:>5} {:>6}",
-                s.name, s.n_agents, s.obs_dim, s.state_dim, s.n_actions, s.episode_limit, s.message_columns, s.alpha
+                "{:<42} {:>6} {:>5} {:>6} {:>7} {:>6} {:>5} {:>8} {:>6}",
+                s.name,
+                s.n_agents,
+                s.obs_dim,
+                s.state_dim,
+                s.n_actions,
+                s.episode_limit,
+                s.message_columns,
+                s.fullcomm_columns(),
+                s.alpha
             );
         }
     }
