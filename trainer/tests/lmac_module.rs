@@ -47,6 +47,7 @@ fn data(t: usize, b: usize, mask: &[f32], device: &Device) -> (Vec<Tensor<2>>, T
         b,
         n_agents: DIMS.n_agents,
         seed: 1,
+        actions: None,
     };
     (inputs, ctx, state)
 }

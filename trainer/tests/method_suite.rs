@@ -13,7 +13,7 @@ use lmac_trainer::learn::{Batch, Controller, InputLayout, LearnConfig, LearnRng,
 const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 9, state_dim: 6, n_actions: 4 };
 const MSG_COLS: usize = 4;
 
-/// Every registered method, plus the LMAC variants worth checking on their own.
+/// Every registered method, plus the variants worth checking on their own.
 fn cases() -> Vec<(String, LearnConfig, AgentConfig)> {
     let ctx = MethodContext { msg_cols: MSG_COLS, alpha: 0.1, critical_dims: vec![1, 3, 4], state_dim: DIMS.state_dim };
     let mut out = Vec::new();
@@ -21,6 +21,8 @@ fn cases() -> Vec<(String, LearnConfig, AgentConfig)> {
     for (name, extra) in [
         ("window", "encoder = \"window\"\nwindow = 3\nheads = 2\nattention_dim = 8"),
         ("td-raw", "td_to_encoder = true\nraw_messages = true"),
+        ("smac-weights", "c_beta = 0.1\ncomm_beta = 1e-4\nentropy_beta = 0.0\nmsg_dim = 2"),
+        ("released", "message_input = \"receiver\"\nbatch_norm = \"batch\"\nmi_action = \"greedy\""),
     ] {
         tables.push((name.to_string(), toml::from_str(extra).unwrap()));
     }
@@ -40,6 +42,15 @@ fn cases() -> Vec<(String, LearnConfig, AgentConfig)> {
         }
     }
     assert!(out.iter().any(|c| matches!(&c.2, AgentConfig::Lmac(l) if l.settings.encoder == EncoderKind::Window)));
+    // The communication baselines, default and variants; NDQ once more with the target network
+    // unrolled on a second thread (its inference loss then waits for the target's greedy actions).
+    for want in ["ndq ", "ndq smac-weights", "maic ", "maic released"] {
+        assert!(out.iter().any(|c| c.0 == want), "no case {want:?}");
+    }
+    let mut parallel = out.iter().find(|c| c.0 == "ndq ").cloned().expect("ndq case");
+    parallel.0 = "ndq parallel-target".into();
+    parallel.1.parallel_target = true;
+    out.push(parallel);
     out
 }
 
@@ -174,23 +185,29 @@ fn acting_step_by_step_equals_the_unrolled_forward() {
     }
 }
 
-/// Parameters of `module` without a gradient, or with an all-zero one.
+/// Trainable parameters of `module` without a gradient, or with an all-zero one.
 pub fn params_without_gradient<M: Module>(module: &M, grads: &GradientsParams) -> usize {
     struct V<'a> {
         grads: &'a GradientsParams,
         missing: usize,
+        trainable: usize,
     }
     impl ModuleVisitor for V<'_> {
         fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
             let id: ParamId = p.id;
+            if !p.val().is_require_grad() {
+                return; // a buffer, not trained by gradients (batch-norm running statistics)
+            }
+            self.trainable += 1;
             match self.grads.get::<D>(id) {
                 Some(g) if g.clone().abs().sum().into_scalar::<f32>() > 0.0 => {}
                 _ => self.missing += 1,
             }
         }
     }
-    let mut v = V { grads, missing: 0 };
+    let mut v = V { grads, missing: 0, trainable: 0 };
     module.visit(&mut v);
+    assert!(v.trainable > 0, "no trainable parameter found");
     v.missing
 }
 
@@ -204,5 +221,19 @@ fn one_update_sends_a_gradient_to_every_parameter() {
         let net = l.online_net();
         let grads = GradientsParams::from_grads(grads, net);
         assert_eq!(params_without_gradient(net, &grads), 0, "{name}: parameters without a gradient");
+    }
+}
+
+#[test]
+fn the_communication_baselines_resolve_through_the_run_config_without_a_protocol() {
+    use lmac_trainer::train::TrainConfig;
+    for (algo, good, bad, field) in
+        [("ndq", "method.cut=90", "method.cut=120", "method.cut"), ("maic", "method.prune=0.5", "method.prune=-1", "method.prune")]
+    {
+        let set = |extra: &str| vec![format!("run.algo={algo:?}"), extra.to_string()];
+        let cfg = TrainConfig::resolve(None, &set(good)).unwrap_or_else(|e| panic!("{algo}: {e:#}"));
+        assert_eq!(cfg.protocol().unwrap(), "none", "{algo} makes its own messages: the runner writes none");
+        let err = format!("{:#}", TrainConfig::resolve(None, &set(bad)).unwrap_err());
+        assert!(err.contains(field), "{algo}: {err}");
     }
 }

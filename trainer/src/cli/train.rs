@@ -27,7 +27,7 @@ pub(crate) struct TrainArgs {
     /// Environment (overrides run.env).
     #[arg(long)]
     env: Option<String>,
-    /// qmix | vdn | qplex | fullcomm | qmix-state | lmac (overrides run.algo).
+    /// qmix | vdn | qplex | fullcomm | qmix-state | lmac | ndq | maic (overrides run.algo).
     #[arg(long)]
     algo: Option<String>,
     /// Protocol: a design directory (from `lmac design`) or phase files a.json+b.json

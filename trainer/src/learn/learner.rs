@@ -2,6 +2,8 @@
 //! target network, masked mean-squared TD error, a global gradient-norm clip, Adam or RMSprop,
 //! target copies every N collected episodes, and NaN/inf detection naming the step.
 
+use std::sync::OnceLock;
+
 use burn::module::{Module, ModuleVisitor, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer, RmsPropConfig};
 use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
@@ -9,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 use super::buffer::{Batch, ReplayBuffer};
 use super::config::{ConfigError, LearnConfig, MixerKind, OptimizerKind};
-use super::methods::{AgentConfig, AgentNet, TrainContext};
+use super::methods::{AgentConfig, AgentNet, StepActions, TrainContext};
 use super::mixer::{Mixer, QplexInputs};
 use super::{InputLayout, LearnRng};
 use crate::episode::{Episode, EpisodeDims};
@@ -259,6 +261,9 @@ impl Learner {
         // The target unroll (no autodiff) optionally runs on a second thread meanwhile.
         let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
         let mask_t: Tensor<1> = Tensor::from_data(TensorData::new(batch.mask.clone(), [nb]), &ad);
+        // The batch's actions and (once the target unroll has run) the target network's greedy
+        // available actions, per step and agent-row, for methods whose losses read them.
+        let (step_actions, greedy_cell) = StepActions::pending(actions_t(&ad).reshape([t, b * n]));
         let ctx = TrainContext {
             state: states_t(&ad),
             mask: mask_t.clone(),
@@ -266,15 +271,33 @@ impl Learner {
             b,
             n_agents: n,
             seed: self.cfg.seed ^ (self.counters.updates + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            actions: Some(step_actions),
+        };
+        let target_unroll = || {
+            // Filled with `None` if the unroll panics, so an online unroll waiting for the greedy
+            // actions fails instead of waiting forever.
+            struct Fill<'a>(&'a OnceLock<Option<Tensor<2, Int>>>);
+            impl Drop for Fill<'_> {
+                fn drop(&mut self) {
+                    let _ = self.0.set(None);
+                }
+            }
+            let _fill = Fill(&greedy_cell);
+            let out = self.target.agent.unroll(step_inputs(&dev), None);
+            let greedy = out.0.clone().reshape([t, b, n, a]).mask_fill(unavail_t.clone(), -1e9).argmax(3).reshape([t, b * n]);
+            let _ = greedy_cell.set(Some(Tensor::from_data(greedy.into_data(), &ad)));
+            out
         };
         let ((mac_out, aux), (target_out, _)) = if self.cfg.parallel_target {
             std::thread::scope(|s| {
-                let target = s.spawn(|| self.target.agent.unroll(step_inputs(&dev), None));
+                let target = s.spawn(target_unroll);
                 let online = self.net.agent.unroll(step_inputs(&ad), Some(&ctx));
                 (online, target.join().expect("target unroll thread panicked"))
             })
         } else {
-            (self.net.agent.unroll(step_inputs(&ad), Some(&ctx)), self.target.agent.unroll(step_inputs(&dev), None))
+            // The target first: the online unroll's losses may read its greedy actions.
+            let target = target_unroll();
+            (self.net.agent.unroll(step_inputs(&ad), Some(&ctx)), target)
         };
         let mac_out: Tensor<4> = mac_out.reshape([t, b, n, a]);
         let chosen = mac_out.clone().gather(3, actions_t(&ad)).reshape([nb, n]);

@@ -14,7 +14,8 @@ use std::path::Path;
 #[serde(default, deny_unknown_fields)]
 pub struct RunSection {
     pub env: String,
-    /// A method of `learn::methods::REGISTRY`: qmix, vdn, qplex, fullcomm, qmix-state, lmac.
+    /// A method of `learn::methods::REGISTRY`: qmix, vdn, qplex, fullcomm, qmix-state, lmac, ndq,
+    /// maic.
     pub algo: String,
     /// Environment steps to train for.
     pub steps: u64,
@@ -42,7 +43,8 @@ pub struct RunSection {
     /// Also store the replay buffer in checkpoints (exact resumption; large).
     pub save_buffer: bool,
     /// Message protocol for the runner: empty = the algorithm's own (`none` for qmix, vdn,
-    /// qplex and qmix-state, `fullcomm` for fullcomm); else a design directory (its
+    /// qplex, qmix-state, ndq and maic, which make their messages inside the network;
+    /// `fullcomm` for fullcomm); else a design directory (its
     /// `phase<k>/protocol.json` files) or protocol files joined by '+'
     /// (`phase0.json+phase1.json`). Required by lmac; not allowed with fullcomm.
     pub protocol: String,
@@ -233,7 +235,8 @@ impl TrainConfig {
         let given = !self.run.protocol.is_empty();
         match m.messages {
             Messages::FullComm if given => {
-                bail!("run.protocol: {} fixes its protocol (fullcomm); give a protocol to qmix, vdn, qplex, qmix-state or lmac", m.name)
+                let takes: Vec<&str> = methods::REGISTRY.iter().filter(|x| x.messages != Messages::FullComm).map(|x| x.name).collect();
+                bail!("run.protocol: {} fixes its protocol (fullcomm); give a protocol to {}", m.name, takes.join(", "))
             }
             Messages::FullComm => Ok("fullcomm".into()),
             Messages::Designed if !given => bail!(

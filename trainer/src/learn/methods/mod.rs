@@ -16,11 +16,15 @@
 
 pub mod fullcomm;
 pub mod lmac;
+pub mod maic;
+pub mod ndq;
 pub mod qmix_state;
 pub mod value_decomposition;
 
+use std::sync::{Arc, OnceLock};
+
 use burn::module::Module;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Int, Tensor};
 use serde::{Deserialize, Serialize};
 
 use super::agent::RnnAgent;
@@ -73,6 +77,8 @@ pub const REGISTRY: &[&MethodSpec] = &[
     &fullcomm::FULLCOMM,
     &qmix_state::QMIX_STATE,
     &lmac::LMAC,
+    &ndq::NDQ,
+    &maic::MAIC,
 ];
 
 /// The method called `name`, or an error listing the known ones.
@@ -101,6 +107,11 @@ pub enum AgentConfig {
     Rnn,
     /// The LMAC agent: the meta-cognitive latent module in front of an RNN agent.
     Lmac(lmac::LmacConfig),
+    /// NDQ: Gaussian messages to every teammate, an action-inference head (Wang et al. 2020).
+    Ndq(ndq::NdqConfig),
+    /// MAIC: teammate models and incentive messages added to the receivers' Q-values (Yuan et
+    /// al. 2022).
+    Maic(maic::MaicConfig),
 }
 
 impl AgentConfig {
@@ -108,6 +119,8 @@ impl AgentConfig {
         match self {
             AgentConfig::Rnn => Ok(()),
             AgentConfig::Lmac(c) => c.validate(),
+            AgentConfig::Ndq(c) => c.validate(),
+            AgentConfig::Maic(c) => c.validate(),
         }
     }
 
@@ -116,6 +129,8 @@ impl AgentConfig {
         match self {
             AgentConfig::Rnn => &[],
             AgentConfig::Lmac(_) => lmac::STAT_NAMES,
+            AgentConfig::Ndq(_) => ndq::STAT_NAMES,
+            AgentConfig::Maic(_) => maic::STAT_NAMES,
         }
     }
 }
@@ -134,6 +149,45 @@ pub struct TrainContext {
     /// Seed of this update's random draws (dropout), so an update is reproducible and a resumed
     /// run draws what the uninterrupted one would have.
     pub seed: u64,
+    /// The batch's actions and the target network's greedy ones, per step and agent-row. The
+    /// learner always fills it; a context built by hand (a test of a method that reads no
+    /// actions) may leave it out.
+    pub actions: Option<StepActions>,
+}
+
+/// Actions per step and agent-row, `[T, N]` with N = B * n_agents (batch-major, like the
+/// unroll's inputs), on the autodiff device.
+pub struct StepActions {
+    /// The action each agent took (0 on padded steps).
+    pub taken: Tensor<2, Int>,
+    /// The target network's greedy action among the available ones. Filled by the target
+    /// unroll, which may still be running on another thread: [`StepActions::target_greedy`]
+    /// waits for it. `None` inside: the target unroll failed.
+    target_greedy: Arc<OnceLock<Option<Tensor<2, Int>>>>,
+}
+
+impl StepActions {
+    /// Both known now (tests, or a learner that unrolled the target first).
+    pub fn new(taken: Tensor<2, Int>, target_greedy: Tensor<2, Int>) -> Self {
+        let cell = OnceLock::new();
+        let _ = cell.set(Some(target_greedy));
+        StepActions { taken, target_greedy: Arc::new(cell) }
+    }
+
+    /// The target's greedy actions to come: the returned cell is filled by whoever unrolls the
+    /// target network (with `Some`, or `None` if that failed).
+    pub fn pending(taken: Tensor<2, Int>) -> (Self, Arc<OnceLock<Option<Tensor<2, Int>>>>) {
+        let cell = Arc::new(OnceLock::new());
+        (StepActions { taken, target_greedy: cell.clone() }, cell)
+    }
+
+    /// The target network's greedy actions `[T, N]`, waiting for the target unroll if needed.
+    pub fn target_greedy(&self) -> Tensor<2, Int> {
+        match self.target_greedy.wait() {
+            Some(t) => t.clone(),
+            None => panic!("the target network's unroll failed, so its greedy actions are unknown"),
+        }
+    }
 }
 
 /// A named term a method adds to the TD loss, or a diagnostic it logs.
@@ -150,6 +204,8 @@ pub struct AuxTerm {
 pub enum AgentNet {
     Rnn(RnnAgent),
     Lmac(lmac::LmacAgent),
+    Ndq(ndq::NdqAgent),
+    Maic(maic::MaicAgent),
 }
 
 impl AgentNet {
@@ -159,6 +215,8 @@ impl AgentNet {
         match agent {
             AgentConfig::Rnn => AgentNet::Rnn(RnnAgent::new(rng, layout.width(), cfg.rnn_hidden_dim, d.n_actions, device)),
             AgentConfig::Lmac(c) => AgentNet::Lmac(lmac::LmacAgent::new(rng, c, layout, cfg, device)),
+            AgentConfig::Ndq(c) => AgentNet::Ndq(ndq::NdqAgent::new(rng, c, layout, cfg, device)),
+            AgentConfig::Maic(c) => AgentNet::Maic(maic::MaicAgent::new(rng, c, layout, cfg, device)),
         }
     }
 
@@ -167,6 +225,8 @@ impl AgentNet {
         match self {
             AgentNet::Rnn(a) => a.hidden_dim,
             AgentNet::Lmac(a) => a.state_width(),
+            AgentNet::Ndq(a) => a.state_width(),
+            AgentNet::Maic(a) => a.state_width(),
         }
     }
 
@@ -175,6 +235,8 @@ impl AgentNet {
         match self {
             AgentNet::Rnn(a) => a.step(x, state),
             AgentNet::Lmac(a) => a.step(x, state),
+            AgentNet::Ndq(a) => a.step(x, state),
+            AgentNet::Maic(a) => a.step(x, state),
         }
     }
 
@@ -185,6 +247,8 @@ impl AgentNet {
         match self {
             AgentNet::Rnn(a) => (a.unroll(inputs), Vec::new()),
             AgentNet::Lmac(a) => a.unroll(inputs, train),
+            AgentNet::Ndq(a) => a.unroll(inputs, train),
+            AgentNet::Maic(a) => a.unroll(inputs, train),
         }
     }
 }
@@ -201,4 +265,21 @@ pub fn dropout<const D: usize>(x: Tensor<D>, p: f32, rng: &mut LearnRng) -> Tens
     let mask: Vec<f32> = (0..n).map(|_| if rng.uniform() < p { 0.0 } else { keep }).collect();
     let m: Tensor<D> = Tensor::from_data(burn::tensor::TensorData::new(mask, shape), &x.device());
     x * m
+}
+
+/// Standard normal draws from `rng` (Box-Muller), as a tensor of `shape` on `device`: host-side
+/// like [`dropout`], so a seed fixes every sample.
+pub fn standard_normal<const D: usize>(rng: &mut LearnRng, shape: [usize; D], device: &Device) -> Tensor<D> {
+    let n: usize = shape.iter().product();
+    let mut v = Vec::with_capacity(n + 1);
+    while v.len() < n {
+        // 1 - u lies in (0, 1]: the logarithm stays finite.
+        let (u1, u2) = (1.0 - rng.uniform() as f64, rng.uniform() as f64);
+        let r = (-2.0 * u1.ln()).sqrt();
+        let a = std::f64::consts::TAU * u2;
+        v.push((r * a.cos()) as f32);
+        v.push((r * a.sin()) as f32);
+    }
+    v.truncate(n);
+    Tensor::from_data(burn::tensor::TensorData::new(v, shape), device)
 }
