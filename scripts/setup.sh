@@ -25,7 +25,7 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 VPY="$ROOT/.venv/bin/python"
-if ! "$VPY" -c 'import numpy, lbforaging, maturin, pytest, matplotlib, pettingzoo, mpe2, pygame' 2>/dev/null; then
+if ! "$VPY" -c 'import numpy, lbforaging, maturin, pytest, matplotlib, pettingzoo, mpe2, pygame, ray.tune, lmac_sweep' 2>/dev/null; then
   log "installing Python packages"
   "$VPY" -m pip install -q --upgrade pip
   "$VPY" -m pip install -q -r env-server/requirements.txt
