@@ -184,9 +184,10 @@ fn random_protocol(r: &mut Rng, env: &ProtocolEnv) -> Value {
         })
         .collect();
     let (crit, onehot, pad) = (r.below(env.state_dim as u64 + 1), r.chance(0.7), *r.pick(&["minus_one", "zero", "repeat"]));
+    let layout = *r.pick(&["compact", "sender_blocks"]);
     json!({
         "name": "fz", "message_design_instruction": "fuzz", "critical_state_dims": [crit],
-        "sender_one_hot": onehot, "history_padding": pad, "fields": fields
+        "sender_one_hot": onehot, "history_padding": pad, "layout": layout, "fields": fields
     })
 }
 
@@ -269,6 +270,19 @@ fn exercise(r: &mut Rng, v: &Value, env: &ProtocolEnv) -> bool {
             let plan = compile_plan(std::slice::from_ref(&vp), env).expect("a validated protocol compiles");
             assert_eq!(plan.msg_dim(), vp.width);
             assert_eq!(plan.column_labels(0).len(), vp.width);
+            // Every receiver has the plan's width; in the compact layout its columns before the
+            // padding are exactly the linked ones, and the widest receiver has no padding.
+            for i in 0..env.n_agents {
+                let cols = plan.columns(i);
+                assert_eq!(cols.len(), vp.width);
+                let used = cols.iter().filter(|c| !c.padding).count();
+                assert_eq!(used, vp.receiver_width(i));
+                assert!(cols[used..].iter().all(|c| c.padding), "padding comes last");
+                if p.layout == MessageLayout::Compact {
+                    assert!(cols[..used].iter().all(|c| c.linked), "compact spends columns only on links");
+                }
+            }
+            assert_eq!((0..env.n_agents).map(|i| vp.receiver_width(i)).max().unwrap_or(0), vp.width);
             let mut plan = plan;
             run_plan(r, &mut plan, env);
             true

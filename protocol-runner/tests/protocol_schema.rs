@@ -55,8 +55,11 @@ fn explain_says_who_sends_what_to_whom_and_why() {
     assert!(text.contains("who:   every agent -> every other agent (broadcast)"));
     assert!(text.contains("value: maximum over the last 10 steps of obs[9..18]"));
     assert!(text.contains("value: change of sum of the columns of obs[19, 21, 23, 25] over the last 3 steps (now minus 2 steps ago)"));
-    assert!(text.contains("agent 0 receives from agent 1: food_seen_10, move_histogram_10, crowding_trend"));
+    assert!(text.contains("agent 0 (18 of 18 columns) receives from agent 1: food_seen_10, move_histogram_10, crowding_trend"));
     assert!(text.contains("each receiving agent gets 18 columns"));
+    let flat = text.split_whitespace().collect::<Vec<_>>().join(" ");
+    assert!(flat.contains("Layout (compact)"), "{text}");
+    assert!(flat.contains("(18..18 columns used per receiver; the sender-blocks layout would need 18)"), "{text}");
     assert!(!text.contains("NOT VALID"));
     // Without an environment it still explains; with a too-small one it lists the errors.
     let bare = explain(&p, None);
@@ -75,6 +78,20 @@ fn explain_phases_shows_where_each_phase_sits() {
         .map(|f| parse_str(&std::fs::read_to_string(dir.join(f)).unwrap()).unwrap())
         .collect();
     let text = explain_phases(&ps, Some(&env));
+    assert!(text.contains("2 phase(s) in the compact layout"), "{text}");
+    assert!(
+        text.contains("  total: 37 columns per receiving agent (each phase on its own: 21 + 18; per receiver before padding: 37, 37)"),
+        "{text}"
+    );
+    let old: Vec<Protocol> = ps
+        .iter()
+        .map(|p| {
+            let mut p = p.clone();
+            p.layout = MessageLayout::SenderBlocks;
+            p
+        })
+        .collect();
+    let text = explain_phases(&old, Some(&env));
     assert!(
         text.contains("  columns 0..21: lbf_8x8_phase0 (21 columns)\n  columns 21..39: lbf_8x8_phase2 (18 columns)\n  total: 39 columns"),
         "{text}"
@@ -91,4 +108,27 @@ fn language_reference_states_the_environment_numbers() {
     assert!(text.contains("(width 9; zeros on the first step)"));
     assert!(text.contains("dims 0..=39"));
     assert!(language_reference(None).contains("0..state_dim"));
+}
+
+#[test]
+fn explain_shows_the_compact_layout_per_receiver() {
+    let env = ProtocolEnv::new(3, 4, 3, 5, 100);
+    let v = serde_json::json!({
+        "message_design_instruction": "test", "critical_state_dims": [0],
+        "fields": [
+            {"name": "a", "description": "d", "value": {"obs": [1, 3]}},
+            {"name": "b", "description": "d", "senders": [0], "receivers": {"agents": [2]}, "value": {"obs": [0, 1]}}
+        ]
+    });
+    let text = explain(&parse_value(&v).unwrap(), Some(&env)).split_whitespace().collect::<Vec<_>>().join(" ");
+    // Receivers: 0 gets [3 | a] from 1 and 2 (10); 1 the same (10); 2 gets [3 | a | b] from 0
+    // and [3 | a] from 1 (12). Sender blocks: 2 x (3 + 4) = 14.
+    assert!(text.contains("each receiving agent gets 12 columns"), "{text}");
+    assert!(text.contains("(10..12 columns used per receiver; the sender-blocks layout would need 14)"), "{text}");
+    assert!(text.contains("agent 1 (10 of 12 columns) receives from agent 0: a; from agent 2: a"), "{text}");
+    let mut old = v.clone();
+    old["layout"] = serde_json::json!("sender_blocks");
+    let text = explain(&parse_value(&old).unwrap(), Some(&env)).split_whitespace().collect::<Vec<_>>().join(" ");
+    assert!(text.contains("each receiving agent gets 14 columns"), "{text}");
+    assert!(text.contains("Layout (sender_blocks)"), "{text}");
 }

@@ -52,10 +52,20 @@ fn examples_validate_with_expected_widths() {
     .unwrap();
     assert_eq!(p2.field_widths, vec![9, 6, 1]);
     assert_eq!(p2.width, 2 + 16);
-    assert_eq!(check_phases(&[p0.clone(), p2.clone()], &lbf()).unwrap(), 39);
+    // Compact: the sender's one-hot (2 columns) once for both phases; sender blocks: 21 + 18.
+    assert_eq!(check_phases(&[p0.clone(), p2.clone()], &lbf()).unwrap(), 2 + 19 + 16);
     let p1 = check_file(examples_dir().join("lbf_8x8_phase1.json"), &lbf()).unwrap();
     assert_eq!((p1.field_widths.clone(), p1.width), (vec![4, 1], 7));
-    assert_eq!(check_phases(&[p0, p1, p2], &lbf()).unwrap(), 46);
+    assert_eq!(check_phases(&[p0.clone(), p1.clone(), p2.clone()], &lbf()).unwrap(), 2 + 19 + 5 + 16);
+    let blocks: Vec<ValidatedProtocol> = [p0, p1, p2]
+        .iter()
+        .map(|v| {
+            let mut p = v.protocol.clone();
+            p.layout = MessageLayout::SenderBlocks;
+            validate(&p, &lbf()).unwrap()
+        })
+        .collect();
+    assert_eq!(check_phases(&blocks, &lbf()).unwrap(), 21 + 7 + 18);
     // Every example in the directory is valid for LBF 8x8.
     for e in std::fs::read_dir(examples_dir()).unwrap() {
         let path = e.unwrap().path();
@@ -103,12 +113,28 @@ fn width_mismatch_reports_both_widths() {
 #[test]
 fn budget_error_explains_the_arithmetic() {
     let env = ProtocolEnv::new(3, 27, 6, 300, 20);
-    let e = one_error(base(), &env);
+    let mut blocks = base();
+    blocks["layout"] = json!("sender_blocks");
+    let e = one_error(blocks, &env);
     // 2 blocks x (3 + 9 + 4) = 32 > 20
     assert_eq!(
         e,
-        "fields: the message is 32 columns per receiving agent but only 20 are available: width = (n_agents - 1 = 2) sender blocks x (3 sender one-hot + 13 field columns: food=9, moves=4). Remove or narrow fields (e.g. aggregate with reduce, or pick fewer obs dims) by at least 6 columns per block"
+        "fields: the message is 32 columns per receiving agent but only 20 are available: width = (n_agents - 1 = 2) sender blocks x (3 sender one-hot + 13 field columns: food=9, moves=4) (layout sender_blocks). Remove or narrow fields (e.g. aggregate with reduce, or pick fewer obs dims) by at least 6 columns per block, or use the default compact layout"
     );
+    // Compact: a full broadcast costs the same, and the text names the widest receiver.
+    let e = one_error(base(), &env);
+    assert_eq!(
+        e,
+        "fields: the message is 32 columns per receiving agent but only 20 are available: the widest receiver, agent 0, is reached by 2 sender(s), each costing 3 sender one-hot columns plus the fields it sends there (columns per sender 1: 16, 2: 16; field widths food=9, moves=4). Remove at least 12 columns there: send fewer fields to that agent (receivers/peer links), narrow fields (e.g. aggregate with reduce, or pick fewer obs dims), or have fewer agents send to it"
+    );
+    // Sending `food` only from 0 to 1: receiver 1 gets [3 | 9 | 4] from 0 and [3 | 4] from 2
+    // (23), the others 2 x [3 | 4] (14); 23 of a budget of 23, where sender blocks need 32.
+    let mut peer = base();
+    peer["fields"][0]["senders"] = json!([0]);
+    peer["fields"][0]["receivers"] = json!({"agents": [1]});
+    let v = validate(&parse_value(&peer).unwrap(), &ProtocolEnv::new(3, 27, 6, 300, 23)).unwrap();
+    assert_eq!(((0..3).map(|i| v.receiver_width(i)).collect::<Vec<_>>(), v.width), (vec![14, 23, 14], 23));
+    assert_eq!(message_width(&v.protocol, &v.env, &v.field_widths), 32);
     // Earlier phases use part of the budget.
     let env = ProtocolEnv::new(2, 27, 6, 300, 20);
     let first = validate(&parse_value(&base()).unwrap(), &env).unwrap();

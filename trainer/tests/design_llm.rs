@@ -284,7 +284,7 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
         assert_eq!(p.protocol.phase, Some(k as u32));
     }
     assert_eq!(
-        phases.iter().map(|p| p.validated.width).sum::<usize>(),
+        protocol::combined_width(&phases.iter().map(|p| p.validated.clone()).collect::<Vec<_>>()),
         protocol::check_phases(&phases.iter().map(|p| p.validated.clone()).collect::<Vec<_>>(), &penv).unwrap()
     );
     assert!(phases[0].reasoning.contains("food positions"));

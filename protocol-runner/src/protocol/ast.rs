@@ -9,12 +9,11 @@ use serde::{Deserialize, Serialize};
 /// value of every message field from its own observation history; every other agent (receiver)
 /// gets those values appended to its observation.
 ///
-/// Message layout received by agent i (fixed width): for every other agent j in increasing
-/// order, one sender block = [one-hot of j (n_agents columns, unless `sender_one_hot` is false)
-/// | field 1 value | field 2 value | ...] in the order of `fields`. A field value is written
-/// when j is one of the field's senders and i one of its receivers for j; otherwise its columns
-/// are zero. A block's one-hot is written when j sends at least one field to i, else it stays
-/// zero too. Width per receiver = (n_agents - 1) * (n_agents + sum of field widths). The final
+/// Message layout received by agent i (`layout`, default `compact`): for every other agent j in
+/// increasing order that sends i at least one field, one sender block = [one-hot of j (n_agents
+/// columns, unless `sender_one_hot` is false) | the values of the fields j sends to i, in the
+/// order of `fields`]; senders and fields that do not reach i take no columns. Every receiver's
+/// message has the same width (the widest receiver's; the others end in zero padding). The final
 /// protocol of several phases concatenates the phases' messages (phase 0 first).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -40,6 +39,10 @@ pub struct Protocol {
     /// How window aggregates see the steps before the episode started. Default `minus_one`.
     #[serde(default)]
     pub history_padding: HistoryPadding,
+    /// Column layout of the message. Default `compact` (columns only for what reaches each
+    /// receiver); `sender_blocks` is the earlier fixed layout (kept to reproduce old results).
+    #[serde(default, skip_serializing_if = "MessageLayout::is_compact")]
+    pub layout: MessageLayout,
     /// The message fields, in column order. At least one.
     pub fields: Vec<Field>,
 }
@@ -65,6 +68,32 @@ impl DimSpec {
             DimSpec::Dim(d) => d..d.saturating_add(1),
             DimSpec::Range(s) => s.start..s.end.max(s.start),
         }
+    }
+}
+
+/// How a phase's fields are laid out in each receiver's message columns.
+///
+/// `compact` gives a receiver columns only for the (sender, field) pairs that reach it; each
+/// sender that reaches it keeps its one-hot id once, in front of its values. The one-hot (not a
+/// fixed column position per sender) carries the identity because the agents share one network:
+/// in the compact layout a column's sender differs between receivers, so without the id the
+/// shared network could not tell whose value it reads (the paper's principle: sender identity in
+/// every message). Receivers reached by fewer senders end in zero padding up to the widest one.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum MessageLayout {
+    /// For each sender that reaches the receiver (increasing index): [sender one-hot | the fields
+    /// it sends to this receiver]; then zeros up to the widest receiver's width.
+    #[default]
+    Compact,
+    /// Every receiver gets a block per other agent, [one-hot | every field], whether or not that
+    /// agent sends it anything (unsent columns zero); width (n_agents - 1) x (n_agents + fields).
+    SenderBlocks,
+}
+
+impl MessageLayout {
+    pub fn is_compact(&self) -> bool {
+        *self == MessageLayout::Compact
     }
 }
 

@@ -6,9 +6,17 @@
 //! (one per distinct per-step expression, as deep as the longest window over it). A scatter
 //! table per receiving agent then copies sender registers into the receiver's message columns.
 //!
-//! History: `first[env]` restarts env's history. Steps before the episode's first step are
-//! padded as the protocol's `history_padding` says (default `minus_one`: observation and
-//! last-action one-hot -1, as the paper's reference code pads its window).
+//! Layout: in the default compact layout receiver i gets, for each sender j that sends it at
+//! least one field in any phase, [one-hot(j) | the fields of phase 0 j sends i | those of phase 1
+//! | ...], then zeros up to the widest receiver's width, so every receiver has one width (the
+//! plan's `msg_dim`, [`combined_width`](super::validate::combined_width)). A sender's one-hot is
+//! paid once, not once per phase. It is kept (rather than replaced by a fixed position per
+//! sender) because agents share one network and, in the compact layout, the sender behind a
+//! column differs between receivers: the one-hot says whose values follow. The `sender_blocks`
+//! layout (the earlier one, kept to reproduce old runs) gives every receiver, per phase, a full
+//! block [one-hot | every field] per other agent, phases concatenated.
+//! The design loop's D^(k) compiles phases 0..k on their own, so it never needs phase k's columns
+//! at a fixed place in the final plan.
 
 use super::ast::*;
 use super::validate::{check_phases, validate, ValidatedProtocol, ValidationError, MAX_WINDOW};
@@ -129,21 +137,29 @@ pub struct Column {
     /// The phase (0-based) and its name (`phase<k>` when it has none).
     pub phase: usize,
     pub phase_name: String,
+    /// The agent whose value the column holds (for padding: the receiver itself; nobody sends it).
     pub sender: usize,
-    /// The field's index in its phase; None for the sender one-hot.
+    /// The field's index in its phase; None for the sender one-hot and for padding.
     pub field: Option<usize>,
-    /// Field name (`sender_one_hot` for the one-hot).
+    /// Field name (`sender_one_hot` for the one-hot, `padding` for padding).
     pub name: String,
-    /// Position inside the field (or the one-hot).
+    /// Position inside the field (or the one-hot, or the phase's padding run).
     pub q: usize,
-    /// The sender sends this to the receiver; false: the column is zero by layout.
+    /// The sender sends this to the receiver; false: the column is zero by layout (an unsent
+    /// block part in the sender-blocks layout, or padding).
     pub linked: bool,
+    /// Zero padding after this receiver's columns, up to the phase's width (compact layout).
+    pub padding: bool,
 }
 
 impl Column {
-    /// `phase/fromJ/field[q]`.
+    /// `phase/fromJ/field[q]`, or `phase/padding[q]`.
     pub fn label(&self) -> String {
-        format!("{}/from{}/{}[{}]", self.phase_name, self.sender, self.name, self.q)
+        if self.padding {
+            format!("{}/padding[{}]", self.phase_name, self.q)
+        } else {
+            format!("{}/from{}/{}[{}]", self.phase_name, self.sender, self.name, self.q)
+        }
     }
 }
 
@@ -214,58 +230,116 @@ pub fn compile_plan(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<P
     };
     let mut segs = vec![Vec::new(); n];
     let mut columns: Vec<Vec<Column>> = vec![Vec::new(); n];
-    let mut base = 0usize;
-    for (k, ph) in phases.iter().enumerate() {
+    // check_phases refused mixed layouts.
+    let blocks = phases[0].protocol.layout == MessageLayout::SenderBlocks;
+    let pnames: Vec<String> =
+        phases.iter().enumerate().map(|(k, p)| p.protocol.name.clone().unwrap_or_else(|| format!("phase{k}"))).collect();
+    // Compact: one sender one-hot, shared by every phase.
+    let onehot_reg = if !blocks && phases.iter().any(|p| p.protocol.sender_one_hot) {
+        let r = c.alloc(n);
+        c.prog.push(Inst::SenderOneHot { dst: r });
+        Some(r)
+    } else {
+        None
+    };
+    // Per phase, the first register of each field's value.
+    let mut field_at: Vec<Vec<usize>> = Vec::with_capacity(phases.len());
+    let mut block_at = Vec::with_capacity(phases.len());
+    for ph in phases {
         let p = &ph.protocol;
         c.padding = p.history_padding;
-        // The sender block [one-hot | field 1 | field 2 | ...] is laid out contiguously in the
-        // registers, so a receiver's whole block from one sender is a single copy.
-        let onehot = if p.sender_one_hot { n } else { 0 };
-        let blk = c.alloc(ph.block_width());
+        // Sender blocks: [one-hot | field 1 | field 2 | ...] contiguous in the registers, so a
+        // receiver's whole block from one sender is a single copy. Compact: the fields alone.
+        let onehot = if blocks && p.sender_one_hot { n } else { 0 };
+        let blk = c.alloc(onehot + ph.field_widths.iter().sum::<usize>());
         if onehot > 0 {
             c.prog.push(Inst::SenderOneHot { dst: blk });
         }
-        let mut field_at = Vec::with_capacity(p.fields.len());
+        let mut at = Vec::with_capacity(p.fields.len());
         let mut off = blk + onehot;
         for f in &p.fields {
-            field_at.push(off);
+            at.push(off);
             off += c.expr_into(&f.value, off);
         }
-        let pname = p.name.clone().unwrap_or_else(|| format!("phase{k}"));
-        for i in 0..n {
-            let mut col = base;
-            for j in (0..n).filter(|&j| j != i) {
-                if onehot > 0 {
-                    let linked = ph.links(j, i);
-                    if linked {
-                        segs[i].push(Seg::Copy { dst: col, sender: j, src: blk, len: n });
-                    } else {
-                        segs[i].push(Seg::Zero { dst: col, len: n });
+        field_at.push(at);
+        block_at.push(blk);
+    }
+    for i in 0..n {
+        let mut col = 0usize;
+        let mut push = |src: Option<usize>, w: usize, k: usize, j: usize, field: Option<usize>, name: &str, linked: bool| {
+            // A copy of sender j's registers src.., or zeros.
+            segs[i].push(match src {
+                Some(src) => Seg::Copy { dst: col, sender: j, src, len: w },
+                None => Seg::Zero { dst: col, len: w },
+            });
+            for q in 0..w {
+                columns[i].push(Column {
+                    phase: k,
+                    phase_name: pnames[k].clone(),
+                    sender: j,
+                    field,
+                    name: name.to_string(),
+                    q,
+                    linked,
+                    padding: false,
+                });
+            }
+            col += w;
+        };
+        if blocks {
+            for (k, ph) in phases.iter().enumerate() {
+                for j in (0..n).filter(|&j| j != i) {
+                    if ph.protocol.sender_one_hot {
+                        let linked = ph.links(j, i);
+                        push(linked.then_some(block_at[k]), n, k, j, None, "sender_one_hot", linked);
                     }
-                    for a in 0..n {
-                        let name = "sender_one_hot".to_string();
-                        columns[i].push(Column { phase: k, phase_name: pname.clone(), sender: j, field: None, name, q: a, linked });
+                    for (f, fld) in ph.protocol.fields.iter().enumerate() {
+                        let w = ph.field_widths[f];
+                        let linked = ph.sends[f][j][i];
+                        push(linked.then_some(field_at[k][f]), w, k, j, Some(f), &fld.name, linked);
                     }
-                    col += n;
-                }
-                for (f, fld) in p.fields.iter().enumerate() {
-                    let w = ph.field_widths[f];
-                    let linked = ph.sends[f][j][i];
-                    if linked {
-                        segs[i].push(Seg::Copy { dst: col, sender: j, src: field_at[f], len: w });
-                    } else {
-                        segs[i].push(Seg::Zero { dst: col, len: w });
-                    }
-                    for q in 0..w {
-                        let name = fld.name.clone();
-                        columns[i].push(Column { phase: k, phase_name: pname.clone(), sender: j, field: Some(f), name, q, linked });
-                    }
-                    col += w;
                 }
             }
-            debug_assert_eq!(col - base, ph.width);
+        } else {
+            // For each sender that reaches i in any phase: its one-hot once, then every field of
+            // every phase it sends i; senders and fields that do not reach i take no columns.
+            for j in (0..n).filter(|&j| j != i) {
+                let Some(first) = phases.iter().position(|ph| ph.links(j, i)) else { continue };
+                if let Some(r) = onehot_reg {
+                    if phases.iter().any(|ph| ph.protocol.sender_one_hot && ph.links(j, i)) {
+                        push(Some(r), n, first, j, None, "sender_one_hot", true);
+                    }
+                }
+                for (k, ph) in phases.iter().enumerate() {
+                    for (f, fld) in ph.protocol.fields.iter().enumerate() {
+                        if ph.sends[f][j][i] {
+                            let w = ph.field_widths[f];
+                            push(Some(field_at[k][f]), w, k, j, Some(f), &fld.name, true);
+                        }
+                    }
+                }
+            }
+            // Zero padding up to the widest receiver.
+            debug_assert!(col <= msg_dim, "receiver {i} needs {col} columns, the plan is {msg_dim} wide");
+            let pad = msg_dim.saturating_sub(col);
+            if pad > 0 {
+                segs[i].push(Seg::Zero { dst: col, len: pad });
+                let k = phases.len() - 1;
+                for q in 0..pad {
+                    columns[i].push(Column {
+                        phase: k,
+                        phase_name: pnames[k].clone(),
+                        sender: i,
+                        field: None,
+                        name: "padding".into(),
+                        q,
+                        linked: false,
+                        padding: true,
+                    });
+                }
+            }
         }
-        base += ph.width;
+        debug_assert_eq!(columns[i].len(), msg_dim);
     }
     for s in &mut segs {
         *s = merge_segs(std::mem::take(s));

@@ -73,7 +73,6 @@ pub fn explain(p: &Protocol, env: Option<&ProtocolEnv>) -> String {
         writeln!(s, "   value: {}", explain_expr(&f.value, env)).unwrap();
     }
 
-    let mut layout = String::from("Layout: each receiving agent gets, for every other agent j in increasing order, a block [");
     let mut parts = Vec::new();
     if p.sender_one_hot {
         parts.push(match env {
@@ -81,14 +80,35 @@ pub fn explain(p: &Protocol, env: Option<&ProtocolEnv>) -> String {
             None => "sender one-hot (n_agents)".into(),
         });
     }
-    for (k, f) in p.fields.iter().enumerate() {
-        parts.push(match ok {
-            Some(v) => format!("{} ({})", f.name, v.field_widths[k]),
-            None => f.name.clone(),
-        });
-    }
-    layout.push_str(&parts.join(" | "));
-    layout.push_str("]; columns of fields j does not send to that agent stay zero.");
+    let layout = match p.layout {
+        MessageLayout::Compact => {
+            parts.push("the fields j sends it".into());
+            let mut l = format!(
+                "Layout (compact): each receiving agent gets, for every other agent j in increasing order that sends it at least one field, [{}] in field order; agents and fields that do not reach it take no columns, and every receiver's message is padded with zeros to the widest receiver's width",
+                parts.join(" | ")
+            );
+            if let Some(v) = ok {
+                let w: Vec<usize> = (0..v.env.n_agents).map(|i| v.receiver_width(i)).collect();
+                let (lo, hi) = (w.iter().min().copied().unwrap_or(0), w.iter().max().copied().unwrap_or(0));
+                let full = super::validate::message_width(p, &v.env, &v.field_widths);
+                l.push_str(&format!(" ({lo}..{hi} columns used per receiver; the sender-blocks layout would need {full})"));
+            }
+            l.push('.');
+            l
+        }
+        MessageLayout::SenderBlocks => {
+            for (k, f) in p.fields.iter().enumerate() {
+                parts.push(match ok {
+                    Some(v) => format!("{} ({})", f.name, v.field_widths[k]),
+                    None => f.name.clone(),
+                });
+            }
+            format!(
+                "Layout (sender_blocks): each receiving agent gets, for every other agent j in increasing order, a block [{}]; columns of fields j does not send to that agent stay zero.",
+                parts.join(" | ")
+            )
+        }
+    };
     s.push('\n');
     s.push_str(&wrap(&layout, "", "  "));
     if let Some(v) = ok {
@@ -144,24 +164,56 @@ fn wrap(text: &str, first: &str, rest: &str) -> String {
 /// concatenated message, then each phase.
 pub fn explain_phases(phases: &[Protocol], env: Option<&ProtocolEnv>) -> String {
     let mut s = String::new();
-    let widths: Vec<Option<usize>> = phases.iter().map(|p| env.and_then(|e| validate(p, e).ok()).map(|v| v.width)).collect();
-    writeln!(s, "Final protocol: {} phase(s), each receiving agent's message is their concatenation", phases.len()).unwrap();
-    let mut off = Some(0usize);
-    for (k, (p, w)) in phases.iter().zip(&widths).enumerate() {
-        let name = p.name.clone().unwrap_or_else(|| format!("phase{k}"));
-        match (off, w) {
-            (Some(o), Some(w)) => {
-                writeln!(s, "  columns {o}..{}: {name} ({w} columns)", o + w).unwrap();
-                off = Some(o + w);
-            }
-            _ => {
-                writeln!(s, "  then: {name}").unwrap();
-                off = None;
+    let compact = phases.iter().all(|p| p.layout == MessageLayout::Compact);
+    if !compact {
+        let widths: Vec<Option<usize>> = phases.iter().map(|p| env.and_then(|e| validate(p, e).ok()).map(|v| v.width)).collect();
+        writeln!(s, "Final protocol: {} phase(s), each receiving agent's message is their concatenation", phases.len()).unwrap();
+        let mut off = Some(0usize);
+        for (k, (p, w)) in phases.iter().zip(&widths).enumerate() {
+            let name = p.name.clone().unwrap_or_else(|| format!("phase{k}"));
+            match (off, w) {
+                (Some(o), Some(w)) => {
+                    writeln!(s, "  columns {o}..{}: {name} ({w} columns)", o + w).unwrap();
+                    off = Some(o + w);
+                }
+                _ => {
+                    writeln!(s, "  then: {name}").unwrap();
+                    off = None;
+                }
             }
         }
-    }
-    if let Some(total) = off {
-        writeln!(s, "  total: {total} columns").unwrap();
+        if let Some(total) = off {
+            writeln!(s, "  total: {total} columns").unwrap();
+        }
+    } else {
+        writeln!(
+            s,
+            "Final protocol: {} phase(s) in the compact layout: each receiving agent gets, per sender that reaches it in any phase, that sender's one-hot once and then its fields of every phase",
+            phases.len()
+        )
+        .unwrap();
+        // Each phase validated after the earlier ones (the budget is shared).
+        let mut done: Vec<ValidatedProtocol> = Vec::new();
+        if let Some(e) = env {
+            for p in phases {
+                match super::validate::validate_phase(p, e, &done) {
+                    Ok(v) => done.push(v),
+                    Err(_) => break,
+                }
+            }
+        }
+        if !done.is_empty() && done.len() == phases.len() {
+            let per = super::validate::combined_receiver_widths(&done);
+            let total = per.iter().copied().max().unwrap_or(0);
+            let own: Vec<String> = done.iter().map(|v| v.width.to_string()).collect();
+            writeln!(
+                s,
+                "  total: {total} columns per receiving agent (each phase on its own: {}; per receiver before padding: {})",
+                own.join(" + "),
+                per.iter().map(|w| w.to_string()).collect::<Vec<_>>().join(", ")
+            )
+            .unwrap();
+        }
     }
     for p in phases {
         s.push('\n');
@@ -216,7 +268,11 @@ fn receivers_table(v: &ValidatedProtocol) -> String {
                 from.push(format!("from agent {j}: {}", fields.join(", ")));
             }
         }
-        s.push_str(&wrap(&format!("agent {i} receives {}", from.join("; ")), "  ", "    "));
+        let cols = match v.protocol.layout {
+            MessageLayout::Compact => format!(" ({} of {} columns)", v.receiver_width(i), v.width),
+            MessageLayout::SenderBlocks => String::new(),
+        };
+        s.push_str(&wrap(&format!("agent {i}{cols} receives {}", from.join("; ")), "  ", "    "));
     }
     s
 }

@@ -15,13 +15,15 @@
 //! broadcast), `neg`, `abs`, `{"clip": {"of", "min", "max"}}`, `{"reduce": {"op", "of"}}`,
 //! `{"concat": [..]}`.
 //!
-//! # Message layout (fixed width)
-//! Receiver i gets, for each phase in order, for each other agent j in increasing order, a
-//! sender block `[one-hot(j) (n_agents columns; on by default, `"sender_one_hot": false` drops it)
-//! | field values in field order]`. A field's columns hold j's value when j sends the field to i,
-//! else zeros; the one-hot is written when j sends at least one field of the phase to i.
-//! Width per phase = (n_agents - 1) * (n_agents + sum of field widths): a function of the
-//! protocol and n_agents only. Reserved columns past the plan's width are kept at zero.
+//! # Message layout (one width per receiver)
+//! Receiver i gets, for each phase in order, for each other agent j in increasing order that
+//! sends i at least one field of the phase, `[one-hot(j) (n_agents columns; on by default,
+//! `"sender_one_hot": false` drops it) | the fields j sends i, in field order]`, then zeros up to
+//! the phase's width: the widest receiver's ([`receiver_widths`]), so all receivers share one
+//! width and each phase starts at the same column for all. `"layout": "sender_blocks"` keeps the
+//! earlier layout: a block per other agent with every field, unsent columns zero, width
+//! (n_agents - 1) * (n_agents + sum of field widths). Reserved columns past the plan's width are
+//! kept at zero.
 //!
 //! # History
 //! Window aggregates see the current step and the k-1 before it. The plan keeps a ring buffer
@@ -44,7 +46,7 @@ pub use explain::{explain, explain_expr, explain_phases};
 pub use reference::language_reference;
 pub use schema::{schema_json, schema_value};
 pub use validate::{
-    check_file, check_phases, check_str, check_summary, errors_to_text, message_width, parse_llm_text, parse_str, parse_value,
-    read_protocol_file, validate, validate_phase, ErrorKind, ProtocolEnv, ValidatedProtocol, ValidationError, MAX_DEPTH, MAX_FIELDS,
-    MAX_FILE_BYTES, MAX_NODES, MAX_WINDOW,
+    check_file, check_phases, check_str, check_summary, combined_receiver_widths, combined_width, errors_to_text, message_width,
+    parse_llm_text, parse_str, parse_value, read_protocol_file, receiver_widths, validate, validate_phase, ErrorKind, ProtocolEnv,
+    ValidatedProtocol, ValidationError, MAX_DEPTH, MAX_FIELDS, MAX_FILE_BYTES, MAX_NODES, MAX_WINDOW,
 };

@@ -52,10 +52,13 @@ computed by the sender from its own observations (dims 0..={last}), its previous
   {{"reduce": {{"op": "sum"|"mean"|"min"|"max", "of": A}}}}   one column
   {{"concat": [A, B, ...]}}                 columns of A, then B, ...
 Nesting depth at most {MAX_DEPTH}.
-Message layout: every receiving agent gets, for every other agent j in order, a block
-[one-hot of j ({n} columns) | each field's value in field order]; a field's columns are zero when
-j does not send it to that agent. Message width = ({n} - 1) x ({n} + sum of field widths), and it
-must not exceed {budget} columns per receiving agent (all phases together).
+Message layout: every receiving agent gets, for every other agent j in order that sends it at
+least one field, [one-hot of j ({n} columns) | the values of the fields j sends it, in field
+order]; agents and fields that do not reach it take no columns. A receiver's width is the sum
+over the agents that reach it of ({n} + the widths of the fields they send it); every receiver is
+padded to the widest one, and that width must not exceed {budget} columns (all phases
+together). A broadcast of every field by every agent costs ({n} - 1) x ({n} + sum of field
+widths); sending a field only where it helps (peer links) costs less.
 "#
     )
 }

@@ -125,7 +125,8 @@ pub struct ValidatedProtocol {
     pub field_widths: Vec<usize>,
     /// `sends[f][j][i]`: sender j sends field f to receiver i.
     pub sends: Vec<Vec<Vec<bool>>>,
-    /// Message columns each receiving agent gets from this protocol (phase).
+    /// Message columns each receiving agent gets from this protocol (phase): in the compact
+    /// layout the widest receiver's (the others are padded with zeros to it).
     pub width: usize,
     /// The critical state dims, expanded and sorted.
     pub critical_dims: Vec<usize>,
@@ -140,6 +141,80 @@ impl ValidatedProtocol {
     pub fn links(&self, j: usize, i: usize) -> bool {
         self.sends.iter().any(|s| s[j][i])
     }
+    /// Columns receiver i's message needs in this phase before padding (in the sender-blocks
+    /// layout every receiver needs `width`).
+    pub fn receiver_width(&self, i: usize) -> usize {
+        receiver_widths(&self.protocol, &self.env, &self.field_widths, &self.sends).get(i).copied().unwrap_or(0)
+    }
+}
+
+/// Columns each receiver needs before padding for one phase on its own: in the compact layout,
+/// per sender that reaches it, the one-hot (if on) and the fields that sender sends it; in the
+/// sender-blocks layout, the full [`message_width`] for everyone.
+pub fn receiver_widths(p: &Protocol, env: &ProtocolEnv, widths: &[usize], sends: &[Vec<Vec<bool>>]) -> Vec<usize> {
+    if p.layout == MessageLayout::SenderBlocks {
+        return vec![message_width(p, env, widths); env.n_agents];
+    }
+    compact_widths(env.n_agents, &[PhaseLinks { onehot: p.sender_one_hot, widths, sends }])
+}
+
+/// What the compact layout needs to know of one phase.
+struct PhaseLinks<'a> {
+    onehot: bool,
+    widths: &'a [usize],
+    sends: &'a [Vec<Vec<bool>>],
+}
+
+/// Per receiver, the compact layout of these phases together: for each sender that reaches it in
+/// any phase, its one-hot once (if a phase that links them has it on) and every field of every
+/// phase it sends there.
+fn compact_widths(n: usize, phases: &[PhaseLinks]) -> Vec<usize> {
+    let sent = |ph: &PhaseLinks, f: usize, j: usize, i: usize| ph.sends.get(f).and_then(|s| s.get(j)).and_then(|s| s.get(i)) == Some(&true);
+    (0..n)
+        .map(|i| {
+            (0..n).filter(|&j| j != i).fold(0usize, |acc, j| {
+                let mut linked = false;
+                let mut onehot = false;
+                let mut w = 0usize;
+                for ph in phases {
+                    for (f, &fw) in ph.widths.iter().enumerate() {
+                        if sent(ph, f, j, i) {
+                            linked = true;
+                            onehot |= ph.onehot;
+                            w = w.saturating_add(fw);
+                        }
+                    }
+                }
+                if !linked {
+                    return acc;
+                }
+                acc.saturating_add(if onehot { n } else { 0 }).saturating_add(w)
+            })
+        })
+        .collect()
+}
+
+/// Per receiver, the columns the phases compiled together need before padding (the plan's
+/// width is the largest). Compact phases share one block per sender across phases (one one-hot
+/// per sender); sender-blocks phases are concatenated after them... they cannot be mixed (see
+/// [`check_phases`]), so this is either the compact combination or the sum of the blocks.
+pub fn combined_receiver_widths(phases: &[ValidatedProtocol]) -> Vec<usize> {
+    let n = phases.first().map_or(0, |p| p.env.n_agents);
+    let compact: Vec<PhaseLinks> = phases
+        .iter()
+        .filter(|p| p.protocol.layout == MessageLayout::Compact)
+        .map(|p| PhaseLinks { onehot: p.protocol.sender_one_hot, widths: &p.field_widths, sends: &p.sends })
+        .collect();
+    let blocks: usize =
+        phases.iter().filter(|p| p.protocol.layout == MessageLayout::SenderBlocks).fold(0usize, |a, p| a.saturating_add(p.width));
+    compact_widths(n, &compact).into_iter().map(|w| w.saturating_add(blocks)).collect()
+}
+
+/// The message width of these phases compiled together (what [`check_phases`] returns and the
+/// plan's `msg_dim`): the widest receiver's. Not the sum of the phases' own widths in the compact
+/// layout, where a sender's one-hot is paid once across phases.
+pub fn combined_width(phases: &[ValidatedProtocol]) -> usize {
+    combined_receiver_widths(phases).into_iter().max().unwrap_or(0)
 }
 
 fn block_width(p: &Protocol, env: &ProtocolEnv, widths: &[usize]) -> usize {
@@ -147,7 +222,9 @@ fn block_width(p: &Protocol, env: &ProtocolEnv, widths: &[usize]) -> usize {
     widths.iter().fold(onehot, |a, &w| a.saturating_add(w))
 }
 
-/// Message columns per receiver of a protocol with these field widths (0 with fewer than 2 agents).
+/// Message columns per receiver of a protocol with these field widths in the sender-blocks
+/// layout: (n_agents - 1) x (one-hot + all fields), 0 with fewer than 2 agents. It is also the
+/// compact layout's width when every agent sends every field to every other (an upper bound).
 pub fn message_width(p: &Protocol, env: &ProtocolEnv, widths: &[usize]) -> usize {
     env.n_agents.saturating_sub(1).saturating_mul(block_width(p, env, widths))
 }
@@ -311,34 +388,90 @@ pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProt
     }
 
     // Budget.
-    let width = message_width(p, env, &widths);
-    let used: usize = previous.iter().map(|q| q.width).fold(0usize, |a, b| a.saturating_add(b));
+    let per_receiver = receiver_widths(p, env, &widths, &sends);
+    let width = per_receiver.iter().copied().max().unwrap_or(0);
+    if let Some(q) = previous.iter().find(|q| q.protocol.layout != p.layout) {
+        v.err(
+            ErrorKind::Phases,
+            "layout",
+            None,
+            format!(
+                "this phase uses the {} layout but an earlier phase ({}) uses {}: all phases of one protocol use the same layout",
+                layout_name(p.layout),
+                q.protocol.name.as_deref().unwrap_or("unnamed"),
+                layout_name(q.protocol.layout)
+            ),
+        );
+        return Err(v.errors);
+    }
+    let used = combined_width(previous);
     let available = env.message_budget.saturating_sub(used);
-    if width > available {
-        // A width above zero means at least one other agent (message_width is 0 with one), but
-        // keep the arithmetic safe on its own.
-        let senders = n.saturating_sub(1);
+    // What this phase adds to the plan's width (in the compact layout a sender that already
+    // reaches a receiver does not pay its one-hot again).
+    let added = match p.layout {
+        MessageLayout::SenderBlocks => width,
+        MessageLayout::Compact => {
+            let mut links: Vec<PhaseLinks> = previous
+                .iter()
+                .map(|q| PhaseLinks { onehot: q.protocol.sender_one_hot, widths: &q.field_widths, sends: &q.sends })
+                .collect();
+            links.push(PhaseLinks { onehot: p.sender_one_hot, widths: &widths, sends: &sends });
+            compact_widths(n, &links).into_iter().max().unwrap_or(0).saturating_sub(used)
+        }
+    };
+    if added > available {
         let onehot = if p.sender_one_hot { n } else { 0 };
-        let parts: Vec<String> = p.fields.iter().zip(&widths).map(|(f, w)| format!("{}={w}", f.name)).collect();
         let prev = if previous.is_empty() {
             String::new()
         } else {
             format!(" (the budget is {} columns and earlier phases already use {used})", env.message_budget)
         };
-        v.err(
-            ErrorKind::Budget,
-            "fields",
-            None,
-            format!(
-                "the message is {width} columns per receiving agent but only {available} are available{prev}: \
-                 width = (n_agents - 1 = {}) sender blocks x ({onehot} sender one-hot + {} field columns: {}). \
-                 Remove or narrow fields (e.g. aggregate with reduce, or pick fewer obs dims) by at least {} columns per block",
-                senders,
-                block_width(p, env, &widths) - onehot,
-                parts.join(", "),
-                (width - available).div_ceil(senders.max(1))
-            ),
-        );
+        let msg = match p.layout {
+            MessageLayout::SenderBlocks => {
+                // A width above zero means at least one other agent (message_width is 0 with one),
+                // but keep the arithmetic safe on its own.
+                let senders = n.saturating_sub(1);
+                let parts: Vec<String> = p.fields.iter().zip(&widths).map(|(f, w)| format!("{}={w}", f.name)).collect();
+                format!(
+                    "the message is {width} columns per receiving agent but only {available} are available{prev}: \
+                     width = (n_agents - 1 = {}) sender blocks x ({onehot} sender one-hot + {} field columns: {}) (layout sender_blocks). \
+                     Remove or narrow fields (e.g. aggregate with reduce, or pick fewer obs dims) by at least {} columns per block, \
+                     or use the default compact layout",
+                    senders,
+                    block_width(p, env, &widths) - onehot,
+                    parts.join(", "),
+                    (width - available).div_ceil(senders.max(1))
+                )
+            }
+            MessageLayout::Compact => {
+                let i = per_receiver.iter().position(|&w| w == width).unwrap_or(0);
+                let total = if previous.is_empty() {
+                    String::new()
+                } else {
+                    format!(" (with the earlier phases the message would be {} columns, {added} more than they use)", used + added)
+                };
+                let from: Vec<String> = (0..n)
+                    .filter(|&j| j != i && sends.iter().any(|s| s[j][i]))
+                    .map(|j| {
+                        let fw: usize = (0..widths.len()).filter(|&f| sends[f][j][i]).map(|f| widths[f]).sum();
+                        format!("{j}: {}", onehot + fw)
+                    })
+                    .collect();
+                let parts: Vec<String> = p.fields.iter().zip(&widths).map(|(f, w)| format!("{}={w}", f.name)).collect();
+                format!(
+                    "the message is {width} columns per receiving agent{total} but only {available} are available{prev}: \
+                     the widest receiver, agent {i}, is reached by {} sender(s), each costing {onehot} sender one-hot columns plus the \
+                     fields it sends there (columns per sender {}; field widths {}). \
+                     Remove at least {} columns there: send fewer fields to that agent (receivers/peer links), narrow fields \
+                     (e.g. aggregate with reduce, or pick fewer obs dims), or have fewer agents send to it",
+                    from.len(),
+                    from.join(", "),
+                    parts.join(", "),
+                    added - available
+                )
+            }
+        };
+        v.err(ErrorKind::Budget, "fields", None, msg);
         return Err(v.errors);
     }
     let critical_dims: BTreeSet<usize> = p.critical_state_dims.iter().flat_map(|s| s.dims()).collect();
@@ -747,10 +880,10 @@ impl Validator<'_> {
     }
 }
 
-/// Check that validated phases fit together (same environment, total width within the budget).
+/// Check that validated phases fit together (same environment, one layout, the combined width
+/// within the budget); returns the combined width ([`combined_width`]), the plan's `msg_dim`.
 pub fn check_phases(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<usize, Vec<ValidationError>> {
     let mut errors = Vec::new();
-    let mut total = 0usize;
     for (k, p) in phases.iter().enumerate() {
         let (a, b) = (&p.env, env);
         if (a.n_agents, a.obs_dim, a.n_actions, a.state_dim) != (b.n_agents, b.obs_dim, b.n_actions, b.state_dim) {
@@ -763,8 +896,22 @@ pub fn check_phases(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<u
                 ),
             ));
         }
-        total = total.saturating_add(p.width);
+        if p.protocol.layout != phases[0].protocol.layout {
+            errors.push(ValidationError::new(
+                ErrorKind::Phases,
+                format!("phases[{k}].layout"),
+                format!(
+                    "phase {k} uses the {} layout and phase 0 the {} layout: all phases of one protocol use the same layout",
+                    layout_name(p.protocol.layout),
+                    layout_name(phases[0].protocol.layout)
+                ),
+            ));
+        }
     }
+    if !errors.is_empty() {
+        return Err(errors);
+    }
+    let total = combined_width(phases);
     if total > env.message_budget {
         let parts: Vec<String> =
             phases.iter().enumerate().map(|(k, p)| format!("phase {}: {}", p.protocol.phase.map_or(k, |x| x as usize), p.width)).collect();
@@ -772,7 +919,7 @@ pub fn check_phases(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<u
             ErrorKind::Budget,
             "",
             format!(
-                "the phases together need {total} message columns per receiving agent ({}) but the budget is {}",
+                "the phases together need {total} message columns per receiving agent (on their own: {}) but the budget is {}",
                 parts.join(", "),
                 env.message_budget
             ),
@@ -782,6 +929,13 @@ pub fn check_phases(phases: &[ValidatedProtocol], env: &ProtocolEnv) -> Result<u
         Ok(total)
     } else {
         Err(errors)
+    }
+}
+
+fn layout_name(l: MessageLayout) -> &'static str {
+    match l {
+        MessageLayout::Compact => "compact",
+        MessageLayout::SenderBlocks => "sender_blocks",
     }
 }
 

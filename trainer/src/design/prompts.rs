@@ -338,12 +338,12 @@ fn phase_title(phase: usize) -> String {
 
 /// Message columns still free per receiving agent after the earlier phases.
 pub fn budget_left(env: &ProtocolEnv, previous: &[ValidatedProtocol]) -> usize {
-    env.message_budget.saturating_sub(previous.iter().map(|p| p.width).sum())
+    env.message_budget.saturating_sub(protocol::combined_width(previous))
 }
 
 /// The budget in numbers the LLM can plan with: columns left and field columns per sender block.
 fn budget_text(env: &ProtocolEnv, previous: &[ValidatedProtocol]) -> String {
-    let used: usize = previous.iter().map(|p| p.width).sum();
+    let used = protocol::combined_width(previous);
     let left = budget_left(env, previous);
     let n = env.n_agents;
     let blocks = n.saturating_sub(1).max(1);
@@ -355,7 +355,7 @@ fn budget_text(env: &ProtocolEnv, previous: &[ValidatedProtocol]) -> String {
         s.push_str(&format!("The earlier phases use {used}, so this phase may use at most {left}. "));
     }
     s.push_str(&format!(
-        "The width of this phase is ({n} - 1) sender blocks x ({n} sender one-hot columns + the sum of the field widths), so the fields of one sender block may use at most {} columns together ({} if \"sender_one_hot\" is false).",
+        "A receiving agent pays, for each other agent that sends it at least one field, {n} sender one-hot columns plus the widths of the fields that agent sends it; the phase's width is the widest receiver's. So if every agent broadcasts every field, the fields may use at most {} columns together ({} if \"sender_one_hot\" is false); fields sent only where they help (peer links) cost less.",
         per_block.saturating_sub(n),
         per_block
     ));

@@ -104,7 +104,7 @@ pub fn evaluate_phase(
     write(&phase_dir.join("recovery.json"), &serde_json::to_string_pretty(&recovery)?)?;
     let ev = PhaseEvaluation {
         phase: k,
-        message_columns: phases.iter().map(|v| v.width).sum::<usize>(),
+        message_columns: lmac_protocol_runner::protocol::combined_width(phases),
         fixed_dims: SetTrend::over(&dims, fixed),
         all_dims: SetTrend::over(&dims, &[]),
         with_messages: meta.summary.with_communication.clone(),

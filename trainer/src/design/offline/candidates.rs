@@ -136,6 +136,9 @@ pub(super) fn probe(kinds: &[Kind], env: &ProtocolEnv) -> Result<(ValidatedProto
         critical_state_reasoning: None,
         sender_one_hot: false,
         history_padding: HistoryPadding::default(),
+        // Every sender broadcasts every candidate, so both layouts agree; `sample` reads the
+        // sender blocks at fixed positions, so say so.
+        layout: MessageLayout::SenderBlocks,
         fields,
     };
     let mut penv = env.clone();

@@ -36,8 +36,8 @@ use super::meta_info::MetaInfo;
 use super::{DesignContext, Designer, Feedback, PhaseProtocol, TranscriptEntry};
 use anyhow::{anyhow, bail, Context, Result};
 use lmac_protocol_runner::protocol::{
-    self, ActionEncoding, DimSpec, Expr, Field, HistoryPadding, PeerLink, Protocol, ProtocolEnv, Receivers, Senders, ValidatedProtocol,
-    Window, WindowOp,
+    self, ActionEncoding, DimSpec, Expr, Field, HistoryPadding, MessageLayout, PeerLink, Protocol, ProtocolEnv, Receivers, Senders,
+    ValidatedProtocol, Window, WindowOp,
 };
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -163,16 +163,17 @@ impl OfflineDesigner {
         let kinds = kinds_for(phase);
         let (probe_v, probe_env, cands) = probe(&kinds, env)?;
         let width = probe_v.width / (n - 1);
-        let s = sample(ctx, &prev, &probe_v, &probe_env, width, &targets.dims, self.cfg.max_samples)?;
-        if s.rows < 2 {
-            bail!("offline designer: the dataset has {} usable steps; it needs at least 2", s.rows);
+        let mut s = sample(ctx, &prev, &probe_v, &probe_env, width, &targets.dims, self.cfg.max_samples)?;
+        let rows = s.rows();
+        if rows < 2 {
+            bail!("offline designer: the dataset has {rows} usable steps; it needs at least 2");
         }
-        let kept = prescreen(&s, n, width, &cands, &targets.weights, self.cfg.prescreen);
+        let kept = prescreen(&mut s, &cands, &targets.weights, self.cfg.prescreen)?;
         let mut cols: Vec<usize> = kept.iter().flat_map(|&k| cands[k].col..cands[k].col + cands[k].width).collect();
         cols.sort_unstable();
-        let base_w = s.base.len() / (s.rows * n);
-        let stats = covariance(&s, n, base_w, width, cols);
-        let (picks, steps) = select(&stats, &cands, &kept, &targets.weights, per_block, &self.cfg);
+        let stats = covariance(&mut s, cols)?;
+        drop(s);
+        let (picks, steps) = select(stats, &cands, &kept, &targets.weights, per_block, &self.cfg);
         if picks.is_empty() {
             bail!("offline designer: no candidate feature fits the {per_block} value columns per sender block of phase {phase}");
         }
@@ -187,13 +188,13 @@ impl OfflineDesigner {
         };
         let field_text: Vec<String> = fields.iter().map(|f| format!("'{}': {}", f.name, f.description)).collect();
         let instruction = format!(
-            "offline designer: phase {phase} ({goal}), chosen by greedy least squares on the dataset, not by an LLM. {} Each agent sends: {}. Together these explain an estimated {:.1}% of the weighted variance of the {} target state dims that receivers could not explain from their own observation{} (linear R^2 on {} sampled steps). Every sender block starts with the sender's one-hot id.",
+            "offline designer: phase {phase} ({goal}), chosen by greedy least squares on the dataset, not by an LLM. {} Each agent sends: {}. Together these explain an estimated {:.1}% of the weighted variance of the {} target state dims that receivers could not explain from their own observation{} (linear R^2 on {} sampled steps). Each sender's values reach a receiver after the sender's one-hot id (once per sender in the compact layout).",
             targets.why,
             field_text.join("; "),
             100.0 * total_gain,
             targets.dims.len(),
             if prev.is_empty() { "" } else { " and the earlier phases' messages" },
-            s.rows,
+            rows,
         );
         let mut crit: Vec<usize> = critical.to_vec();
         crit.sort_unstable();
@@ -206,6 +207,7 @@ impl OfflineDesigner {
             critical_state_reasoning: Some(format!("offline designer: {} Targets (first 8): {}.", targets.why, target_text.join("; "))),
             sender_one_hot: true,
             history_padding: HistoryPadding::default(),
+            layout: MessageLayout::default(),
             fields,
         };
         let validated = protocol::validate_phase(&p, env, &prev)
@@ -218,7 +220,7 @@ impl OfflineDesigner {
             cands.len(),
             kinds.iter().map(|k| k.words().0).collect::<Vec<_>>().join(", "),
             kept.len(),
-            s.rows,
+            rows,
             steps.iter().map(|l| format!("- {l}")).collect::<Vec<_>>().join("\n"),
             validated.width,
         );
