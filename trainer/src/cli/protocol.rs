@@ -187,23 +187,8 @@ fn measure(
         "evaluations": evaluations,
     });
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
-    println!("| phases | message columns | fixed dims | recovery with / without (retrained) / without (zeroed) | skill with / retrained / zeroed | constant guess |");
-    println!("| --- | --- | --- | --- | --- | --- |");
     for e in &evaluations {
-        let f = &e.fixed_dims;
-        println!(
-            "| 0..={} | {} | {} | {:.3} / {:.3} / {:.3} | {:.3} / {:.3} / {:.3} | {:.3} |",
-            e.phase,
-            e.message_columns,
-            f.dims,
-            f.with_messages.mean_recovery,
-            f.without_retrained.mean_recovery,
-            f.without_zeroed.mean_recovery,
-            f.with_messages.skill,
-            f.without_retrained.skill,
-            f.without_zeroed.skill,
-            f.constant_guess_rate
-        );
+        println!("phases 0..={} ({} message columns), fixed dims {}", e.phase, e.message_columns, e.fixed_dims.summary_line());
     }
     super::plot("plot_design.py", out);
     println!("written: {}/summary.json, recovery.png, phase<k>/{{meta,recovery}}.json", out.display());

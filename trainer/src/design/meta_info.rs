@@ -195,6 +195,15 @@ pub struct SetTrend {
 }
 
 impl SetTrend {
+    /// One line for logs and the CLI.
+    pub fn summary_line(&self) -> String {
+        let (w, r, z) = (&self.with_messages, &self.without_retrained, &self.without_zeroed);
+        format!(
+            "on {} dims: recovery {:.3} with messages, {:.3} without (retrained), {:.3} (zeroed); constant guess {:.3}; skill {:.3} / {:.3} / {:.3}",
+            self.dims, w.mean_recovery, r.mean_recovery, z.mean_recovery, self.constant_guess_rate, w.skill, r.skill, z.skill
+        )
+    }
+
     /// Means over the entries of `table` whose dim is in `dims` (all entries when `dims` is
     /// empty); rates rounded to 4 decimals, variances to 6.
     pub fn over(table: &[DimRates], dims: &[usize]) -> SetTrend {

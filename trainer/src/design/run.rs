@@ -111,21 +111,11 @@ pub fn evaluate_phase(
         without_messages: meta.summary.without_communication.clone(),
         target_dims: meta.summary.target_dims.clone(),
     };
-    let f = &ev.fixed_dims;
     eprintln!("lmac: phase {k}: {}", meta.summary_line());
     for d in &meta.dead_fields {
         eprintln!("lmac: phase {k}: warning: {d}");
     }
-    eprintln!(
-        "lmac: phase {k}: on the {} fixed dims: recovery {:.3} with messages, {:.3} without (retrained), {:.3} (zeroed); skill over the constant guess {:.3} / {:.3} / {:.3}",
-        f.dims,
-        f.with_messages.mean_recovery,
-        f.without_retrained.mean_recovery,
-        f.without_zeroed.mean_recovery,
-        f.with_messages.skill,
-        f.without_retrained.skill,
-        f.without_zeroed.skill
-    );
+    eprintln!("lmac: phase {k}: fixed dims {}", ev.fixed_dims.summary_line());
     Ok((meta, ev))
 }
 
