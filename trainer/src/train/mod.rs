@@ -82,6 +82,11 @@ pub struct TrainActor {
     dims: EpisodeDims,
     /// Per member, per env: is the current episode a greedy test episode?
     testing: Vec<Vec<bool>>,
+    /// Per member, per env: whether each episode started and not yet reported done is a test
+    /// episode, oldest first. `act` may see an env's next episode start before or after
+    /// `episode_done` gets the one that ended, so the finished episode's own flag is looked up
+    /// here, never in `testing` (which already belongs to the next episode).
+    started_tests: Vec<Vec<std::collections::VecDeque<bool>>>,
     test_pending: usize,
     test_returns: Vec<(f32, bool)>,
     /// The run reached its step budget and asked for its final test phase (a run always ends
@@ -117,7 +122,10 @@ impl TrainActor {
     /// Training is done and the dataset is being collected (no learning, no test phases).
     /// A test phase is asked for or under way.
     fn test_in_progress(&self) -> bool {
-        self.test_pending > 0 || !self.test_returns.is_empty() || self.testing.iter().flatten().any(|&t| t)
+        self.test_pending > 0
+            || !self.test_returns.is_empty()
+            || self.testing.iter().flatten().any(|&t| t)
+            || self.started_tests.iter().flatten().any(|q| q.contains(&true))
     }
 
     fn collecting(&self) -> bool {
@@ -207,6 +215,7 @@ impl Actor for TrainActor {
             if first {
                 // Start a greedy test episode here if a test phase wants more.
                 self.testing[member][e] = self.test_pending > 0;
+                self.started_tests[member][e].push_back(self.testing[member][e]);
                 if self.test_pending > 0 {
                     self.test_pending -= 1;
                 }
@@ -238,8 +247,7 @@ impl Actor for TrainActor {
     }
 
     fn episode_done(&mut self, member: usize, env: usize, ep: Episode, won: bool) {
-        if self.testing[member][env] {
-            self.testing[member][env] = false;
+        if self.started_tests[member][env].pop_front().unwrap_or(false) {
             self.test_returns.push((ep.team_return(), won));
             if self.test_returns.len() >= self.cfg.run.test_episodes {
                 let n = self.test_returns.len() as f64;
@@ -413,6 +421,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     });
     let mut actor = TrainActor {
         testing: vec![vec![false; envs_per_slab]; args.n_members],
+        started_tests: vec![vec![std::collections::VecDeque::new(); envs_per_slab]; args.n_members],
         test_pending: if counters.t_env == 0 { cfg.run.test_episodes } else { 0 },
         test_returns: Vec::new(),
         final_test: false,
