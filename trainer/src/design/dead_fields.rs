@@ -11,7 +11,7 @@
 use crate::dataset::Dataset;
 use anyhow::{anyhow, Result};
 use lmac_protocol_runner::plan::MessagePlan;
-use lmac_protocol_runner::protocol::{self, ProtocolEnv, ValidatedProtocol};
+use lmac_protocol_runner::protocol::{self, ProtocolEnv, ProtocolPlan, ValidatedProtocol};
 use serde::{Deserialize, Serialize};
 
 /// Why a column carries nothing.
@@ -78,8 +78,15 @@ pub fn find(data: &Dataset, phases: &[ValidatedProtocol], env: &ProtocolEnv) -> 
         ));
     }
     let plan = protocol::compile_plan(phases, env).map_err(|e| anyhow!("compiling the protocol: {}", protocol::errors_to_text(&e)))?;
-    let md = plan.msg_dim();
     let messages = data.messages(&mut plan.clone());
+    Ok(scan(data, &plan, &messages))
+}
+
+/// The dead links of `plan` on `data`, given the messages the plan writes on it
+/// ([`Dataset::messages`]; the design loop has them already).
+pub fn scan(data: &Dataset, plan: &ProtocolPlan, messages: &[Vec<f32>]) -> Vec<DeadField> {
+    let (n, od) = (data.header.n_agents, data.header.obs_dim);
+    let md = plan.msg_dim();
     let mut dead = Vec::new();
     for i in 0..n {
         let cols = plan.columns(i);
@@ -131,5 +138,5 @@ pub fn find(data: &Dataset, phases: &[ValidatedProtocol], env: &ProtocolEnv) -> 
             c = end;
         }
     }
-    Ok(dead)
+    dead
 }

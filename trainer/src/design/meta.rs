@@ -23,6 +23,7 @@ use super::DesignContext;
 use crate::dataset::Dataset;
 use anyhow::{bail, Result};
 use burn::tensor::Device;
+use lmac_protocol_runner::plan::MessagePlan;
 use lmac_protocol_runner::protocol::{self, ValidatedProtocol};
 use serde::{Deserialize, Serialize};
 
@@ -363,6 +364,8 @@ pub struct Measured {
     pub message_columns: usize,
     /// Constant-guess rate of each measured dim ([`constant_guess`]), aligned with `with.dims`.
     pub guess: Vec<f64>,
+    /// The protocol's links that carry nothing on B ([`super::dead_fields`]).
+    pub dead_fields: Vec<super::dead_fields::DeadField>,
 }
 
 /// Recompute the messages of `phases` on B with the runner's compiled plan, train D^(k) with
@@ -374,12 +377,14 @@ pub fn measure(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &Discrimi
     check_dataset(data, ctx)?;
     cfg.validate()?;
     let (train, test) = split_episodes(data.episodes.len(), cfg.holdout_fraction, ctx.seed)?;
-    let (messages, msg_dim) = if phases.is_empty() {
-        (Vec::new(), 0)
+    let (messages, msg_dim, dead_fields) = if phases.is_empty() {
+        (Vec::new(), 0, Vec::new())
     } else {
-        let mut plan =
-            protocol::compile(phases, ctx.env).map_err(|e| anyhow::anyhow!("compiling the protocol: {}", protocol::errors_to_text(&e)))?;
-        (data.messages(plan.as_mut()), plan.msg_dim())
+        let plan = protocol::compile_plan(phases, ctx.env)
+            .map_err(|e| anyhow::anyhow!("compiling the protocol: {}", protocol::errors_to_text(&e)))?;
+        let messages = data.messages(&mut plan.clone());
+        let dead = super::dead_fields::scan(data, &plan, &messages);
+        (messages, plan.msg_dim(), dead)
     };
     let all: Vec<usize> = if dims.is_empty() { (0..data.header.state_dim).collect() } else { dims.to_vec() };
     let device = Device::default();
@@ -396,7 +401,7 @@ pub fn measure(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &Discrimi
         (with, Recovery::measure(&d1, &zeroed_input, &test, &all, alpha)?, report)
     };
     let guess = constant_guess(data, &train, &test, &all, alpha);
-    Ok(Measured { with, without, zeroed, with_report, without_report, held_out: test, message_columns: msg_dim, guess })
+    Ok(Measured { with, without, zeroed, with_report, without_report, held_out: test, message_columns: msg_dim, guess, dead_fields })
 }
 
 /// The design loop's evaluation of phases 0..=k on B: the meta-information.
@@ -438,9 +443,7 @@ pub fn evaluate_all(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &Met
         config: cfg,
     };
     let mut meta = meta_info(&facts, &m.with, without, &m.guess, &targets, &selection);
-    if let Some(data) = ctx.dataset {
-        meta.dead_fields = super::dead_fields::find(data, phases, ctx.env)?.iter().map(|d| d.describe()).collect();
-    }
+    meta.dead_fields = m.dead_fields.iter().map(|d| d.describe()).collect();
     let r4 = |v: Vec<f64>| v.into_iter().map(|x| (x * 1e4).round() / 1e4).collect::<Vec<f64>>();
     let dims = (0..m.with.dims.len())
         .map(|k| DimRates {

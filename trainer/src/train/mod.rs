@@ -119,15 +119,13 @@ pub struct TrainActor {
 }
 
 impl TrainActor {
-    /// Training is done and the dataset is being collected (no learning, no test phases).
-    /// A test phase is asked for or under way.
+    /// A test phase is asked for or under way (a running test episode is in `started_tests`
+    /// until it is reported done).
     fn test_in_progress(&self) -> bool {
-        self.test_pending > 0
-            || !self.test_returns.is_empty()
-            || self.testing.iter().flatten().any(|&t| t)
-            || self.started_tests.iter().flatten().any(|q| q.contains(&true))
+        self.test_pending > 0 || !self.test_returns.is_empty() || self.started_tests.iter().flatten().any(|q| q.contains(&true))
     }
 
+    /// Training is done and the dataset is being collected (no learning, no test phases).
     fn collecting(&self) -> bool {
         self.t_env >= self.cfg.run.steps && self.cfg.run.dataset_episodes > 0
     }
