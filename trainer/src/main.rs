@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand};
 use cli::bench::BenchCmd;
 use cli::child::ChildCmd;
 use cli::design::DesignArgs;
+use cli::evaluate::{EvaluateArgs, EVALUATE_AFTER_HELP};
 use cli::experiment::ExperimentArgs;
 use cli::faults::{ChaosArgs, SoakArgs};
 use cli::protocol::ProtocolCmd;
@@ -29,15 +30,22 @@ struct Cli {
 enum Cmd {
     /// Run the pipeline with a random policy: env servers -> protocol runner -> trainer (throughput, checks).
     Run(RunArgs),
-    /// Train a method (qmix, vdn, qplex, fullcomm, qmix-state, lmac) through the pipeline, over several seeds.
+    /// Train a method (qmix, vdn, qplex, fullcomm, qmix-state, lmac, or a communication baseline) through the pipeline, over several seeds.
     #[command(after_long_help = TRAIN_AFTER_HELP)]
     Train(TrainArgs),
+    /// Greedy test episodes of trained runs from their last checkpoints, optionally with a
+    /// method's test-time settings changed (e.g. NDQ's message cuts).
+    #[command(after_long_help = EVALUATE_AFTER_HELP)]
+    Evaluate(EvaluateArgs),
     /// Design a communication protocol in three phases (initialization, recognition enhancement,
     /// sharing enhancement) with an LLM or the embedded offline designer, checked on real data.
     Design(DesignArgs),
     /// The paper's Algorithm 1 end to end: one protocol design, then LMAC and the baselines over
     /// seeds with the same settings, then a comparison table and curves (rerun to resume).
     Experiment(ExperimentArgs),
+    /// Merge training runs: IQM, median and mean with stratified-bootstrap CIs (rliable's
+    /// method), performance profile and sample-efficiency plots, marl-eval JSON (`lmac report --help`).
+    Report(cli::report::ReportArgs),
     /// Protocols: check a protocol file against an environment, explain it, print the JSON Schema.
     #[command(subcommand)]
     Protocol(ProtocolCmd),
@@ -93,9 +101,11 @@ fn dispatch(cli: Cli) -> Result<i32> {
         Cmd::Envs { check, json, .. } => cli::envs::envs(check, json),
         Cmd::Run(a) => cli::run::run(a),
         Cmd::Train(a) => cli::train::train(a),
+        Cmd::Evaluate(a) => cli::evaluate::evaluate(a),
         Cmd::Protocol(p) => cli::protocol::protocol_cmd(p),
         Cmd::Design(d) => cli::design::design(d),
         Cmd::Experiment(e) => cli::experiment::experiment(e),
+        Cmd::Report(a) => cli::report::report(a),
         Cmd::Bench(BenchCmd::Pipeline { p, repeat, json }) => cli::bench::bench_pipeline(p, repeat, json),
         Cmd::Bench(BenchCmd::Train { env, algo, protocol, envs, steps, updates, json }) => {
             cli::bench::bench_train(&env, &algo, protocol.as_deref(), &envs, steps, updates, json)

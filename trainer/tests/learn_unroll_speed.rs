@@ -232,6 +232,7 @@ fn the_lmac_unroll_equals_the_per_step_reference_in_values_terms_and_gradients()
                 n_agents: DIMS.n_agents,
                 seed: 7,
                 actions: None,
+                reward: None,
             };
             // Deterministic (acting, target network) and in training (dropout, extra losses).
             for train in [None, Some(&ctx)] {

@@ -48,6 +48,7 @@ fn data(t: usize, b: usize, mask: &[f32], device: &Device) -> (Vec<Tensor<2>>, T
         n_agents: DIMS.n_agents,
         seed: 1,
         actions: None,
+        reward: None,
     };
     (inputs, ctx, state)
 }

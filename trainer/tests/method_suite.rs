@@ -23,6 +23,12 @@ fn cases() -> Vec<(String, LearnConfig, AgentConfig)> {
         ("td-raw", "td_to_encoder = true\nraw_messages = true"),
         ("smac-weights", "c_beta = 0.1\ncomm_beta = 1e-4\nentropy_beta = 0.0\nmsg_dim = 2"),
         ("released", "message_input = \"receiver\"\nbatch_norm = \"batch\"\nmi_action = \"greedy\""),
+        ("frozen-selector", "selector = \"frozen\"\nown_weight = 2.0\nattention_dim = 8"),
+        ("hidden-input", "input = \"hidden\"\nclasses = 3\nembed_dim = 2"),
+        // MASIA: the momentum copy refreshed after every update (so the round trip checks it is
+        // saved), and one step of latent prediction with a narrower latent.
+        ("momentum-ema", "momentum_interval = 1\nmomentum_tau = 0.5"),
+        ("one-step-ahead", "pred_len = 1\nlatent_dim = 3\nmomentum_interval = 1"),
     ] {
         tables.push((name.to_string(), toml::from_str(extra).unwrap()));
     }
@@ -44,7 +50,19 @@ fn cases() -> Vec<(String, LearnConfig, AgentConfig)> {
     assert!(out.iter().any(|c| matches!(&c.2, AgentConfig::Lmac(l) if l.settings.encoder == EncoderKind::Window)));
     // The communication baselines, default and variants; NDQ once more with the target network
     // unrolled on a second thread (its inference loss then waits for the target's greedy actions).
-    for want in ["ndq ", "ndq smac-weights", "maic ", "maic released"] {
+    for want in [
+        "ndq ",
+        "ndq smac-weights",
+        "maic ",
+        "maic released",
+        "t2mac ",
+        "t2mac frozen-selector",
+        "cola ",
+        "cola hidden-input",
+        "masia ",
+        "masia momentum-ema",
+        "masia one-step-ahead",
+    ] {
         assert!(out.iter().any(|c| c.0 == want), "no case {want:?}");
     }
     let mut parallel = out.iter().find(|c| c.0 == "ndq ").cloned().expect("ndq case");
@@ -225,11 +243,29 @@ fn one_update_sends_a_gradient_to_every_parameter() {
 }
 
 #[test]
+fn the_gradient_check_skips_what_is_not_trained_but_counts_a_trainable_parameter_left_without_one() {
+    // COLA keeps its teacher (8 weights and biases) and its center out of the optimizer and
+    // passes the check above; with its consensus loss weighted 0, the student's 8 weights and
+    // biases (trainable, reached by no other loss) get all-zero gradients and are counted.
+    let (_, learn, mut agent) = cases().into_iter().find(|c| c.0 == "cola ").expect("cola case");
+    let AgentConfig::Cola(c) = &mut agent else { panic!("not a COLA config") };
+    c.settings.consensus_weight = 0.0;
+    let mut l = filled(&learn, &agent);
+    let batch = l.sample_batch();
+    let (loss, _) = l.td_loss(&batch).unwrap();
+    let grads = GradientsParams::from_grads(loss.backward(), l.online_net());
+    assert_eq!(params_without_gradient(l.online_net(), &grads), 8);
+}
+
+#[test]
 fn the_communication_baselines_resolve_through_the_run_config_without_a_protocol() {
     use lmac_trainer::train::TrainConfig;
-    for (algo, good, bad, field) in
-        [("ndq", "method.cut=90", "method.cut=120", "method.cut"), ("maic", "method.prune=0.5", "method.prune=-1", "method.prune")]
-    {
+    for (algo, good, bad, field) in [
+        ("ndq", "method.cut=90", "method.cut=120", "method.cut"),
+        ("maic", "method.prune=0.5", "method.prune=-1", "method.prune"),
+        ("masia", "method.pred_len=1", "method.momentum_tau=2.0", "method.momentum_tau"),
+        ("cola", "method.classes=8", "method.teacher_temp=0.0", "method.teacher_temp"),
+    ] {
         let set = |extra: &str| vec![format!("run.algo={algo:?}"), extra.to_string()];
         let cfg = TrainConfig::resolve(None, &set(good)).unwrap_or_else(|e| panic!("{algo}: {e:#}"));
         assert_eq!(cfg.protocol().unwrap(), "none", "{algo} makes its own messages: the runner writes none");

@@ -28,7 +28,7 @@ pub(crate) enum BenchCmd {
     Train {
         #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
         env: String,
-        /// qmix | vdn | qplex | fullcomm | qmix-state | lmac | ndq | maic
+        /// qmix | vdn | qplex | fullcomm | qmix-state | lmac | ndq | maic | masia | t2mac | cola
         #[arg(long, default_value = "qmix")]
         algo: String,
         /// Protocol (a design directory or phase files; lmac needs one).

@@ -45,6 +45,9 @@ pub(crate) enum ChildCmd {
         /// Train with the run directory's config (instead of acting randomly).
         #[arg(long)]
         train_dir: Option<std::path::PathBuf>,
+        /// With --train-dir: evaluate its checkpoint as this spec (JSON) says instead of training.
+        #[arg(long, requires = "train_dir")]
+        evaluate: Option<std::path::PathBuf>,
         /// Write the report (JSON) here for the parent.
         #[arg(long)]
         report: std::path::PathBuf,
@@ -77,7 +80,7 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                 }
             }
         }
-        ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress, train_dir, report: report_to } => {
+        ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress, train_dir, evaluate, report: report_to } => {
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
             let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
             let check = match o.protocol.as_str() {
@@ -98,6 +101,19 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                 protocol: o.protocol.clone(),
                 progress,
             };
+            if let (Some(dir), Some(spec)) = (&train_dir, &evaluate) {
+                return match lmac_trainer::train::evaluate::evaluate_in_child(dir, spec, &args) {
+                    Ok(_) => {
+                        write_report(&report_to, &TrainerReport::default())?;
+                        Ok(0)
+                    }
+                    Err(e) if e.to_string().contains("stopped by request") => Ok(0),
+                    Err(e) => {
+                        eprintln!("lmac: trainer: {e:#}");
+                        Ok(4)
+                    }
+                };
+            }
             if let Some(dir) = train_dir {
                 return match lmac_trainer::train::train_in_child(&dir, &args, progress) {
                     Ok(report) => {

@@ -5,9 +5,11 @@ pub(crate) mod bench;
 pub(crate) mod child;
 pub(crate) mod design;
 pub(crate) mod envs;
+pub(crate) mod evaluate;
 pub(crate) mod experiment;
 pub(crate) mod faults;
 pub(crate) mod protocol;
+pub(crate) mod report;
 pub(crate) mod run;
 pub(crate) mod train;
 
@@ -70,6 +72,25 @@ pub(crate) fn parse_duration(s: &str) -> Result<f64, String> {
         _ => (&t[..], 1.0),
     };
     num.parse::<f64>().ok().filter(|v| *v > 0.0).map(|v| v * mul).ok_or_else(|| format!("{s:?} is not a duration (e.g. 2h, 30m, 90s)"))
+}
+
+impl PipelineOpts {
+    /// The pipeline of a training run's config (its env, environments, servers and protocol),
+    /// with the env servers seeded from `seed`; it runs until the trainer child ends it.
+    pub(crate) fn for_run(cfg: &lmac_trainer::train::TrainConfig, seed: u64) -> Result<Self> {
+        Ok(PipelineOpts {
+            env: cfg.run.env.clone(),
+            envs: cfg.run.envs,
+            servers: cfg.run.servers,
+            // 0 = the default for the environment's schema (pipeline_report applies it).
+            sub_batches: (cfg.run.sub_batches != 0).then_some(cfg.run.sub_batches),
+            slots: 4,
+            protocol: cfg.protocol()?,
+            steps: u64::MAX / 4,
+            seed,
+            startup_timeout: 60.0,
+        })
+    }
 }
 
 pub(crate) fn interrupt_flag() -> Arc<AtomicBool> {

@@ -27,7 +27,8 @@ pub(crate) struct TrainArgs {
     /// Environment (overrides run.env).
     #[arg(long)]
     env: Option<String>,
-    /// qmix | vdn | qplex | fullcomm | qmix-state | lmac | ndq | maic (overrides run.algo).
+    /// qmix | vdn | qplex | fullcomm | qmix-state | lmac | ndq | maic | masia | t2mac | cola (overrides
+    /// run.algo).
     #[arg(long)]
     algo: Option<String>,
     /// Protocol: a design directory (from `lmac design`) or phase files a.json+b.json
@@ -63,21 +64,7 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
     let interrupted = interrupt_flag();
     // The seed directories to run, each with its resolved config.toml.
     let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
-        if r.join("config.toml").exists() {
-            (r.parent().unwrap_or(r).to_path_buf(), vec![r.clone()])
-        } else {
-            let mut d: Vec<_> = std::fs::read_dir(r)
-                .with_context(|| format!("reading {}", r.display()))?
-                .flatten()
-                .map(|e| e.path())
-                .filter(|p| p.join("config.toml").exists())
-                .collect();
-            d.sort();
-            if d.is_empty() {
-                bail!("{} holds no run (no config.toml in it or its subfolders)", r.display());
-            }
-            (r.clone(), d)
-        }
+        seed_dirs(r)?
     } else {
         let mut overrides = match &a.preset {
             Some(p) => lmac_trainer::train::preset_overrides(p)?,
@@ -127,6 +114,24 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
 }
 
 /// Train each run directory (a resolved `config.toml` inside) in turn through the pipeline.
+/// The seed directories of `r` (one seed's directory, or a group holding seeds) and their group.
+pub(crate) fn seed_dirs(r: &std::path::Path) -> Result<(std::path::PathBuf, Vec<std::path::PathBuf>)> {
+    if r.join("config.toml").exists() {
+        return Ok((r.parent().unwrap_or(r).to_path_buf(), vec![r.to_path_buf()]));
+    }
+    let mut d: Vec<_> = std::fs::read_dir(r)
+        .with_context(|| format!("reading {}", r.display()))?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.join("config.toml").exists())
+        .collect();
+    d.sort();
+    if d.is_empty() {
+        bail!("{} holds no run (no config.toml in it or its subfolders)", r.display());
+    }
+    Ok((r.to_path_buf(), d))
+}
+
 pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
     use lmac_trainer::train::TrainConfig;
     for d in dirs {
@@ -147,23 +152,13 @@ pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBoo
         let dataset_done = cfg.run.dataset_episodes == 0 || lmac_trainer::train::dataset_dir(d).exists();
         if done_t_env >= cfg.run.steps && dataset_done {
             eprintln!("lmac: {} seed {}: already finished (t_env {done_t_env} of {})", d.display(), cfg.learn.seed, cfg.run.steps);
+            final_evaluation(d, &cfg, interrupted.clone())?;
             continue;
         }
         eprintln!("lmac: {} {} seed {} -> {}", cfg.run.env, cfg.run.algo, cfg.learn.seed, d.display());
-        let p = PipelineOpts {
-            env: cfg.run.env.clone(),
-            envs: cfg.run.envs,
-            servers: cfg.run.servers,
-            // 0 = the default for the environment's schema (pipeline_report applies it).
-            sub_batches: (cfg.run.sub_batches != 0).then_some(cfg.run.sub_batches),
-            slots: 4,
-            protocol: cfg.protocol()?,
-            steps: u64::MAX / 4,
-            // A resumed segment's environments start from other seeds than the first segment's
-            // (else it would replay the same episodes).
-            seed: cfg.learn.seed + done_t_env,
-            startup_timeout: 60.0,
-        };
+        // A resumed segment's environments start from other seeds than the first segment's (else
+        // it would replay the same episodes).
+        let p = PipelineOpts::for_run(&cfg, cfg.learn.seed + done_t_env)?;
         let extra = vec![
             "--train-dir".to_string(),
             std::fs::canonicalize(d)?.display().to_string(),
@@ -172,6 +167,31 @@ pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBoo
             "1".into(),
         ];
         pipeline_report(&p, extra, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
+        final_evaluation(d, &cfg, interrupted.clone())?;
     }
     Ok(())
+}
+
+/// A finished run's `marl_eval.json`, with its absolute metrics: the best test phase's
+/// checkpoint evaluated greedily over `run.final_eval_episodes` episodes (10 x the test phase
+/// by default). Done once; a rerun of a finished run finds the file and skips it.
+fn final_evaluation(d: &std::path::Path, cfg: &lmac_trainer::train::TrainConfig, interrupted: Arc<AtomicBool>) -> Result<()> {
+    use lmac_trainer::train::evaluate::EvalSpec;
+    if d.join("marl_eval.json").exists() {
+        return Ok(());
+    }
+    let episodes = cfg.run.final_eval_episodes.unwrap_or(10 * cfg.run.test_episodes);
+    let result = if episodes == 0 {
+        None
+    } else {
+        eprintln!("lmac: {} seed {}: final evaluation of the best checkpoint, {episodes} greedy episodes", cfg.run.env, cfg.learn.seed);
+        let spec = EvalSpec { episodes, method: toml::Table::new(), best: true };
+        let r = super::evaluate::evaluate_run(d, cfg, &spec, "final", super::evaluate::EVAL_SEED_OFFSET, interrupted)?;
+        eprintln!(
+            "lmac: {} seed {}: final evaluation ({} checkpoint, t_env {}): return {:.3}, win rate {:.3}",
+            cfg.run.env, cfg.learn.seed, r.checkpoint, r.t_env, r.mean_return, r.win_rate
+        );
+        Some(r)
+    };
+    lmac_trainer::train::marl_eval::write_marl_eval(d, cfg, result.as_ref())
 }

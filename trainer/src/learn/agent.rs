@@ -83,18 +83,21 @@ impl RnnAgent {
     /// bench (issue 16): about 40% more CPU per QMIX update; `split`, `select`, a binary split
     /// tree and chunks of 2-10 steps were all no faster than per step.
     pub fn unroll(&self, inputs: Vec<Tensor<2>>) -> Tensor<3> {
-        let t_len = inputs.len();
-        assert!(t_len > 0, "unroll needs at least one step");
+        self.fc2.forward(self.hidden_states(&inputs))
+    }
+
+    /// The GRU's hidden states over time from zero, stacked once: `inputs[t]` [N, in] ->
+    /// [T, N, H] (what `unroll` reads, and the methods whose heads read h).
+    pub fn hidden_states(&self, inputs: &[Tensor<2>]) -> Tensor<3> {
+        assert!(!inputs.is_empty(), "unroll needs at least one step");
         let n = inputs[0].dims()[0];
-        let device = inputs[0].device();
-        let mut h: Tensor<2> = Tensor::zeros([n, self.hidden_dim], &device);
-        let mut hs = Vec::with_capacity(t_len);
+        let mut h: Tensor<2> = Tensor::zeros([n, self.hidden_dim], &inputs[0].device());
+        let mut hs = Vec::with_capacity(inputs.len());
         for x in inputs {
-            let e = relu(self.fc1.forward(x));
+            let e = relu(self.fc1.forward(x.clone()));
             h = self.gru.forward(e, h);
             hs.push(h.clone());
         }
-        let hs: Tensor<3> = Tensor::stack(hs, 0);
-        self.fc2.forward(hs)
+        Tensor::stack(hs, 0)
     }
 }

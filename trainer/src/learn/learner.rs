@@ -272,6 +272,7 @@ impl Learner {
             n_agents: n,
             seed: self.cfg.seed ^ (self.counters.updates + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
             actions: Some(step_actions),
+            reward: Some(Tensor::from_data(TensorData::new(batch.reward.clone(), [nb]), &ad)),
         };
         let target_unroll = || {
             // Filled with `None` if the unroll panics, so an online unroll waiting for the greedy
@@ -375,7 +376,8 @@ impl Learner {
         if coef < 1.0 {
             scale_grads(&self.net, &mut grads, coef);
         }
-        self.net = self.optim.step(self.cfg.lr, self.net.clone(), grads);
+        let QNet { agent, mixer } = self.optim.step(self.cfg.lr, self.net.clone(), grads);
+        self.net = QNet { agent: agent.after_update(), mixer };
         self.counters.updates += 1;
         stats.loss = loss_v;
         stats.grad_norm = grad_norm;

@@ -15,7 +15,7 @@ use std::path::Path;
 pub struct RunSection {
     pub env: String,
     /// A method of `learn::methods::REGISTRY`: qmix, vdn, qplex, fullcomm, qmix-state, lmac, ndq,
-    /// maic.
+    /// maic, masia, t2mac, cola.
     pub algo: String,
     /// Environment steps to train for.
     pub steps: u64,
@@ -36,6 +36,11 @@ pub struct RunSection {
     pub test_interval: u64,
     /// Greedy episodes per test phase.
     pub test_episodes: usize,
+    /// Greedy episodes of the final evaluation of the best test phase's checkpoint when the
+    /// run ends (marl-eval's absolute metrics, in `marl_eval.json`); absent = 10 x
+    /// `test_episodes`, 0 = none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub final_eval_episodes: Option<usize>,
     /// Env steps between training-metric rows.
     pub log_interval: u64,
     /// Env steps between checkpoints.
@@ -43,7 +48,8 @@ pub struct RunSection {
     /// Also store the replay buffer in checkpoints (exact resumption; large).
     pub save_buffer: bool,
     /// Message protocol for the runner: empty = the algorithm's own (`none` for qmix, vdn,
-    /// qplex, qmix-state, ndq and maic, which make their messages inside the network;
+    /// qplex, qmix-state, cola (which sends none), ndq, maic, masia and t2mac, which make their
+    /// messages inside the network;
     /// `fullcomm` for fullcomm); else a design directory (its
     /// `phase<k>/protocol.json` files) or protocol files joined by '+'
     /// (`phase0.json+phase1.json`). Required by lmac; not allowed with fullcomm.
@@ -71,6 +77,7 @@ impl Default for RunSection {
             updates_per_episode: 0.125,
             test_interval: 10_000,
             test_episodes: 32,
+            final_eval_episodes: None,
             log_interval: 5_000,
             checkpoint_interval: 100_000,
             save_buffer: false,

@@ -5,6 +5,8 @@
 //! `learn/`.
 
 pub mod config;
+pub mod evaluate;
+pub mod marl_eval;
 pub mod metrics;
 
 pub use config::{preset_overrides, protocol_files, RunSection, TrainConfig, PRESETS};
@@ -18,6 +20,7 @@ use crate::pipeline::Actor;
 use anyhow::{bail, Context, Result};
 use lmac_shm_schema::{Slot, FLAG_FIRST};
 use parking_lot::Mutex;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::sync::Arc;
@@ -71,6 +74,30 @@ struct Shared {
 enum ToLearner {
     Episode(Episode),
     Checkpoint,
+    /// A test phase scored better than any before: keep the learner's state as the best
+    /// checkpoint (what a final evaluation reads).
+    SaveBest(BestTest),
+}
+
+/// The best test phase so far, saved next to the best checkpoint (`best_test.json`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BestTest {
+    pub test_return: f64,
+    pub t_env: u64,
+}
+
+/// The best test phase of a run so far, if one was saved. A file that cannot be read is
+/// reported and treated as none (the next best test phase rewrites it).
+pub fn read_best_test(run_dir: &Path) -> Option<BestTest> {
+    let path = run_dir.join("best_test.json");
+    let bytes = std::fs::read(&path).ok()?;
+    match serde_json::from_slice(&bytes) {
+        Ok(b) => Some(b),
+        Err(e) => {
+            eprintln!("lmac: trainer: ignoring {}: {e}", path.display());
+            None
+        }
+    }
 }
 
 /// The actor side of training: epsilon-greedy acting, test episodes, metrics.
@@ -112,6 +139,8 @@ pub struct TrainActor {
     scratch_first: Vec<bool>,
     bar: Option<indicatif::ProgressBar>,
     last_test_return: Option<f64>,
+    /// The best test phase so far (its checkpoint is in `best_checkpoint_dir`).
+    best_test: Option<BestTest>,
     /// The trajectory dataset being collected once training is done (`run.dataset_episodes`).
     dataset: Vec<Trajectory>,
     /// Observation columns without messages (what the dataset keeps).
@@ -254,6 +283,11 @@ impl Actor for TrainActor {
                 self.test_returns.clear();
                 self.last_test_return = Some(ret);
                 self.log(Some((ret, win)));
+                if self.best_test.is_none_or(|b| ret > b.test_return) {
+                    let best = BestTest { test_return: ret, t_env: self.t_env };
+                    self.best_test = Some(best);
+                    let _ = self.tx.send(ToLearner::SaveBest(best));
+                }
             }
             return;
         }
@@ -350,6 +384,12 @@ pub fn checkpoint_dir(run_dir: &Path) -> PathBuf {
     run_dir.join("checkpoint")
 }
 
+/// Where the learner keeps the checkpoint of the best test phase so far (without the replay
+/// buffer), with `best_test.json` beside it in the run directory.
+pub fn best_checkpoint_dir(run_dir: &Path) -> PathBuf {
+    run_dir.join("checkpoint_best")
+}
+
 /// The trainer child's training entry point: build (or resume) the learner, start its thread,
 /// run the pipeline with the training actor, and finish with a checkpoint.
 pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progress: bool) -> Result<crate::pipeline::TrainerReport> {
@@ -405,8 +445,11 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     let learner_thread = {
         let shared = shared.clone();
         let ck = ck.clone();
+        let run_dir = run_dir.to_path_buf();
         let save_buffer = cfg.run.save_buffer;
-        std::thread::Builder::new().name("learner".into()).spawn(move || learner_loop(learner, rx, shared, ck, save_buffer, schedule))?
+        std::thread::Builder::new()
+            .name("learner".into())
+            .spawn(move || learner_loop(learner, rx, shared, ck, &run_dir, save_buffer, schedule))?
     };
     let bar = progress.then(|| {
         let b = indicatif::ProgressBar::new(cfg.run.steps);
@@ -441,6 +484,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         scratch_first: Vec::new(),
         bar,
         last_test_return: None,
+        best_test: read_best_test(run_dir),
         dataset: Vec::new(),
         obs_dim: schema.obs_dim,
         rng: LearnRng::seed_from(learn.seed ^ 0xAC70_0000 ^ counters.t_env),
@@ -482,6 +526,7 @@ fn learner_loop(
     rx: mpsc::Receiver<ToLearner>,
     shared: Arc<Mutex<Shared>>,
     ck: PathBuf,
+    run_dir: &Path,
     save_buffer: bool,
     schedule: UpdateSchedule,
 ) {
@@ -528,6 +573,21 @@ fn learner_loop(
                         return;
                     }
                     saved_at = Some(learner.counters());
+                }
+                ToLearner::SaveBest(best) => {
+                    // The checkpoint first, then the record that names it: a crash between the
+                    // two leaves an older record, never one without its checkpoint.
+                    let saved = learner.save_checkpoint(best_checkpoint_dir(run_dir), false).map_err(|e| e.to_string()).and_then(|()| {
+                        let path = run_dir.join("best_test.json");
+                        let tmp = path.with_extension("json.tmp");
+                        std::fs::write(&tmp, serde_json::to_vec_pretty(&best).expect("a plain struct"))
+                            .and_then(|()| std::fs::rename(&tmp, &path))
+                            .map_err(|e| format!("{}: {e}", path.display()))
+                    });
+                    if let Err(e) = saved {
+                        shared.lock().error.get_or_insert(format!("writing the best checkpoint failed: {e}"));
+                        return;
+                    }
                 }
             }
         }

@@ -14,11 +14,14 @@
 //! about any method. Adding one = a file or folder here, a variant of [`AgentConfig`] and
 //! [`AgentNet`], and a line in [`REGISTRY`]; `tests/method_suite.rs` then checks it.
 
+pub mod cola;
 pub mod fullcomm;
 pub mod lmac;
 pub mod maic;
+pub mod masia;
 pub mod ndq;
 pub mod qmix_state;
+pub mod t2mac;
 pub mod value_decomposition;
 
 use std::sync::{Arc, OnceLock};
@@ -79,6 +82,9 @@ pub const REGISTRY: &[&MethodSpec] = &[
     &lmac::LMAC,
     &ndq::NDQ,
     &maic::MAIC,
+    &t2mac::T2MAC,
+    &cola::COLA,
+    &masia::MASIA,
 ];
 
 /// The method called `name`, or an error listing the known ones.
@@ -88,6 +94,17 @@ pub fn method(name: &str) -> Result<&'static MethodSpec, String> {
         .copied()
         .find(|m| m.name == name)
         .ok_or_else(|| format!("unknown algorithm {name:?}; known: {}", REGISTRY.iter().map(|m| m.name).collect::<Vec<_>>().join(", ")))
+}
+
+/// An error of a `[method]` setting, naming it (`method.<key>`).
+pub fn bad(field: &'static str, reason: impl Into<String>) -> ConfigError {
+    ConfigError { field, reason: reason.into() }
+}
+
+/// The `[method]` table as a method's settings (missing keys take their defaults; an unknown or
+/// mistyped key is an error whose message names it).
+pub fn parse_settings<T: serde::de::DeserializeOwned>(table: &toml::Table) -> Result<T, ConfigError> {
+    toml::Value::Table(table.clone()).try_into().map_err(|e: toml::de::Error| bad("method", e.message().to_string()))
 }
 
 /// A method without settings: any key in `[method]` is an error.
@@ -112,6 +129,15 @@ pub enum AgentConfig {
     /// MAIC: teammate models and incentive messages added to the receivers' Q-values (Yuan et
     /// al. 2022).
     Maic(maic::MaicConfig),
+    /// T2MAC: attention over teammates, evidential opinions sent to selected teammates and fused
+    /// (Sun et al. 2024).
+    T2mac(t2mac::T2macConfig),
+    /// COLA: a consensus class per agent and step, learnt DINO-style so that agents agree, next
+    /// to the GRU state (Xu et al. 2023).
+    Cola(cola::ColaConfig),
+    /// MASIA: every agent's input aggregated by a self-supervised attention encoder, gated per
+    /// agent (Guan et al. 2022).
+    Masia(masia::MasiaConfig),
 }
 
 impl AgentConfig {
@@ -121,6 +147,9 @@ impl AgentConfig {
             AgentConfig::Lmac(c) => c.validate(),
             AgentConfig::Ndq(c) => c.validate(),
             AgentConfig::Maic(c) => c.validate(),
+            AgentConfig::T2mac(c) => c.validate(),
+            AgentConfig::Cola(c) => c.validate(),
+            AgentConfig::Masia(c) => c.validate(),
         }
     }
 
@@ -131,6 +160,9 @@ impl AgentConfig {
             AgentConfig::Lmac(_) => lmac::STAT_NAMES,
             AgentConfig::Ndq(_) => ndq::STAT_NAMES,
             AgentConfig::Maic(_) => maic::STAT_NAMES,
+            AgentConfig::T2mac(_) => t2mac::STAT_NAMES,
+            AgentConfig::Cola(_) => cola::STAT_NAMES,
+            AgentConfig::Masia(_) => masia::STAT_NAMES,
         }
     }
 }
@@ -153,6 +185,9 @@ pub struct TrainContext {
     /// learner always fills it; a context built by hand (a test of a method that reads no
     /// actions) may leave it out.
     pub actions: Option<StepActions>,
+    /// [T * B]: the batch's reward of each step (0 on padded steps), for methods that predict
+    /// it. The learner always fills it; a context built by hand may leave it out.
+    pub reward: Option<Tensor<1>>,
 }
 
 /// Actions per step and agent-row, `[T, N]` with N = B * n_agents (batch-major, like the
@@ -206,6 +241,9 @@ pub enum AgentNet {
     Lmac(lmac::LmacAgent),
     Ndq(ndq::NdqAgent),
     Maic(maic::MaicAgent),
+    T2mac(t2mac::T2macAgent),
+    Cola(cola::ColaAgent),
+    Masia(masia::MasiaAgent),
 }
 
 impl AgentNet {
@@ -217,6 +255,9 @@ impl AgentNet {
             AgentConfig::Lmac(c) => AgentNet::Lmac(lmac::LmacAgent::new(rng, c, layout, cfg, device)),
             AgentConfig::Ndq(c) => AgentNet::Ndq(ndq::NdqAgent::new(rng, c, layout, cfg, device)),
             AgentConfig::Maic(c) => AgentNet::Maic(maic::MaicAgent::new(rng, c, layout, cfg, device)),
+            AgentConfig::T2mac(c) => AgentNet::T2mac(t2mac::T2macAgent::new(rng, c, layout, cfg, device)),
+            AgentConfig::Cola(c) => AgentNet::Cola(cola::ColaAgent::new(rng, c, layout, cfg, device)),
+            AgentConfig::Masia(c) => AgentNet::Masia(masia::MasiaAgent::new(rng, c, layout, cfg, device)),
         }
     }
 
@@ -227,6 +268,9 @@ impl AgentNet {
             AgentNet::Lmac(a) => a.state_width(),
             AgentNet::Ndq(a) => a.state_width(),
             AgentNet::Maic(a) => a.state_width(),
+            AgentNet::T2mac(a) => a.state_width(),
+            AgentNet::Cola(a) => a.state_width(),
+            AgentNet::Masia(a) => a.state_width(),
         }
     }
 
@@ -237,6 +281,9 @@ impl AgentNet {
             AgentNet::Lmac(a) => a.step(x, state),
             AgentNet::Ndq(a) => a.step(x, state),
             AgentNet::Maic(a) => a.step(x, state),
+            AgentNet::T2mac(a) => a.step(x, state),
+            AgentNet::Cola(a) => a.step(x, state),
+            AgentNet::Masia(a) => a.step(x, state),
         }
     }
 
@@ -249,6 +296,44 @@ impl AgentNet {
             AgentNet::Lmac(a) => a.unroll(inputs, train),
             AgentNet::Ndq(a) => a.unroll(inputs, train),
             AgentNet::Maic(a) => a.unroll(inputs, train),
+            AgentNet::T2mac(a) => a.unroll(inputs, train),
+            AgentNet::Cola(a) => a.unroll(inputs, train),
+            AgentNet::Masia(a) => a.unroll(inputs, train),
+        }
+    }
+
+    /// Change the test-time settings of a trained network from `from` to `to` (what
+    /// `lmac evaluate --set method.KEY=VALUE` does): NDQ's message cut, MAIC's pruning. Any
+    /// other difference would need other weights and is refused, naming what may change.
+    pub fn retune(&mut self, from: &AgentConfig, to: &AgentConfig) -> Result<(), String> {
+        if from == to {
+            return Ok(());
+        }
+        match (self, from, to) {
+            (AgentNet::Ndq(a), AgentConfig::Ndq(f), AgentConfig::Ndq(t))
+                if ndq::NdqSettings { cut: f.settings.cut, ..t.settings.clone() } == f.settings =>
+            {
+                a.set_cut(t.settings.cut);
+                Ok(())
+            }
+            (AgentNet::Maic(a), AgentConfig::Maic(f), AgentConfig::Maic(t))
+                if maic::MaicSettings { prune: f.settings.prune, ..t.settings.clone() } == f.settings =>
+            {
+                a.cfg.settings.prune = t.settings.prune;
+                Ok(())
+            }
+            _ => Err("only test-time settings can change for a trained network: method.cut (ndq), method.prune (maic)".into()),
+        }
+    }
+
+    /// After every optimizer step of the online network: a method's updates that are not
+    /// gradient steps (an EMA teacher, a momentum target encoder). Parameters it keeps this way
+    /// do not require grad, so the optimizer leaves them alone; they are saved with the rest.
+    pub fn after_update(self) -> Self {
+        match self {
+            AgentNet::Cola(a) => AgentNet::Cola(a.after_update()),
+            AgentNet::Masia(a) => AgentNet::Masia(a.after_update()),
+            a @ (AgentNet::Rnn(_) | AgentNet::Lmac(_) | AgentNet::Ndq(_) | AgentNet::Maic(_) | AgentNet::T2mac(_)) => a,
         }
     }
 }

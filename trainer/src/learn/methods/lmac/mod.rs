@@ -23,7 +23,7 @@ pub use module::LmacAgent;
 
 use serde::{Deserialize, Serialize};
 
-use super::{AgentConfig, Messages, MethodContext, MethodSpec};
+use super::{bad, parse_settings, AgentConfig, Messages, MethodContext, MethodSpec};
 use crate::learn::config::ConfigError;
 
 pub const LMAC: MethodSpec = MethodSpec {
@@ -126,10 +126,6 @@ pub struct LmacConfig {
     pub critical_dims: Vec<usize>,
 }
 
-fn bad(field: &'static str, reason: impl Into<String>) -> ConfigError {
-    ConfigError { field, reason: reason.into() }
-}
-
 impl LmacConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         let s = &self.settings;
@@ -170,10 +166,7 @@ impl LmacConfig {
 }
 
 fn configure(table: &toml::Table, ctx: &MethodContext) -> Result<AgentConfig, ConfigError> {
-    let settings: LmacSettings = toml::Value::Table(table.clone()).try_into().map_err(|e: toml::de::Error| {
-        // toml names the unknown or mistyped key in its message.
-        bad("method", e.message().to_string())
-    })?;
+    let settings: LmacSettings = parse_settings(table)?;
     if ctx.msg_cols == 0 {
         return Err(bad("run.protocol", "lmac needs a designed protocol (a design directory or phase files); it has no message columns"));
     }

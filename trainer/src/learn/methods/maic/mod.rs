@@ -65,7 +65,7 @@ pub use module::MaicAgent;
 
 use serde::{Deserialize, Serialize};
 
-use super::{AgentConfig, Messages, MethodContext, MethodSpec};
+use super::{bad, parse_settings, AgentConfig, Messages, MethodContext, MethodSpec};
 use crate::learn::config::ConfigError;
 
 pub const MAIC: MethodSpec = MethodSpec {
@@ -158,10 +158,6 @@ pub struct MaicConfig {
     pub settings: MaicSettings,
 }
 
-fn bad(field: &'static str, reason: impl Into<String>) -> ConfigError {
-    ConfigError { field, reason: reason.into() }
-}
-
 impl MaicConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         let s = &self.settings;
@@ -192,8 +188,7 @@ impl MaicConfig {
 /// With `run.protocol`, the protocol's message columns join the observation (as for QMIX);
 /// MAIC's own messages are made inside the network either way.
 fn configure(table: &toml::Table, _ctx: &MethodContext) -> Result<AgentConfig, ConfigError> {
-    let settings: MaicSettings =
-        toml::Value::Table(table.clone()).try_into().map_err(|e: toml::de::Error| bad("method", e.message().to_string()))?;
+    let settings: MaicSettings = parse_settings(table)?;
     let cfg = MaicConfig { settings };
     cfg.validate()?;
     Ok(AgentConfig::Maic(cfg))

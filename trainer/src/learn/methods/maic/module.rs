@@ -178,15 +178,7 @@ impl MaicAgent {
     /// Unroll from zero states; in training (`train`) the latents are sampled with the update's
     /// seed and the MI and entropy losses are returned.
     pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
-        assert!(!inputs.is_empty(), "unroll needs at least one step");
-        let rows = inputs[0].dims()[0];
-        let mut h: Tensor<2> = Tensor::zeros([rows, self.agent.hidden_dim], &inputs[0].device());
-        let mut hs = Vec::with_capacity(inputs.len());
-        for u in inputs {
-            h = self.agent.gru.forward(relu(self.agent.fc1.forward(u)), h);
-            hs.push(h.clone());
-        }
-        let hs: Tensor<3> = Tensor::stack(hs, 0);
+        let hs = self.agent.hidden_states(&inputs);
         let mut rng = train.map(|c| LearnRng::seed_from(c.seed ^ 0x3A1C_0000_0000_0001));
         let (q, internals) = self.heads(hs.clone(), train.zip(rng.as_mut()));
         let aux = match (train, internals) {

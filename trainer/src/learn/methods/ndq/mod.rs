@@ -60,7 +60,7 @@ pub use module::NdqAgent;
 
 use serde::{Deserialize, Serialize};
 
-use super::{AgentConfig, Messages, MethodContext, MethodSpec};
+use super::{bad, parse_settings, AgentConfig, Messages, MethodContext, MethodSpec};
 use crate::learn::config::ConfigError;
 
 pub const NDQ: MethodSpec = MethodSpec {
@@ -108,10 +108,6 @@ pub struct NdqConfig {
     pub settings: NdqSettings,
 }
 
-fn bad(field: &'static str, reason: impl Into<String>) -> ConfigError {
-    ConfigError { field, reason: reason.into() }
-}
-
 impl NdqConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         let s = &self.settings;
@@ -136,8 +132,7 @@ impl NdqConfig {
 /// With `run.protocol`, the protocol's message columns join the observation (as for QMIX);
 /// NDQ's own messages are made inside the network either way.
 fn configure(table: &toml::Table, _ctx: &MethodContext) -> Result<AgentConfig, ConfigError> {
-    let settings: NdqSettings =
-        toml::Value::Table(table.clone()).try_into().map_err(|e: toml::de::Error| bad("method", e.message().to_string()))?;
+    let settings: NdqSettings = parse_settings(table)?;
     let cfg = NdqConfig { settings };
     cfg.validate()?;
     Ok(AgentConfig::Ndq(cfg))
