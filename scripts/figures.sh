@@ -7,6 +7,7 @@
 #   FIGURES="pipeline grf" bash scripts/figures.sh   # some of: pipeline smaclite grf train criterion
 #   FIGURES=lmac bash scripts/figures.sh   # the LMAC comparisons (hours; not in the default set)
 #   FIGURES=design bash scripts/figures.sh   # offline designs and what FullComm's messages reveal (minutes)
+#   FIGURES=methods bash scripts/figures.sh   # ms per update of the communication baselines against QMIX
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -67,6 +68,33 @@ if want train; then
   cargo build --release -q --bin lmac  # the default (flex) binary again
   "$ROOT/target/release/lmac-ndarray" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json \
     >"$OUT/train_ndarray.json"
+fi
+
+if want methods; then
+  # ms per update of every communication baseline next to QMIX: three rounds, each running every
+  # method one after another, and the median per method (ratios to QMIX's median are what to
+  # compare; absolute speeds move with the load).
+  log "bench train per method (qmix and the five communication baselines), 3 alternating rounds"
+  T="$(mktemp -d)"
+  for r in 1 2 3; do
+    for a in qmix ndq maic masia cola t2mac; do
+      "$LMAC" bench train --env lbf:8x8-2p-2f-s1-coop --algo "$a" --envs 16 --steps 5000 --updates 20 --json >"$T/${a}_$r.json"
+    done
+  done
+  .venv/bin/python - "$T" "$OUT/train_methods_lbf8x8.json" <<'PY'
+import json, sys, pathlib, statistics
+t, out = pathlib.Path(sys.argv[1]), sys.argv[2]
+algos = ["qmix", "ndq", "maic", "masia", "cola", "t2mac"]
+runs = {a: [json.loads((t / f"{a}_{r}.json").read_text()) for r in (1, 2, 3)] for a in algos}
+ms = {a: [x["ms_per_update"] for x in runs[a]] for a in algos}
+med = {a: statistics.median(ms[a]) for a in algos}
+ratio = {a: med[a] / med["qmix"] for a in algos}
+doc = {"command": "lmac bench train --algo A --envs 16 --steps 5000 --updates 20 --json; 3 rounds, each A in turn (scripts/figures.sh methods)",
+       "ms_per_update_median": med, "ms_per_update_rounds": ms, "ratio_to_qmix": ratio, "runs": runs}
+pathlib.Path(out).write_text(json.dumps(doc, indent=1) + "\n")
+for a in algos:
+    print(f"{a:6s} {med[a]:7.1f} ms/update (rounds {', '.join(f'{v:.1f}' for v in ms[a])})  x{ratio[a]:.2f} of qmix")
+PY
 fi
 
 if want criterion; then

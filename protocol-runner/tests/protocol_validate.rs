@@ -270,6 +270,22 @@ fn llm_answers_with_fences_parse() {
 }
 
 #[test]
+fn a_string_broken_over_lines_is_read_as_its_escaped_text() {
+    // What a small model wrote (SmolLM2 under a schema grammar): a raw newline inside a string.
+    let mut v = base();
+    v["message_design_instruction"] = serde_json::json!("first line\tsecond part\nthird line");
+    let escaped = serde_json::to_string(&v).unwrap();
+    let raw = escaped.replace("\\t", "\t").replace("\\n", "\n");
+    assert!(parse_str(&raw).unwrap_err()[0].message.contains("control character"));
+    assert_eq!(parse_llm_text(&raw).unwrap(), parse_str(&escaped).unwrap());
+    // Escapes already there, quotes and backslashes inside strings, newlines between tokens: as
+    // they were.
+    let pretty = serde_json::to_string_pretty(&v).unwrap();
+    assert_eq!(escape_controls_in_strings(&pretty), pretty);
+    assert_eq!(escape_controls_in_strings("{\"a\": \"x\\\"\n\\\\\"}"), "{\"a\": \"x\\\"\\n\\\\\"}");
+}
+
+#[test]
 fn protocols_round_trip_through_json() {
     for name in ["lbf_8x8_phase0.json", "lbf_8x8_phase2.json"] {
         let p = parse_str(&std::fs::read_to_string(examples_dir().join(name)).unwrap()).unwrap();

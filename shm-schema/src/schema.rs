@@ -19,6 +19,18 @@ pub struct DimGroup {
     /// Optional per-dimension labels (length `count`): placeholder {label}.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub labels: Option<Vec<String>>,
+    /// Optional: the group's `count` dims repeat this many times in a row (per agent, per
+    /// entity), `count * repeat` dims in all; placeholder {r} is the repetition (0-based), {k}
+    /// and {label} stay the index inside one repetition.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub repeat: Option<usize>,
+}
+
+impl DimGroup {
+    /// The dimensions the group describes (`count`, times `repeat`); `None` on overflow.
+    pub fn dims(&self) -> Option<usize> {
+        self.count.checked_mul(self.repeat.unwrap_or(1))
+    }
 }
 
 /// An environment's declaration: the one contract between env servers, runner and trainer.
@@ -191,6 +203,14 @@ impl EnvSchema {
                     // Checked before anything expands the group into one description per dim.
                     bad(&format!("{at}.count"), format!("{} is more than the supported {MAX_DIM}", g.count));
                 }
+                match g.repeat {
+                    Some(0) => bad(&format!("{at}.repeat"), "must be at least 1".into()),
+                    Some(_) if g.dims().is_none_or(|d| d > MAX_DIM) => {
+                        bad(&format!("{at}.repeat"), format!("count x repeat is more than the supported {MAX_DIM}"))
+                    }
+                    None if g.meaning.contains("{r}") => bad(&at, "meaning uses {r} but the group has no repeat".into()),
+                    _ => {}
+                }
                 if g.meaning.trim().is_empty() {
                     bad(&at, "meaning is empty: every dimension needs a description".into());
                 }
@@ -208,7 +228,7 @@ impl EnvSchema {
                 } else if g.meaning.contains("{label}") {
                     bad(&at, "meaning uses {label} but the group has no labels".into());
                 }
-                total = total.saturating_add(g.count);
+                total = total.saturating_add(g.dims().unwrap_or(usize::MAX));
             }
             let dim_field = if field == "obs_dims" { "obs_dim" } else { "state_dim" };
             if total != dim {
@@ -243,8 +263,8 @@ impl EnvSchema {
 fn expand(groups: &[DimGroup]) -> Vec<String> {
     let mut out = Vec::new();
     for g in groups {
-        for k in 0..g.count {
-            let mut s = g.meaning.replace("{k}", &k.to_string());
+        for (r, k) in (0..g.repeat.unwrap_or(1)).flat_map(|r| (0..g.count).map(move |k| (r, k))) {
+            let mut s = g.meaning.replace("{k}", &k.to_string()).replace("{r}", &r.to_string());
             if let Some(shape) = &g.shape {
                 let mut rem = k;
                 let mut idx = vec![0; shape.len()];

@@ -103,7 +103,7 @@ fn synthetic(episodes: usize, seed: u64) -> Dataset {
 }
 
 fn group(count: usize, meaning: &str) -> DimGroup {
-    DimGroup { count, shape: None, meaning: meaning.into(), labels: None }
+    DimGroup { count, shape: None, meaning: meaning.into(), labels: None, repeat: None }
 }
 
 fn synthetic_schema(message_columns: usize) -> EnvSchema {

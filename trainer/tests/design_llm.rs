@@ -6,7 +6,7 @@
 
 use lmac_protocol_runner::protocol;
 use lmac_trainer::design::discriminator::{DiscriminatorConfig, TrainReport};
-use lmac_trainer::design::llm::{ApiKey, ChatMessage, HttpLlm, LlmClient, LlmConfig, LlmError, LlmMode};
+use lmac_trainer::design::llm::{ApiKey, ChatMessage, HttpLlm, LlmClient, LlmConfig, LlmError, LlmMode, StructuredOutput};
 use lmac_trainer::design::llm_designer::{LlmDesigner, LlmDesignerOptions};
 use lmac_trainer::design::meta_info::{
     DimRecovery, DiscriminatorReports, EvaluationFacts, MetaInfo, MetaSummary, RecoverySummary, SideRecovery,
@@ -299,6 +299,23 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
         assert_eq!(r.body["temperature"], 0.6);
         assert_eq!(r.body["messages"][0]["role"], "system");
     }
+    // Structured output (OpenAI style): the protocol language's JSON Schema with every protocol
+    // request, the feedback's three keys with every feedback request, nothing with the
+    // critical-dims reasoning (free text).
+    assert!(reqs[0].body.get("response_format").is_none());
+    let protocol_schema = protocol::schema::schema_value();
+    for i in [1, 2, 3, 7, 10] {
+        assert_eq!(reqs[i].body["response_format"]["type"], "json_schema", "request {i}");
+        assert_eq!(reqs[i].body["response_format"]["json_schema"]["schema"], protocol_schema, "request {i}");
+    }
+    for i in [5, 6, 8] {
+        let s = &reqs[i].body["response_format"]["json_schema"]["schema"];
+        assert_eq!(
+            s["required"],
+            serde_json::json!(["Evaluation", "Missing_Information_Hypothesis", "Improvement_Suggestions"]),
+            "request {i}"
+        );
+    }
     // I_T: shape, every obs and state dim, then the critical-dims step.
     let first = reqs[0].last_message();
     assert!(first.contains("(batch, 2, 29)") && first.contains("`o[batch][agent_id][28]`") && first.contains("`s[299]`"), "{first}");
@@ -324,6 +341,8 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
         "{fb1}"
     );
     assert!(fb1.contains("Missing_Information_Hypothesis"));
+    // No wall-clock figures in a prompt: they would make it unreplayable.
+    assert!(!fb1.contains("ms_per_update") && !fb1.contains("\"seconds\""), "{fb1}");
     // Dead fields reach the designer with the meta-information.
     assert!(fb1.contains("carries nothing on the dataset"), "{fb1}");
     // The feedback missing a key went back naming it.
@@ -579,4 +598,36 @@ fn a_key_over_plain_http_to_another_host_is_refused_before_connecting() {
     let keyless = LlmConfig::from_spec("openai:m", Some("http://192.0.2.1:8000/v1")).unwrap();
     assert!(matches!(HttpLlm::new(keyless), Err(LlmError::NoKeyVariable { .. })));
     std::env::remove_var("LMAC_TEST_REMOTE_KEY");
+}
+
+#[test]
+fn structured_output_follows_the_provider_and_can_be_turned_off() {
+    let schema = serde_json::json!({"type": "object", "properties": {"a": {"type": "integer"}}});
+    let msgs = [ChatMessage::user("hi")];
+    let ask = |spec: &str, structured: Option<StructuredOutput>| {
+        let server = Server::start(vec![if spec.starts_with("anthropic") {
+            Reply::Anthropic("{\"a\": 1}".into())
+        } else {
+            Reply::Chat("{\"a\": 1}".into())
+        }]);
+        let mut c = HttpLlm::with_api_key(config(spec, &server.url), ApiKey::new(KEY)).unwrap();
+        if let Some(s) = structured {
+            c.set_structured(s);
+        }
+        assert_eq!(c.complete_with_schema(&msgs, &schema).unwrap(), "{\"a\": 1}");
+        server.requests()[0].body.get("response_format").cloned()
+    };
+    // llama.cpp's servers: a schema turned into a grammar.
+    assert_eq!(ask("llamacpp:m", None), Some(serde_json::json!({"type": "json_object", "schema": schema})));
+    // OpenAI-compatible (OpenAI, Gemini, vLLM, Ollama): OpenAI's json_schema.
+    for spec in ["openai:m", "gemini:m", "vllm:m"] {
+        assert_eq!(ask(spec, None).unwrap()["json_schema"]["schema"], schema, "{spec}");
+    }
+    // Anthropic's messages API takes no response_format; off sends none anywhere.
+    assert_eq!(ask("anthropic:m", None), None);
+    assert_eq!(ask("llamacpp:m", Some(StructuredOutput::Off)), None);
+    // Gemini: Google's OpenAI-compatible endpoint with its own key variable.
+    let g = LlmConfig::from_spec("gemini:gemini-2.5-pro", None).unwrap();
+    assert_eq!(g.endpoint(), "https://generativelanguage.googleapis.com/v1beta/openai/chat/completions");
+    assert_eq!(g.api_key_env.as_deref(), Some("GEMINI_API_KEY"));
 }

@@ -46,7 +46,8 @@ pub use explain::{explain, explain_expr, explain_phases};
 pub use reference::language_reference;
 pub use schema::{schema_json, schema_value};
 pub use validate::{
-    check_file, check_phases, check_str, check_summary, combined_receiver_widths, combined_width, errors_to_text, message_width,
-    parse_llm_text, parse_str, parse_value, read_protocol_file, receiver_widths, validate, validate_phase, ErrorKind, ProtocolEnv,
-    ValidatedProtocol, ValidationError, MAX_DEPTH, MAX_FIELDS, MAX_FILE_BYTES, MAX_NODES, MAX_WINDOW,
+    check_file, check_phases, check_str, check_summary, combined_receiver_widths, combined_width, errors_to_text,
+    escape_controls_in_strings, message_width, parse_llm_text, parse_str, parse_value, read_protocol_file, receiver_widths, validate,
+    validate_phase, ErrorKind, ProtocolEnv, ValidatedProtocol, ValidationError, MAX_DEPTH, MAX_FIELDS, MAX_FILE_BYTES, MAX_NODES,
+    MAX_WINDOW,
 };

@@ -262,24 +262,59 @@ pub fn parse_value(v: &serde_json::Value) -> Result<Protocol, Vec<ValidationErro
 /// the first ```json fenced block, else the outermost `{ ... }`.
 pub fn parse_llm_text(text: &str) -> Result<Protocol, Vec<ValidationError>> {
     let t = text.trim();
+    // Models often break a long string over lines: raw control characters inside strings are
+    // escaped first (valid JSON has none there, so a valid reply is unchanged).
+    let parse = |s: &str| parse_str(&escape_controls_in_strings(s));
     if t.starts_with('{') {
-        return parse_str(t);
+        return parse(t);
     }
     if let Some(start) = t.find("```") {
         let rest = &t[start + 3..];
         let rest = rest.strip_prefix("json").or_else(|| rest.strip_prefix("JSON")).unwrap_or(rest);
         if let Some(end) = rest.find("```") {
-            return parse_str(rest[..end].trim());
+            return parse(rest[..end].trim());
         }
     }
     match (t.find('{'), t.rfind('}')) {
-        (Some(a), Some(b)) if a < b => parse_str(&t[a..=b]),
+        (Some(a), Some(b)) if a < b => parse(&t[a..=b]),
         _ => Err(vec![ValidationError::new(
             ErrorKind::Parse,
             "",
             "no JSON object found in the answer: reply with the protocol as one JSON object",
         )]),
     }
+}
+
+/// `text` with every control character inside a JSON string literal written as its escape
+/// (`\n`, `\r`, `\t`, `\u00XX`); everything outside strings, and escapes already there, as
+/// they are.
+pub fn escape_controls_in_strings(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let (mut in_string, mut escaped) = (false, false);
+    for c in text.chars() {
+        if in_string && !escaped && (c as u32) < 0x20 {
+            match c {
+                '\n' => out.push_str("\\n"),
+                '\r' => out.push_str("\\r"),
+                '\t' => out.push_str("\\t"),
+                _ => out.push_str(&format!("\\u{:04x}", c as u32)),
+            }
+            continue;
+        }
+        out.push(c);
+        if in_string {
+            if escaped {
+                escaped = false;
+            } else if c == '\\' {
+                escaped = true;
+            } else if c == '"' {
+                in_string = false;
+            }
+        } else if c == '"' {
+            in_string = true;
+        }
+    }
+    out
 }
 
 // ------------------------------------------------------------------------------------------

@@ -12,7 +12,8 @@ pub(crate) struct DesignArgs {
     pub(crate) env: String,
     /// Designer: `offline` (embedded, no network: builds each phase from the meta-information),
     /// or an LLM: `openai:MODEL` (any OpenAI-compatible server: OpenAI, vLLM, llama.cpp,
-    /// Ollama; key from OPENAI_API_KEY), `anthropic:MODEL` (key from ANTHROPIC_API_KEY).
+    /// Ollama; key from OPENAI_API_KEY), `anthropic:MODEL` (key from ANTHROPIC_API_KEY), `gemini:MODEL`
+    /// (Google's OpenAI-compatible endpoint; key from GEMINI_API_KEY).
     #[arg(long, default_value = "offline")]
     pub(crate) llm: String,
     /// Base URL of an OpenAI-compatible server, e.g. http://127.0.0.1:8080/v1.
@@ -30,6 +31,12 @@ pub(crate) struct DesignArgs {
     /// Where LLM exchanges are recorded and replayed from (default: <out>/llm-recordings).
     #[arg(long)]
     pub(crate) recordings: Option<std::path::PathBuf>,
+    /// How the protocol's JSON Schema goes with each generation request, so the reply is valid
+    /// JSON of the protocol language by construction: json-schema (OpenAI's response_format;
+    /// OpenAI, Gemini, vLLM, Ollama), json-object (llama.cpp's schema-to-grammar), off
+    /// (Anthropic, or a server that rejects it). Default: by provider.
+    #[arg(long, value_name = "MODE")]
+    pub(crate) structured_output: Option<lmac_trainer::design::llm::StructuredOutput>,
     /// Corrections the LLM gets per reply (invalid JSON, validation errors) before the design fails.
     #[arg(long, default_value_t = 3)]
     pub(crate) max_retries: usize,
@@ -123,7 +130,12 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
         let mode: LlmMode = a.llm_mode.parse().map_err(anyhow::Error::msg)?;
         let rec = a.recordings.clone().unwrap_or_else(|| a.out.join("llm-recordings"));
         std::fs::create_dir_all(&rec).with_context(|| format!("creating {}", rec.display()))?;
-        let options = LlmDesignerOptions { max_retries: a.max_retries, api_key_env: a.api_key_env.clone(), ..Default::default() };
+        let options = LlmDesignerOptions {
+            max_retries: a.max_retries,
+            api_key_env: a.api_key_env.clone(),
+            structured: a.structured_output,
+            ..Default::default()
+        };
         Box::new(LlmDesigner::from_spec(&a.llm, a.base_url.as_deref(), mode, Some(rec), options)?)
     };
     let train = |dir: &std::path::Path| train_dirs(&[dir.to_path_buf()], interrupted.clone());

@@ -80,6 +80,40 @@ pub trait LlmClient {
     /// For logs, directory names and the transcript: the spec, e.g. `openai:gpt-4.1`.
     fn name(&self) -> String;
     fn complete(&mut self, messages: &[ChatMessage]) -> Result<String, LlmError>;
+    /// Like `complete`, with the JSON Schema the reply must follow, sent as the provider's
+    /// structured output where it has one (the caller still validates the reply: a schema cannot
+    /// say everything). Without structured output it is `complete`.
+    fn complete_with_schema(&mut self, messages: &[ChatMessage], _schema: &serde_json::Value) -> Result<String, LlmError> {
+        self.complete(messages)
+    }
+}
+
+/// How a request asks for a reply that follows a JSON Schema.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StructuredOutput {
+    /// OpenAI's `response_format: {type: "json_schema", json_schema: {name, schema}}` (OpenAI,
+    /// Gemini's OpenAI-compatible endpoint, vLLM, Ollama).
+    #[default]
+    JsonSchema,
+    /// `response_format: {type: "json_object", schema}`: llama.cpp's servers (llama-server and
+    /// llama-cpp-python) turn the schema into a grammar, so the reply is valid by construction.
+    JsonObject,
+    /// No schema in the request (Anthropic: its tool input schemas are not used; or a server
+    /// that rejects `response_format`).
+    Off,
+}
+
+impl std::str::FromStr for StructuredOutput {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "json-schema" => Ok(StructuredOutput::JsonSchema),
+            "json-object" => Ok(StructuredOutput::JsonObject),
+            "off" => Ok(StructuredOutput::Off),
+            _ => Err(format!("unknown structured output {s:?}: use json-schema, json-object or off")),
+        }
+    }
 }
 
 /// The wire format.
@@ -153,13 +187,16 @@ pub struct LlmConfig {
     pub mode: LlmMode,
     /// Where requests and responses are recorded (required for replay).
     pub record_dir: Option<PathBuf>,
+    /// How a reply's JSON Schema is sent (`complete_with_schema`); by provider by default.
+    pub structured: StructuredOutput,
 }
 
 const ANTHROPIC_VERSION: &str = "2023-06-01";
 
 impl LlmConfig {
-    /// Parse `PROVIDER:MODEL` (`openai:gpt-4.1`, `anthropic:claude-opus-4-1`; also `vllm:`,
-    /// `ollama:`, `llamacpp:` for OpenAI-compatible local servers at their usual ports). The
+    /// Parse `PROVIDER:MODEL` (`openai:gpt-4.1`, `anthropic:claude-opus-4-1`, `gemini:gemini-2.5-pro`
+    /// through Google's OpenAI-compatible endpoint with `GEMINI_API_KEY`; also `vllm:`, `ollama:`,
+    /// `llamacpp:` for OpenAI-compatible local servers at their usual ports). The
     /// model may itself contain ':' (`ollama:llama3:8b`). `base_url` overrides the provider's.
     pub fn from_spec(spec: &str, base_url: Option<&str>) -> Result<Self, LlmError> {
         let err = |problem: &str| LlmError::Spec { spec: spec.to_string(), problem: problem.to_string() };
@@ -173,8 +210,14 @@ impl LlmConfig {
             "anthropic" => (Provider::Anthropic, "https://api.anthropic.com", "ANTHROPIC_API_KEY"),
             "vllm" => (Provider::OpenAi, "http://127.0.0.1:8000/v1", "OPENAI_API_KEY"),
             "ollama" => (Provider::OpenAi, "http://127.0.0.1:11434/v1", "OPENAI_API_KEY"),
+            "gemini" => (Provider::OpenAi, "https://generativelanguage.googleapis.com/v1beta/openai", "GEMINI_API_KEY"),
             "llamacpp" | "llama.cpp" => (Provider::OpenAi, "http://127.0.0.1:8080/v1", "OPENAI_API_KEY"),
-            _ => return Err(err(&format!("unknown provider {prov:?}: use openai, anthropic, vllm, ollama or llamacpp"))),
+            _ => return Err(err(&format!("unknown provider {prov:?}: use openai, anthropic, gemini, vllm, ollama or llamacpp"))),
+        };
+        let structured = match prov.to_ascii_lowercase().as_str() {
+            "anthropic" => StructuredOutput::Off,
+            "llamacpp" | "llama.cpp" => StructuredOutput::JsonObject,
+            _ => StructuredOutput::JsonSchema,
         };
         let base = base_url.unwrap_or(default_base).trim_end_matches('/').to_string();
         // The provider's own key goes to the provider's own server only.
@@ -207,6 +250,7 @@ impl LlmConfig {
             retry_after_max: Duration::from_secs(300),
             mode: LlmMode::Live,
             record_dir: None,
+            structured,
         })
     }
 
@@ -284,6 +328,9 @@ pub struct CanonicalRequest {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_tokens: Option<u32>,
     pub messages: Vec<ChatMessage>,
+    /// The reply's JSON Schema when the request sent one (part of the recording key).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub response_schema: Option<serde_json::Value>,
 }
 
 impl CanonicalRequest {
@@ -470,14 +517,21 @@ impl HttpLlm {
         &self.cfg
     }
 
-    /// The canonical form of a request for these messages.
-    pub fn canonical(&self, messages: &[ChatMessage]) -> CanonicalRequest {
+    /// Send a reply's JSON Schema this way (see [`StructuredOutput`]).
+    pub fn set_structured(&mut self, s: StructuredOutput) {
+        self.cfg.structured = s;
+    }
+
+    /// The canonical form of a request for these messages (and the reply's schema, when this
+    /// client sends one).
+    pub fn canonical(&self, messages: &[ChatMessage], schema: Option<&serde_json::Value>) -> CanonicalRequest {
         CanonicalRequest {
             provider: self.cfg.provider,
             model: self.cfg.model.clone(),
             temperature: self.cfg.temperature,
             max_tokens: self.cfg.max_tokens,
             messages: messages.to_vec(),
+            response_schema: schema.filter(|_| self.cfg.structured != StructuredOutput::Off).cloned(),
         }
     }
 
@@ -489,13 +543,22 @@ impl HttpLlm {
         }
     }
 
-    fn body(&self, messages: &[ChatMessage]) -> serde_json::Value {
+    fn body(&self, messages: &[ChatMessage], schema: Option<&serde_json::Value>) -> serde_json::Value {
         let c = &self.cfg;
         match c.provider {
             Provider::OpenAi => {
                 let mut b = serde_json::json!({ "model": c.model, "messages": messages, "temperature": c.temperature });
                 if let Some(m) = c.max_tokens {
                     b["max_tokens"] = m.into();
+                }
+                match (schema, c.structured) {
+                    (Some(s), StructuredOutput::JsonSchema) => {
+                        b["response_format"] = serde_json::json!({"type": "json_schema", "json_schema": {"name": "reply", "schema": s}});
+                    }
+                    (Some(s), StructuredOutput::JsonObject) => {
+                        b["response_format"] = serde_json::json!({"type": "json_object", "schema": s});
+                    }
+                    _ => {}
                 }
                 b
             }
@@ -613,10 +676,10 @@ impl HttpLlm {
     }
 
     /// Ask the server (no recording).
-    fn ask(&self, messages: &[ChatMessage]) -> Result<RecordedResponse, LlmError> {
+    fn ask(&self, messages: &[ChatMessage], schema: Option<&serde_json::Value>) -> Result<RecordedResponse, LlmError> {
         let endpoint = self.cfg.endpoint();
         let started = Instant::now();
-        let raw = self.post(&self.body(messages))?;
+        let raw = self.post(&self.body(messages, schema))?;
         let reply = parse_response(self.cfg.provider, &raw).map_err(|problem| LlmError::Response {
             endpoint: endpoint.clone(),
             problem,
@@ -713,10 +776,21 @@ impl LlmClient for HttpLlm {
     }
 
     fn complete(&mut self, messages: &[ChatMessage]) -> Result<String, LlmError> {
+        self.request(messages, None)
+    }
+
+    fn complete_with_schema(&mut self, messages: &[ChatMessage], schema: &serde_json::Value) -> Result<String, LlmError> {
+        self.request(messages, Some(schema))
+    }
+}
+
+impl HttpLlm {
+    /// One request, answered from the recordings or the server (and recorded).
+    fn request(&mut self, messages: &[ChatMessage], schema: Option<&serde_json::Value>) -> Result<String, LlmError> {
         if messages.is_empty() {
             return Err(LlmError::Spec { spec: self.cfg.spec.clone(), problem: "a request needs at least one message".into() });
         }
-        let req = self.canonical(messages);
+        let req = self.canonical(messages, schema);
         if self.cfg.mode != LlmMode::Live {
             let rec = self.recorder.as_mut().expect("checked at construction");
             if let Some(text) = rec.next_recorded(&req)? {
@@ -739,7 +813,7 @@ impl LlmClient for HttpLlm {
                 return Err(LlmError::ReplayMiss { dir: rec.dir().to_path_buf(), key: req.key(), problem });
             }
         }
-        let resp = self.ask(messages)?;
+        let resp = self.ask(messages, req.response_schema.as_ref())?;
         let text = resp.text.clone();
         if let Some(rec) = self.recorder.as_mut() {
             rec.append(&req, resp)?;
@@ -857,7 +931,7 @@ mod tests {
         assert_eq!(c.endpoint(), "http://localhost:11434/v1/chat/completions");
         assert!(c.is_local());
         assert!(LlmConfig::from_spec("openai:m", Some("http://[::1]:9/v1")).unwrap().is_local());
-        for bad in ["gpt-4.1", "openai:", "gemini:x"] {
+        for bad in ["gpt-4.1", "openai:", "bard:x"] {
             let e = LlmConfig::from_spec(bad, None).unwrap_err().to_string();
             assert!(e.contains(bad), "{e}");
         }
@@ -898,11 +972,17 @@ mod tests {
             temperature: 0.6,
             max_tokens: None,
             messages: vec![ChatMessage::user("hi")],
+            response_schema: None,
         };
         let mut r2 = r.clone();
         assert_eq!(r.key(), r2.key());
         r2.temperature = 0.7;
         assert_ne!(r.key(), r2.key());
+        // The reply's schema is part of the request; without one the key is what it always was.
+        let mut r3 = r.clone();
+        r3.response_schema = Some(serde_json::json!({"type": "object"}));
+        assert_ne!(r.key(), r3.key());
+        assert!(!serde_json::to_string(&r).unwrap().contains("response_schema"));
         assert_eq!(r.key().len(), 64);
     }
 

@@ -7,7 +7,7 @@
 //! with the exact problem, as the paper's Reflexion-style correction, a bounded number of times;
 //! then the designer fails with the last problem and the transcript keeps every prompt and reply.
 
-use super::llm::{ChatMessage, LlmClient, LlmMode};
+use super::llm::{ChatMessage, LlmClient, LlmMode, StructuredOutput};
 use super::meta_info::MetaInfo;
 use super::prompts::{budget_left, Templates};
 use super::{DesignContext, Designer, Feedback, PhaseProtocol, TranscriptEntry};
@@ -26,11 +26,14 @@ pub struct LlmDesignerOptions {
     /// Ollama server, a proxy): without it no key is sent there, not even `OPENAI_API_KEY`. Used
     /// by [`LlmDesigner::from_spec`] (the CLI's `--api-key-env VAR`).
     pub api_key_env: Option<String>,
+    /// How the protocol's JSON Schema goes with a generation request (None: the provider's
+    /// default, see [`StructuredOutput`]); the CLI's `--structured-output`.
+    pub structured: Option<StructuredOutput>,
 }
 
 impl Default for LlmDesignerOptions {
     fn default() -> Self {
-        LlmDesignerOptions { max_retries: 3, meta_max_chars: 60_000, api_key_env: None }
+        LlmDesignerOptions { max_retries: 3, meta_max_chars: 60_000, api_key_env: None, structured: None }
     }
 }
 
@@ -65,7 +68,10 @@ impl LlmDesigner {
         record_dir: Option<PathBuf>,
         options: LlmDesignerOptions,
     ) -> Result<Self> {
-        let client = super::llm::client_from_spec(spec, base_url, options.api_key_env.as_deref(), mode, record_dir)?;
+        let mut client = super::llm::client_from_spec(spec, base_url, options.api_key_env.as_deref(), mode, record_dir)?;
+        if let Some(s) = options.structured {
+            client.set_structured(s);
+        }
         Ok(Self::with_templates(Box::new(client), Templates::from_env()?, options))
     }
 
@@ -77,9 +83,10 @@ impl LlmDesigner {
         self.transcript.push(TranscriptEntry { phase, kind: kind.to_string(), prompt: prompt.to_string(), reply: reply.to_string() });
     }
 
-    /// One request; the prompt is the last message. A failed request is kept in the transcript
-    /// with the error in place of the reply.
-    fn ask(&mut self, phase: usize, kind: &str, msgs: &[ChatMessage], what: &str) -> Result<String> {
+    /// One request; the prompt is the last message; `schema`: the JSON Schema the reply must
+    /// follow (sent as structured output where the provider has it). A failed request is kept in
+    /// the transcript with the error in place of the reply.
+    fn ask(&mut self, phase: usize, kind: &str, msgs: &[ChatMessage], what: &str, schema: Option<&serde_json::Value>) -> Result<String> {
         if !self.system_logged {
             if let Some(sys) = msgs.iter().find(|m| m.role == super::llm::Role::System) {
                 self.system_logged = true;
@@ -88,7 +95,11 @@ impl LlmDesigner {
             }
         }
         let prompt = msgs.last().map(|m| m.content.clone()).unwrap_or_default();
-        match self.client.complete(msgs) {
+        let answer = match schema {
+            Some(s) => self.client.complete_with_schema(msgs, s),
+            None => self.client.complete(msgs),
+        };
+        match answer {
             Ok(reply) => {
                 self.log(phase, kind, &prompt, &reply);
                 Ok(reply)
@@ -107,12 +118,13 @@ impl LlmDesigner {
         kind: &str,
         mut msgs: Vec<ChatMessage>,
         what: &str,
+        schema: Option<&serde_json::Value>,
         mut accept: impl FnMut(&str) -> Result<T, String>,
         correction: impl Fn(&Templates, &str) -> Result<String>,
     ) -> Result<T> {
         let mut attempt = 0usize;
         loop {
-            let reply = self.ask(phase, if attempt == 0 { kind } else { "correction" }, &msgs, what)?;
+            let reply = self.ask(phase, if attempt == 0 { kind } else { "correction" }, &msgs, what, schema)?;
             let problem = match accept(&reply) {
                 Ok(t) => return Ok(t),
                 Err(p) => p,
@@ -143,11 +155,15 @@ impl LlmDesigner {
     ) -> Result<(protocol::Protocol, ValidatedProtocol)> {
         let env = ctx.env;
         let left = budget_left(env, previous);
+        // Replies follow the protocol language's JSON Schema by construction where the provider
+        // supports structured output; validation still checks what a schema cannot say.
+        let schema = protocol::schema::schema_value();
         self.converse(
             phase,
             "protocol",
             msgs,
             "writing the protocol",
+            Some(&schema),
             |reply| {
                 let mut p = protocol::parse_llm_text(reply).map_err(|e| protocol::errors_to_text(&e))?;
                 // The phase number is ours to decide; the LLM's copy of it carries no information.
@@ -174,13 +190,23 @@ impl LlmDesigner {
     }
 }
 
+/// The JSON Schema of a feedback reply (B.1's three parts), sent as structured output.
+pub fn feedback_schema() -> serde_json::Value {
+    let text = serde_json::json!({"type": "string"});
+    serde_json::json!({
+        "type": "object",
+        "properties": {"Evaluation": text, "Missing_Information_Hypothesis": text, "Improvement_Suggestions": text},
+        "required": ["Evaluation", "Missing_Information_Hypothesis", "Improvement_Suggestions"]
+    })
+}
+
 /// The feedback out of a reply: the reply itself, a fenced block or a balanced `{...}` in the
 /// prose, with the three keys (spelling of case, spaces and underscores forgiven; lists joined).
 pub fn parse_feedback(reply: &str) -> Result<Feedback, String> {
     let mut first_error: Option<String> = None;
     let mut best_missing: Option<String> = None;
     for cand in json_candidates(reply) {
-        let v: serde_json::Value = match serde_json::from_str(cand.trim()) {
+        let v: serde_json::Value = match serde_json::from_str(&protocol::escape_controls_in_strings(cand.trim())) {
             Ok(v) => v,
             Err(e) => {
                 // Only text that looks like an object earns a parse error; prose is just skipped.
@@ -301,7 +327,7 @@ impl Designer for LlmDesigner {
         let system = self.templates.system()?;
         let cd_prompt = format!("{}\n{}", self.templates.task(ctx.env_name, ctx.schema)?, self.templates.critical_dims(ctx.env)?);
         let mut msgs = vec![ChatMessage::system(system), ChatMessage::user(cd_prompt.clone())];
-        let cot = self.ask(0, "critical_dims", &msgs, "selecting the task-critical state dims")?;
+        let cot = self.ask(0, "critical_dims", &msgs, "selecting the task-critical state dims", None)?;
         self.critical = Some((cd_prompt, cot.clone()));
         msgs.push(ChatMessage::assistant(cot.clone()));
         msgs.push(ChatMessage::user(self.templates.protocol_generation(ctx.env, 0, &[])?));
@@ -314,7 +340,10 @@ impl Designer for LlmDesigner {
         let prev: Vec<ValidatedProtocol> = previous.iter().map(|p| p.validated.clone()).collect();
         let prompt = self.templates.feedback(ctx.env_name, ctx.schema, ctx.env, phase, &prev, meta, self.options.meta_max_chars)?;
         let msgs = vec![ChatMessage::system(self.templates.system()?), ChatMessage::user(prompt)];
-        self.converse(phase, "feedback", msgs, "writing the feedback", parse_feedback, |t, problem| t.feedback_correction(problem))
+        let schema = feedback_schema();
+        self.converse(phase, "feedback", msgs, "writing the feedback", Some(&schema), parse_feedback, |t, problem| {
+            t.feedback_correction(problem)
+        })
     }
 
     fn refine(

@@ -431,7 +431,8 @@ fn reference_for_analysis(env: &ProtocolEnv) -> String {
 /// numbers rounded to 3 decimals, else with the longest lists cut (halving the longest until it
 /// fits, with a note of how many entries were left out), else cut at the limit with a note.
 pub fn render_meta(meta: &MetaInfo, max_chars: usize) -> String {
-    let meta = meta.json();
+    let mut meta = meta.json();
+    strip_keys(&mut meta, WALL_CLOCK_KEYS);
     let pretty = serde_json::to_string_pretty(&meta).expect("JSON serializes");
     if pretty.chars().count() <= max_chars {
         return pretty;
@@ -455,6 +456,22 @@ pub fn render_meta(meta: &MetaInfo, max_chars: usize) -> String {
         s.push_str(&format!("\n[shortened to fit the prompt: lists cut at {}]", notes.join(", ")));
     }
     s
+}
+
+/// Wall-clock figures of the meta-information (the discriminator's training time): they differ
+/// from run to run, so a prompt carrying them could never be replayed from its recording, and
+/// they tell the designer nothing about the protocol. `meta.json` keeps them.
+const WALL_CLOCK_KEYS: &[&str] = &["seconds", "ms_per_update"];
+
+fn strip_keys(v: &mut serde_json::Value, keys: &[&str]) {
+    match v {
+        serde_json::Value::Object(o) => {
+            o.retain(|k, _| !keys.contains(&k.as_str()));
+            o.values_mut().for_each(|x| strip_keys(x, keys));
+        }
+        serde_json::Value::Array(a) => a.iter_mut().for_each(|x| strip_keys(x, keys)),
+        _ => {}
+    }
 }
 
 fn round_numbers(v: &serde_json::Value) -> serde_json::Value {
@@ -527,6 +544,76 @@ mod tests {
                 assert!(row.contains(&format!("`{p}`")), "prompts/README.md: {} lacks {p}", s.name);
             }
         }
+    }
+
+    /// Appendix B.1's prompts, rendered for one map: every part the paper's templates have.
+    #[test]
+    fn each_b1_prompt_renders_every_part_for_one_map() {
+        let t = Templates::embedded();
+        let name = "lbf:8x8-2p-2f-s1-coop-entity";
+        let schema = lmac_shm_schema::schema::load_env(name).unwrap();
+        let env = lmac_protocol_runner::protocol_env(&schema);
+        // Task description I_T: the task, the reward, the actions, the observation tensor and
+        // the meaning of every observation and state dim.
+        let task = t.task(name, &schema).unwrap();
+        assert!(task.contains(schema.task.trim()) && task.contains(schema.reward.trim()), "{task}");
+        assert!(schema.actions.iter().all(|a| task.contains(a.as_str())));
+        assert!(task.contains("(batch, 2, 29)"));
+        for (d, m) in schema.obs_meanings().iter().enumerate() {
+            assert!(task.contains(&format!("`o[batch][agent_id][{d}]`")) && task.contains(m.as_str()), "obs dim {d}");
+        }
+        for (d, m) in schema.state_meanings().iter().enumerate() {
+            assert!(task.contains(&format!("`s[{d}]`")) && task.contains(m.as_str()), "state dim {d}");
+        }
+        // The chain-of-thought step for the task-critical dims.
+        assert!(t.critical_dims(&env).unwrap().contains("task-critical state dimensions"));
+        // I_P: the seven design principles, the language, the budget, each phase's goal.
+        for (phase, goal) in [(0, "initialization"), (1, "recognition enhancement"), (2, "sharing enhancement")] {
+            let previous: Vec<ValidatedProtocol> = Vec::new();
+            let g = t.protocol_generation(&env, phase, &previous).unwrap();
+            for p in [
+                "1. Task-oriented communication",
+                "2. Unique, sufficient and compact",
+                "3. Context- and interaction-aware",
+                "4. Explicit and clear",
+                "5. Structured output",
+                "6. Routing",
+                "7. No trainable parts",
+            ] {
+                assert!(g.contains(p), "phase {phase}: principle {p:?}");
+            }
+            assert!(g.contains(goal) && g.contains("\"obs_slice\"") && g.contains("at most 64 message columns"), "phase {phase}");
+        }
+        // The feedback prompt: the phase instruction, the protocol under analysis, the
+        // meta-information, alpha, and the three keys the reply must have.
+        let p0 = lmac_protocol_runner::protocol::check_str(
+            r#"{"name": "ids", "message_design_instruction": "x", "critical_state_dims": [0, 1],
+                "fields": [{"name": "pos", "description": "own row and column", "value": {"obs_slice": [27, 29]}}]}"#,
+            &env,
+        )
+        .unwrap();
+        let dims: Vec<(usize, String)> = schema.state_meanings().into_iter().enumerate().collect();
+        let meta = super::super::meta_info::example(&dims, &[0.7, 0.6], &[0.5, 0.4]);
+        for (phase, instruction) in [(1, "recognition enhancement"), (2, "sharing enhancement")] {
+            let f = t.feedback(name, &schema, &env, phase, std::slice::from_ref(&p0), &meta, 60_000).unwrap();
+            assert!(f.contains(instruction) && f.contains("\"pos\"") && f.contains(&dims[3].1), "phase {phase}: {f}");
+            assert!(f.contains(&schema.alpha.to_string()) && f.contains(schema.task.trim()));
+            for k in ["Evaluation", "Missing_Information_Hypothesis", "Improvement_Suggestions"] {
+                assert!(f.contains(k), "phase {phase}: {k}");
+            }
+        }
+        // The additional context carries the feedback into the next generation prompt.
+        let fb = super::super::Feedback {
+            evaluation: "phase 0 misses the food".into(),
+            missing_information_hypothesis: "teammate position".into(),
+            improvement_suggestions: "send the row and column".into(),
+        };
+        let extra = t.additional_context(&fb).unwrap();
+        assert!(
+            extra.contains("Additional context")
+                && extra.contains("send the row and column")
+                && extra.contains("Missing_Information_Hypothesis")
+        );
     }
 
     #[test]

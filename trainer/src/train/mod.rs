@@ -141,6 +141,8 @@ pub struct TrainActor {
     last_test_return: Option<f64>,
     /// The best test phase so far (its checkpoint is in `best_checkpoint_dir`).
     best_test: Option<BestTest>,
+    /// Checkpoints asked of the learner and not yet logged.
+    checkpoints_pending: u64,
     /// The trajectory dataset being collected once training is done (`run.dataset_episodes`).
     dataset: Vec<Trajectory>,
     /// Observation columns without messages (what the dataset keeps).
@@ -189,6 +191,7 @@ impl TrainActor {
     /// Log the checkpoints the learner wrote since the last call.
     fn log_checkpoints(&mut self) {
         let written = std::mem::take(&mut self.shared.lock().checkpoints);
+        self.checkpoints_pending = self.checkpoints_pending.saturating_sub(written.len() as u64);
         for c in &written {
             if let Err(e) = self.metrics.checkpoint(c) {
                 self.fail(e);
@@ -197,6 +200,16 @@ impl TrainActor {
     }
 
     fn log(&mut self, test: Option<(f64, f64)>) {
+        // A checkpoint asked for at an earlier step is logged before this row, so metrics.jsonl
+        // stays in t_env order even when the learner writes it late (behind a best-checkpoint
+        // save or a backlog of updates). Checkpoints are rare: this waits at most once per one.
+        let deadline = Instant::now() + std::time::Duration::from_secs(60);
+        while self.checkpoints_pending > 0 && Instant::now() < deadline && self.shared.lock().error.is_none() {
+            self.log_checkpoints();
+            if self.checkpoints_pending > 0 {
+                std::thread::sleep(std::time::Duration::from_millis(2));
+            }
+        }
         let s = self.shared.lock();
         let secs = self.started.elapsed().as_secs_f64();
         let row = MetricsRow {
@@ -326,7 +339,9 @@ impl Actor for TrainActor {
         }
         if self.t_env >= self.next_checkpoint {
             self.next_checkpoint += self.cfg.run.checkpoint_interval;
-            let _ = self.tx.send(ToLearner::Checkpoint);
+            if self.tx.send(ToLearner::Checkpoint).is_ok() {
+                self.checkpoints_pending += 1;
+            }
         }
         self.log_checkpoints();
         if let Some(b) = &self.bar {
@@ -485,6 +500,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         bar,
         last_test_return: None,
         best_test: read_best_test(run_dir),
+        checkpoints_pending: 0,
         dataset: Vec::new(),
         obs_dim: schema.obs_dim,
         rng: LearnRng::seed_from(learn.seed ^ 0xAC70_0000 ^ counters.t_env),
