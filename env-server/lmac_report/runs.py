@@ -127,14 +127,20 @@ def check_seed_data(data, where: str) -> dict:
     return data
 
 
+def _read_text(path: Path) -> str:
+    """A file's text; an unreadable file is a ReportError naming it."""
+    try:
+        return path.read_text()
+    except OSError as e:
+        raise ReportError(f"{path}: cannot be read ({e.strerror})") from None
+
+
 def read_marl_eval(path: Path) -> list[tuple[str, str, str, dict]]:
     """Every (env, algo, seed key, seed data) of a marl-eval JSON file."""
     try:
-        raw = json.loads(path.read_text())
+        raw = json.loads(_read_text(path))
     except json.JSONDecodeError as e:
         raise ReportError(f"{path}: not valid JSON ({e})") from None
-    except OSError as e:
-        raise ReportError(f"{path}: cannot be read ({e.strerror})") from None
     out = []
     levels = ("environment family", "task", "algorithm", "seed")
 
@@ -156,11 +162,9 @@ def read_marl_eval(path: Path) -> list[tuple[str, str, str, dict]]:
 def read_config(path: Path) -> tuple[str, str, int, int | None]:
     """(run.env, run.algo, learn.seed, run.steps or None) of a run's config.toml."""
     try:
-        cfg = tomllib.loads(path.read_text())
+        cfg = tomllib.loads(_read_text(path))
     except tomllib.TOMLDecodeError as e:
         raise ReportError(f"{path}: not valid TOML ({e})") from None
-    except OSError as e:
-        raise ReportError(f"{path}: cannot be read ({e.strerror})") from None
     try:
         env, algo, seed = cfg["run"]["env"], cfg["run"]["algo"], cfg["learn"]["seed"]
     except (KeyError, TypeError) as e:
@@ -221,10 +225,7 @@ def read_metrics_csv(path: Path) -> dict:
 def read_metrics_jsonl(path: Path) -> dict:
     """The same from metrics.jsonl (checkpoint lines and a line cut off at the end are skipped)."""
     rows = []
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as e:
-        raise ReportError(f"{path}: cannot be read ({e.strerror})") from None
+    lines = _read_text(path).splitlines()
     for n, line in enumerate(lines, 1):
         try:
             r = json.loads(line)

@@ -23,21 +23,11 @@ pub struct ColumnMoments {
 impl ColumnMoments {
     /// Over `rows` (each at least `width` long); no rows gives means 0 and deviations 0.
     pub fn of_rows<R: AsRef<[f32]>>(width: usize, rows: impl IntoIterator<Item = R>) -> Self {
-        let mut sum = vec![0f64; width];
-        let mut sq = vec![0f64; width];
-        let mut n = 0usize;
+        let mut sums = ColumnSums::new(width);
         for r in rows {
-            for (c, &x) in r.as_ref()[..width].iter().enumerate() {
-                let x = x as f64;
-                sum[c] += x;
-                sq[c] += x * x;
-            }
-            n += 1;
+            sums.add(&r.as_ref()[..width]);
         }
-        let n = n.max(1) as f64;
-        let mean: Vec<f64> = sum.iter().map(|s| s / n).collect();
-        let sd = sq.iter().zip(&mean).map(|(q, m)| (q / n - m * m).max(0.0).sqrt()).collect();
-        ColumnMoments { mean, sd }
+        sums.finish()
     }
 
     /// Over the first `rows` rows of a flat row-major buffer.
@@ -57,5 +47,38 @@ mod tests {
         assert!((m.sd[0] - (8.0f64 / 3.0).sqrt()).abs() < 1e-12 && m.sd[1] == 0.0);
         assert_eq!((mean(&[1.0, 2.0, 6.0]), variance(&[1.0, 3.0])), (3.0, 1.0));
         assert_eq!(ColumnMoments::of_rows::<&[f32]>(2, []), ColumnMoments { mean: vec![0.0; 2], sd: vec![0.0; 2] });
+    }
+}
+
+/// Per-column sums of rows added one at a time, for data that streams past instead of being
+/// held ([`ColumnMoments::of_rows`] is these sums over an iterator).
+#[derive(Clone, Debug)]
+pub struct ColumnSums {
+    sum: Vec<f64>,
+    sq: Vec<f64>,
+    rows: usize,
+}
+
+impl ColumnSums {
+    pub fn new(width: usize) -> Self {
+        ColumnSums { sum: vec![0.0; width], sq: vec![0.0; width], rows: 0 }
+    }
+
+    /// One row of `width` values.
+    pub fn add(&mut self, row: &[f32]) {
+        for ((s, q), &x) in self.sum.iter_mut().zip(&mut self.sq).zip(row) {
+            let x = x as f64;
+            *s += x;
+            *q += x * x;
+        }
+        self.rows += 1;
+    }
+
+    /// Mean and population standard deviation of the rows added (0 and 0 for none).
+    pub fn finish(&self) -> ColumnMoments {
+        let n = self.rows.max(1) as f64;
+        let mean: Vec<f64> = self.sum.iter().map(|s| s / n).collect();
+        let sd = self.sq.iter().zip(&mean).map(|(q, m)| (q / n - m * m).max(0.0).sqrt()).collect();
+        ColumnMoments { mean, sd }
     }
 }

@@ -54,10 +54,7 @@ fn settings(set: &[String]) -> Result<Vec<toml::Table>> {
         };
         let mut next = Vec::new();
         for v in values.split(',') {
-            let value: toml::Value = toml::from_str::<toml::Table>(&format!("v = {}", v.trim()))
-                .ok()
-                .and_then(|t| t.get("v").cloned())
-                .unwrap_or_else(|| toml::Value::String(v.trim().to_string()));
+            let value = lmac_trainer::train::config::override_value(v.trim());
             for t in &tables {
                 let mut t = t.clone();
                 t.insert(key.to_string(), value.clone());
@@ -109,8 +106,7 @@ pub(crate) fn evaluate(a: EvaluateArgs) -> Result<i32> {
     let stamp = lmac_trainer::run_dir::stamp();
     let mut results: Vec<EvalResult> = Vec::new();
     for d in &dirs {
-        let cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(d.join("config.toml"))?)
-            .map_err(|e| anyhow::anyhow!("{}: {}", d.join("config.toml").display(), e.message()))?;
+        let cfg = TrainConfig::load(d)?;
         for (k, method) in tables.iter().enumerate() {
             let spec = EvalSpec { episodes: a.episodes, method: method.clone(), best: a.best };
             let label = if method.is_empty() { "as trained".to_string() } else { method.to_string().trim().replace('\n', ", ") };

@@ -138,8 +138,7 @@ pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBoo
         // One lmac at a time per run directory: a second one would interleave checkpoints and
         // metrics. The lock goes with the process (also when it is killed).
         let _lock = lmac_trainer::run_dir::lock(d)?;
-        let cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(d.join("config.toml"))?)
-            .map_err(|e| anyhow::anyhow!("{}: {}", d.join("config.toml").display(), e.message()))?;
+        let cfg = TrainConfig::load(d)?;
         cfg.check()?;
         // Where the run stands: a checkpoint's step, or 0 for a fresh start.
         let ck = lmac_trainer::train::checkpoint_dir(d);

@@ -179,6 +179,8 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
                     format!("run.envs={}", opts.envs),
                     format!("run.servers={}", opts.servers),
                     format!("run.dataset_episodes={}", opts.dataset_episodes),
+                    // Only its dataset is kept: no final evaluation of the collecting policy.
+                    "run.final_eval_episodes=0".into(),
                     format!("learn.seed={}", opts.seed),
                 ],
             )?;

@@ -150,7 +150,24 @@ pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
     }
 }
 
+/// The value of a `key=value` override: a TOML value, else the text as a string. Exactly one
+/// key: a value with a newline cannot smuggle in other keys (`1\nother = 2`) or leave `x` out.
+pub fn override_value(val: &str) -> toml::Value {
+    toml::from_str::<toml::Table>(&format!("x = {val}"))
+        .ok()
+        .filter(|t| t.len() == 1)
+        .and_then(|mut t| t.remove("x"))
+        .unwrap_or_else(|| toml::Value::String(val.to_string()))
+}
+
 impl TrainConfig {
+    /// A run directory's resolved `config.toml`; errors name the file.
+    pub fn load(run_dir: &Path) -> Result<TrainConfig> {
+        let path = run_dir.join("config.toml");
+        let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))
+    }
+
     /// Read a config file (TOML), apply `key=value` overrides (dotted paths such as
     /// `learn.lr=0.001`, `run.envs=8`), then check it. Errors name the field.
     pub fn resolve(file: Option<&Path>, overrides: &[String]) -> Result<TrainConfig> {
@@ -161,13 +178,7 @@ impl TrainConfig {
         };
         for o in overrides {
             let (key, val) = o.split_once('=').with_context(|| format!("override {o:?} must look like section.key=value"))?;
-            // A TOML value, else the text as a string. Exactly one key: a value with a newline
-            // cannot smuggle in other keys (`1\nother = 2`) or leave `x` out.
-            let parsed: toml::Value = toml::from_str::<toml::Table>(&format!("x = {val}"))
-                .ok()
-                .filter(|t| t.len() == 1)
-                .and_then(|mut t| t.remove("x"))
-                .unwrap_or_else(|| toml::Value::String(val.to_string()));
+            let parsed = override_value(val);
             let mut cur = &mut v;
             let parts: Vec<&str> = key.split('.').collect();
             for (i, part) in parts.iter().enumerate() {

@@ -103,8 +103,7 @@ pub fn evaluate_in_child(run_dir: &Path, spec_path: &Path, args: &TrainerArgs) -
     if spec.episodes == 0 {
         bail!("evaluate: 0 episodes asked for");
     }
-    let mut cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(run_dir.join("config.toml"))?)
-        .map_err(|e| anyhow::anyhow!("{}: {}", run_dir.join("config.toml").display(), e.message()))?;
+    let mut cfg = TrainConfig::load(run_dir)?;
     let best = best_checkpoint_dir(run_dir);
     let use_best = spec.best && crate::learn::checkpoint::checkpoint_exists(&best);
     let ck = if use_best { best } else { checkpoint_dir(run_dir) };

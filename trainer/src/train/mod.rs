@@ -408,8 +408,7 @@ pub fn best_checkpoint_dir(run_dir: &Path) -> PathBuf {
 /// The trainer child's training entry point: build (or resume) the learner, start its thread,
 /// run the pipeline with the training actor, and finish with a checkpoint.
 pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progress: bool) -> Result<crate::pipeline::TrainerReport> {
-    let cfg: TrainConfig = toml::from_str(&std::fs::read_to_string(run_dir.join("config.toml"))?)
-        .map_err(|e| anyhow::anyhow!("{}: {}", run_dir.join("config.toml").display(), e.message()))?;
+    let cfg = TrainConfig::load(run_dir)?;
     let learn = cfg.effective_learn()?;
     let schema = &args.schema;
     let dims = EpisodeDims {

@@ -17,6 +17,7 @@
 #[allow(unused_imports)]
 use super::*;
 use crate::dataset::Dataset;
+use crate::stats::ColumnSums;
 use lmac_protocol_runner::plan::{MessagePlan, StepView};
 
 /// Sweep pivot `k` out of the symmetric matrix `c` (size p): the rest becomes the covariance
@@ -196,46 +197,19 @@ impl RowSource for Sampled<'_> {
     }
 }
 
-/// Per-column sums for mean and standard deviation, computed as [`crate::stats::ColumnMoments`]
-/// computes them (so the numbers are the same to the last bit).
-struct Moments {
-    sum: Vec<f64>,
-    sq: Vec<f64>,
-    rows: usize,
-}
-
-impl Moments {
-    fn new(w: usize) -> Self {
-        Moments { sum: vec![0.0; w], sq: vec![0.0; w], rows: 0 }
-    }
-    fn add(&mut self, r: &[f32]) {
-        for ((s, q), &x) in self.sum.iter_mut().zip(&mut self.sq).zip(r) {
-            let x = x as f64;
-            *s += x;
-            *q += x * x;
-        }
-        self.rows += 1;
-    }
-    fn finish(&self) -> (Vec<f64>, Vec<f64>) {
-        let n = self.rows.max(1) as f64;
-        let mean: Vec<f64> = self.sum.iter().map(|s| s / n).collect();
-        let sd = self.sq.iter().zip(&mean).map(|(q, m)| (q / n - m * m).max(0.0).sqrt()).collect();
-        (mean, sd)
-    }
-}
-
 /// Keep the `keep` candidates with the largest weighted squared marginal correlation between
 /// another agent's value and the targets (a cheap filter before the joint least squares).
 pub(super) fn prescreen(s: &mut dyn RowSource, cands: &[Candidate], w: &[Vec<f64>], keep: usize) -> Result<Vec<usize>> {
     let (n, width) = (s.n(), s.width());
     let t = w[0].len();
     let cw = n * width;
-    let (mut cmo, mut ymo) = (Moments::new(cw), Moments::new(t));
+    let (mut cmo, mut ymo) = (ColumnSums::new(cw), ColumnSums::new(t));
     s.each_cand(&mut |c, y| {
         cmo.add(c);
         ymo.add(y);
     })?;
-    let ((cm, csd), (ym, ysd)) = (cmo.finish(), ymo.finish());
+    let (cmom, ymom) = (cmo.finish(), ymo.finish());
+    let (cm, csd, ym, ysd) = (cmom.mean, cmom.sd, ymom.mean, ymom.sd);
     let mut cov = vec![0f64; cw * t];
     s.each_cand(&mut |c, y| {
         for (a, &ca) in c.iter().enumerate() {

@@ -44,7 +44,7 @@ pub struct Fused {
     /// [g, n]: whether the agent sends its opinion to a teammate.
     pub sends: Vec<bool>,
     /// [g, n]: the selector's target class per sender (a teammate, or the sender itself for
-    /// "send to nobody").
+    /// "send to nobody"); empty when no `min_drop` was given (acting, the target network).
     pub targets: Vec<i64>,
     /// [g, n]: the agent's own uncertainty.
     pub uncertainty: Vec<f32>,
@@ -56,18 +56,19 @@ pub struct Fused {
 /// For every group: agent i sends to the teammate j != i with `probs[i, j] > threshold` (at most
 /// one when the threshold is at least 0.5); each receiver fuses the opinions sent to it in
 /// sender order, starting from the vacuous opinion (b = 0, u = 1), and gets their evidence. The
-/// target class of sender i is the teammate whose uncertainty the combination of i's opinion
-/// with its own lowers most, if by more than `min_drop`, else i.
+/// target class of sender i (only with `min_drop`: the n^2 pairwise combinations are the
+/// selector's training labels, of no use when acting) is the teammate whose uncertainty the
+/// combination of i's opinion with its own lowers most, if by more than `min_drop`, else i.
 ///
 /// `evidence` is [g, n, A] (non-negative), `probs` [g, n, n] (each row the selector's softmax).
-pub fn fuse(evidence: &[f32], probs: &[f32], n: usize, a: usize, threshold: f32, min_drop: f32) -> Fused {
+pub fn fuse(evidence: &[f32], probs: &[f32], n: usize, a: usize, threshold: f32, min_drop: Option<f32>) -> Fused {
     let g = evidence.len() / (n * a).max(1);
     assert_eq!(evidence.len(), g * n * a, "evidence is [groups, agents, actions]");
     assert_eq!(probs.len(), g * n * n, "probabilities are [groups, agents, agents]");
     let mut out = Fused {
         evidence: vec![0.0; g * n * a],
         sends: vec![false; g * n],
-        targets: vec![0; g * n],
+        targets: if min_drop.is_some() { vec![0; g * n] } else { Vec::new() },
         uncertainty: vec![0.0; g * n],
         drop: vec![None; g * n],
     };
@@ -101,6 +102,9 @@ pub fn fuse(evidence: &[f32], probs: &[f32], n: usize, a: usize, threshold: f32,
         }
         for i in 0..n {
             out.sends[gi * n + i] = receiver[i].is_some();
+        }
+        let Some(min_drop) = min_drop else { continue };
+        for i in 0..n {
             let mut best = (i, min_drop as f64);
             for j in (0..n).filter(|&j| j != i) {
                 pair.copy_from_slice(&belief[j * a..(j + 1) * a]);
@@ -161,7 +165,7 @@ mod tests {
         let e = [8.0, 0.0, 0.0, 0.0, 0.0, 2.0];
         // Agent 0 sends to 1 (0.8 > 0.75), agent 2 to 1 as well, agent 1 to nobody (0.7 < 0.75).
         let p = [0.1, 0.8, 0.1, 0.2, 0.7, 0.1, 0.05, 0.9, 0.05];
-        let f = fuse(&e, &p, 3, 2, 0.75, 0.1);
+        let f = fuse(&e, &p, 3, 2, 0.75, Some(0.1));
         assert_eq!(f.sends, vec![true, false, true]);
         // Opinions: 0: b = (0.8, 0), u = 0.2; 2: b = (0, 0.5), u = 0.5.
         // Fused at 1: C = 0.8 * 0.5 = 0.4; b = (0.8 * 0.5, 0.5 * 0.2) / 0.6, u = 0.1 / 0.6;
@@ -178,6 +182,6 @@ mod tests {
         // identity): target itself; agent 2 helps 1 (1 -> 0.5) more than 0 (0.2 -> 0.1 / 0.6).
         assert_eq!(f.targets, vec![1, 1, 1]);
         // With a threshold above every drop, nobody is worth sending to.
-        assert_eq!(fuse(&e, &p, 3, 2, 0.75, 0.9).targets, vec![0, 1, 2]);
+        assert_eq!(fuse(&e, &p, 3, 2, 0.75, Some(0.9)).targets, vec![0, 1, 2]);
     }
 }

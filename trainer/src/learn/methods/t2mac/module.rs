@@ -74,14 +74,14 @@ impl T2macAgent {
         let [rows, in_w] = u.dims();
         let hd = self.agent.hidden_dim;
         let h = self.agent.gru.forward(relu(self.agent.fc1.forward(u.clone())), h);
-        let (q, _, _) = self.heads(h.clone().reshape([1, rows, hd]), u.reshape([1, rows, in_w]));
+        let (q, _, _) = self.heads(h.clone().reshape([1, rows, hd]), u.reshape([1, rows, in_w]), false);
         (q.reshape([rows, self.agent.n_actions]), h)
     }
 
     /// Unroll from zero states; in training (`train`) the selector's loss and the diagnostics.
     pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
         let hs = self.agent.hidden_states(&inputs);
-        let (q, logits, fused) = self.heads(hs, Tensor::stack(inputs, 0));
+        let (q, logits, fused) = self.heads(hs, Tensor::stack(inputs, 0), train.is_some());
         let aux = match train {
             Some(ctx) => self.losses(logits, &fused, ctx),
             None => Vec::new(),
@@ -90,8 +90,8 @@ impl T2macAgent {
     }
 
     /// Everything after the GRU over all steps: h [T, N, H], u [T, N, in] -> (Q [T, N, A], the
-    /// selector's logits [T, B, n, n], the fusion).
-    fn heads(&self, h: Tensor<3>, u: Tensor<3>) -> (Tensor<3>, Tensor<4>, Fused) {
+    /// selector's logits [T, B, n, n], the fusion; with the selector's labels when `labels`).
+    fn heads(&self, h: Tensor<3>, u: Tensor<3>, labels: bool) -> (Tensor<3>, Tensor<4>, Fused) {
         let [t, rows, hd] = h.dims();
         let s = &self.cfg.settings;
         let (n, a, k) = (self.n_agents, self.agent.n_actions, s.attention_dim);
@@ -113,7 +113,8 @@ impl T2macAgent {
         // Selector and fusion (no gradient through either's decisions).
         let logits = self.select2.forward(relu(self.select1.forward(u))).reshape([t, b, n, n]);
         let host = |x: Tensor<4>| x.detach().into_data().try_into_vec::<f32>().expect("f32 values");
-        let fused = fuse(&host(own.clone()), &host(softmax(logits.clone(), 3)), n, a, s.send_threshold, s.min_uncertainty_drop);
+        let min_drop = labels.then_some(s.min_uncertainty_drop);
+        let fused = fuse(&host(own.clone()), &host(softmax(logits.clone(), 3)), n, a, s.send_threshold, min_drop);
         let received: Tensor<4> = Tensor::from_data(TensorData::new(fused.evidence.clone(), [t, b, n, a]), &device);
         let q = own.mul_scalar(s.own_weight) + received.mul_scalar(s.fusion_weight);
         (q.reshape([t, rows, a]), logits, fused)
