@@ -29,6 +29,7 @@ fn filled(mixer: MixerKind, agent: AgentConfig) -> Learner {
 }
 
 fn bench_update(c: &mut Criterion) {
+    lmac_trainer::tune_allocator();
     let mut g = c.benchmark_group("learner_update_32x50x3");
     g.sample_size(10);
     for mixer in [MixerKind::Qmix, MixerKind::Vdn, MixerKind::Qplex] {
@@ -56,5 +57,27 @@ fn bench_act(c: &mut Criterion) {
     c.bench_function("act_step_8_envs", |b| b.iter(|| ctl.select_actions(&obs, None, &last, &avail, &first, 0.1, learner.rng_mut())));
 }
 
-criterion_group!(benches, bench_update, bench_act);
+/// The fused GRU recurrence alone (forward with saved activations, and backward through time)
+/// at the agent-row counts of the two reference shapes: LBF 8x8 (32 x 2 agents, 25 steps) and
+/// 1o_10b_vs_1r (32 x 11 agents, 50 steps), hidden 64.
+fn bench_gru_sequence(c: &mut Criterion) {
+    lmac_trainer::tune_allocator();
+    use lmac_trainer::learn::gru_sequence::Saved;
+    let mut g = c.benchmark_group("gru_sequence");
+    g.sample_size(10);
+    for (name, t, n) in [("lbf8x8", 25, 64), ("1o10b", 50, 352)] {
+        let h = 64;
+        let mut rng = LearnRng::seed_from(1);
+        let gi: Vec<f32> = (0..t * n * 3 * h).map(|_| rng.uniform() * 2.0 - 1.0).collect();
+        let w: Vec<f32> = (0..h * 3 * h).map(|_| (rng.uniform() * 2.0 - 1.0) * 0.125).collect();
+        let b: Vec<f32> = (0..3 * h).map(|_| rng.uniform() * 0.1).collect();
+        let d_hs: Vec<f32> = (0..t * n * h).map(|_| rng.uniform() - 0.5).collect();
+        g.bench_function(format!("{name}_forward"), |bch| bch.iter(|| Saved::forward(&gi, w.clone(), &b, t, n, h, true)));
+        let saved = Saved::forward(&gi, w.clone(), &b, t, n, h, true);
+        g.bench_function(format!("{name}_backward"), |bch| bch.iter(|| saved.backward(&d_hs)));
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench_update, bench_act, bench_gru_sequence);
 criterion_main!(benches);

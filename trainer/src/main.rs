@@ -84,6 +84,7 @@ enum Cmd {
 }
 
 fn main() {
+    lmac_trainer::tune_allocator();
     let cli = Cli::parse();
     let code = match dispatch(cli) {
         Ok(code) => code,
@@ -110,6 +111,54 @@ fn dispatch(cli: Cli) -> Result<i32> {
         Cmd::Bench(BenchCmd::Train { env, algo, protocol, envs, steps, updates, json }) => {
             cli::bench::bench_train(&env, &algo, protocol.as_deref(), &envs, steps, updates, json)
         }
+        Cmd::Bench(BenchCmd::Learner {
+            shape,
+            batch,
+            steps,
+            agents,
+            input,
+            actions,
+            state,
+            mixers,
+            against,
+            python,
+            rounds,
+            updates,
+            no_stepwise,
+            out,
+            json,
+        }) => (|| {
+            let mut s = cli::bench_learner::Shape::named(&shape)?;
+            s.batch = batch.unwrap_or(s.batch);
+            s.steps = steps.unwrap_or(s.steps);
+            s.agents = agents.unwrap_or(s.agents);
+            s.input = input.unwrap_or(s.input);
+            s.actions = actions.unwrap_or(s.actions);
+            s.state = state.unwrap_or(s.state);
+            let mixers = mixers
+                .iter()
+                .map(|m| {
+                    serde_json::from_value(serde_json::Value::String(m.clone()))
+                        .map_err(|_| anyhow::anyhow!("--mixers: unknown mixer {m:?} (vdn, qmix, qplex)"))
+                })
+                .collect::<Result<Vec<lmac_trainer::learn::MixerKind>>>()?;
+            let against_torch = match against.as_deref() {
+                None => false,
+                Some("torch") => true,
+                Some(other) => anyhow::bail!("--against {other:?}: only torch is known"),
+            };
+            cli::bench_learner::bench_learner(cli::bench_learner::LearnerBenchOpts {
+                shape: s,
+                mixers,
+                against_torch,
+                python,
+                rounds,
+                updates,
+                stepwise: !no_stepwise,
+                json,
+                out,
+            })
+        })(),
         Cmd::Chaos(a) => cli::faults::chaos(a),
         Cmd::Soak(a) => cli::faults::soak(a),
         Cmd::Child(c) => cli::child::child(c),

@@ -46,6 +46,52 @@ pub(crate) enum BenchCmd {
         #[arg(long)]
         json: bool,
     },
+    /// One learner update on a fixed shape: lmac (fused recurrence), burn's per-step cell and,
+    /// with --against torch, pymarl's QLearner in PyTorch (benches/torch/qlearner.py, set up by
+    /// benches/torch/setup.sh), alternating in one run, one thread each, with FLOPs and GFLOP/s.
+    Learner {
+        /// Named shape: lbf8x8 (32 episodes x 25 steps x 2 agents, input 37, state 300) or
+        /// 1o10b (32 x 50 x 11 agents, input 108, 16 actions, state 148).
+        #[arg(long, default_value = "lbf8x8")]
+        shape: String,
+        /// Override the named shape's sizes.
+        #[arg(long)]
+        batch: Option<usize>,
+        #[arg(long)]
+        steps: Option<usize>,
+        #[arg(long)]
+        agents: Option<usize>,
+        /// Agent input width (observation + last action one-hot + agent id one-hot).
+        #[arg(long)]
+        input: Option<usize>,
+        #[arg(long)]
+        actions: Option<usize>,
+        #[arg(long)]
+        state: Option<usize>,
+        /// Mixers, comma separated.
+        #[arg(long, value_delimiter = ',', default_value = "qmix,vdn,qplex")]
+        mixers: Vec<String>,
+        /// Also run the PyTorch anchor (`torch`).
+        #[arg(long)]
+        against: Option<String>,
+        /// Python of the PyTorch anchor (default: benches/torch/.venv/bin/python).
+        #[arg(long)]
+        python: Option<std::path::PathBuf>,
+        /// Alternating rounds.
+        #[arg(long, default_value_t = 3)]
+        rounds: usize,
+        /// Timed updates per implementation and round (the round's figure is their median).
+        #[arg(long, default_value_t = 10)]
+        updates: usize,
+        /// Skip burn's per-step GRU cell (the reference of the fused recurrence).
+        #[arg(long)]
+        no_stepwise: bool,
+        /// Write the report as JSON to this file too.
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 pub(crate) fn median(mut v: Vec<f64>) -> f64 {

@@ -2,6 +2,7 @@
 //! report, step and duration parsing, Ctrl-C.
 
 pub(crate) mod bench;
+pub(crate) mod bench_learner;
 pub(crate) mod child;
 pub(crate) mod design;
 pub(crate) mod envs;

@@ -7,6 +7,7 @@ use burn::nn::Linear;
 use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::{Device, Tensor};
 
+use super::gru_sequence::gru_sequence;
 use super::init::linear;
 use super::LearnRng;
 
@@ -53,6 +54,9 @@ pub struct RnnAgent {
     pub input_dim: usize,
     pub hidden_dim: usize,
     pub n_actions: usize,
+    /// Unroll the recurrence as one fused operation (`gru_sequence`); false: burn's per-step
+    /// cell, the reference it is tested against (`learn.fused_gru`).
+    pub fused: bool,
 }
 
 impl RnnAgent {
@@ -64,6 +68,7 @@ impl RnnAgent {
             input_dim,
             hidden_dim,
             n_actions,
+            fused: true,
         }
     }
 
@@ -75,21 +80,33 @@ impl RnnAgent {
     }
 
     /// Unroll over time from a zero hidden state. `inputs[t]` is [N, in] (N = batch * agents);
-    /// returns Q-values [T, N, A]. Per-step hidden states are collected and stacked once, and
-    /// the output layer runs once over all steps (no slicing of gradient-carrying sequences).
-    /// fc1 and the GRU's input projection stay per step although they do not depend on h:
-    /// computed for all steps at once, their output must be sliced per step, and burn's backward
-    /// of each slice writes a zero tensor of the full [T*N, 3H] size. Measured on the learner
-    /// bench (issue 16): about 40% more CPU per QMIX update; `split`, `select`, a binary split
-    /// tree and chunks of 2-10 steps were all no faster than per step.
+    /// returns Q-values [T, N, A].
     pub fn unroll(&self, inputs: Vec<Tensor<2>>) -> Tensor<3> {
         self.fc2.forward(self.hidden_states(&inputs))
     }
 
-    /// The GRU's hidden states over time from zero, stacked once: `inputs[t]` [N, in] ->
-    /// [T, N, H] (what `unroll` reads, and the methods whose heads read h).
+    /// The GRU's hidden states over time from zero: `inputs[t]` [N, in] -> [T, N, H] (what
+    /// `unroll` reads, and the methods whose heads read h). fc1 and the GRU's input projection
+    /// do not depend on h, so they run once over all steps; only the recurrence is sequential,
+    /// and it is one fused operation (issue 16: per-step burn ops cost about 30 operations
+    /// and allocations per step forward and backward, which dominated the update).
     pub fn hidden_states(&self, inputs: &[Tensor<2>]) -> Tensor<3> {
         assert!(!inputs.is_empty(), "unroll needs at least one step");
+        if !self.fused {
+            return self.hidden_states_stepwise(inputs);
+        }
+        let (t, n) = (inputs.len(), inputs[0].dims()[0]);
+        let x = if t == 1 { inputs[0].clone() } else { Tensor::cat(inputs.to_vec(), 0) };
+        let gi = self.gru.input.forward(relu(self.fc1.forward(x))).reshape([t, n, 3 * self.hidden_dim]);
+        let bias = match &self.gru.hidden.bias {
+            Some(b) => b.val(),
+            None => Tensor::zeros([3 * self.hidden_dim], &gi.device()),
+        };
+        gru_sequence(gi, self.gru.hidden.weight.val(), bias)
+    }
+
+    /// The same hidden states with burn's per-step cell (the reference of the fused path).
+    pub fn hidden_states_stepwise(&self, inputs: &[Tensor<2>]) -> Tensor<3> {
         let n = inputs[0].dims()[0];
         let mut h: Tensor<2> = Tensor::zeros([n, self.hidden_dim], &inputs[0].device());
         let mut hs = Vec::with_capacity(inputs.len());

@@ -79,6 +79,9 @@ pub struct LearnConfig {
     /// Unroll the target network on a second thread during the online forward pass
     /// (faster updates when a core is free; off by default because acting wants that core).
     pub parallel_target: bool,
+    /// The agents' recurrence in training unrolls as one fused operation with a hand-written
+    /// backward (`learn::gru_sequence`); false: burn's per-step GRU cell, the slower reference.
+    pub fused_gru: bool,
 }
 
 impl Default for LearnConfig {
@@ -111,6 +114,7 @@ impl Default for LearnConfig {
             agent_sees_state: false,
             seed: 0,
             parallel_target: false,
+            fused_gru: true,
         }
     }
 }

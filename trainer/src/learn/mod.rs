@@ -25,6 +25,7 @@ pub mod buffer;
 pub mod checkpoint;
 pub mod config;
 pub mod controller;
+pub mod gru_sequence;
 pub mod input_row;
 pub mod learner;
 pub mod methods;

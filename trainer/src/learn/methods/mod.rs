@@ -250,7 +250,7 @@ impl AgentNet {
     /// Build with weights drawn from `rng`. `layout` is what the learner writes per agent-row.
     pub fn new(rng: &mut LearnRng, agent: &AgentConfig, layout: &InputLayout, cfg: &LearnConfig, device: &Device) -> Self {
         let d = &layout.dims;
-        match agent {
+        let mut net = match agent {
             AgentConfig::Rnn => AgentNet::Rnn(RnnAgent::new(rng, layout.width(), cfg.rnn_hidden_dim, d.n_actions, device)),
             AgentConfig::Lmac(c) => AgentNet::Lmac(lmac::LmacAgent::new(rng, c, layout, cfg, device)),
             AgentConfig::Ndq(c) => AgentNet::Ndq(ndq::NdqAgent::new(rng, c, layout, cfg, device)),
@@ -258,6 +258,23 @@ impl AgentNet {
             AgentConfig::T2mac(c) => AgentNet::T2mac(t2mac::T2macAgent::new(rng, c, layout, cfg, device)),
             AgentConfig::Cola(c) => AgentNet::Cola(cola::ColaAgent::new(rng, c, layout, cfg, device)),
             AgentConfig::Masia(c) => AgentNet::Masia(masia::MasiaAgent::new(rng, c, layout, cfg, device)),
+        };
+        if let Some(rnn) = net.rnn_agent_mut() {
+            rnn.fused = cfg.fused_gru;
+        }
+        net
+    }
+
+    /// The method's pymarl RNN agent, for methods built around one (COLA has its own).
+    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
+        match self {
+            AgentNet::Rnn(a) => Some(a),
+            AgentNet::Lmac(a) => Some(&mut a.agent),
+            AgentNet::Ndq(a) => Some(&mut a.agent),
+            AgentNet::Maic(a) => Some(&mut a.agent),
+            AgentNet::T2mac(a) => Some(&mut a.agent),
+            AgentNet::Masia(a) => Some(&mut a.agent),
+            AgentNet::Cola(_) => None,
         }
     }
 

@@ -1,0 +1,318 @@
+//! `lmac bench learner`: the cost of one learner update on a fixed shape, lmac's fused
+//! recurrence against burn's per-step cell and (with `--against torch`) against the PyTorch
+//! implementation of pymarl's QLearner in `benches/torch/qlearner.py`, alternating in one run,
+//! with each figure's FLOP count and achieved GFLOP/s next to the machine's single-core sgemm.
+
+use anyhow::{bail, Context, Result};
+use lmac_trainer::episode::{Episode, EpisodeDims};
+use lmac_trainer::learn::{Device, LearnConfig, LearnRng, Learner, MixerKind};
+use serde::Serialize;
+use std::io::{BufRead, BufReader, Write};
+use std::path::PathBuf;
+use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
+use std::time::Instant;
+
+use super::bench::median;
+
+/// The update's shape: batch of episodes, steps, agents, agent input width (observation, last
+/// action and id), actions, state.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub(crate) struct Shape {
+    pub batch: usize,
+    pub steps: usize,
+    pub agents: usize,
+    pub input: usize,
+    pub actions: usize,
+    pub state: usize,
+    pub hidden: usize,
+}
+
+impl Shape {
+    /// Named shapes: `lbf8x8` (the reference: LBF 8x8 with the default QMIX settings)
+    /// and `1o10b` (smaclite 1o_10b_vs_1r with its designed protocol's messages).
+    pub(crate) fn named(name: &str) -> Result<Shape> {
+        Ok(match name {
+            "lbf8x8" => Shape { batch: 32, steps: 25, agents: 2, input: 37, actions: 6, state: 300, hidden: 64 },
+            "1o10b" => Shape { batch: 32, steps: 50, agents: 11, input: 108, actions: 16, state: 148, hidden: 64 },
+            other => bail!("unknown shape {other:?} (lbf8x8, 1o10b, or give --batch/--steps/... yourself)"),
+        })
+    }
+
+    fn dims(&self) -> Result<EpisodeDims> {
+        let obs = self.input.checked_sub(self.actions + self.agents).filter(|&o| o > 0).with_context(|| {
+            format!(
+                "input width {} must exceed actions + agents ({}): it holds obs, last action and id",
+                self.input,
+                self.actions + self.agents
+            )
+        })?;
+        Ok(EpisodeDims { n_agents: self.agents, obs_width: obs, state_dim: self.state, n_actions: self.actions })
+    }
+
+    /// Multiply-add FLOPs of one update (2 per multiply-add; elementwise work not counted):
+    /// online forward, its backward (weight and input gradients, no input gradient for the first
+    /// layer) and the target network's forward, agents and mixer, for lmac's default settings.
+    pub(crate) fn update_flops(&self, mixer: MixerKind, cfg: &LearnConfig) -> f64 {
+        let (h, a, n, s) = (self.hidden as f64, self.actions as f64, self.agents as f64, self.state as f64);
+        let agent_rows = (self.batch * self.steps * self.agents) as f64;
+        let mix_rows = (self.batch * self.steps) as f64;
+        let first = 2.0 * self.input as f64 * h;
+        let rest = 2.0 * h * 3.0 * h * 2.0 + 2.0 * h * a;
+        let (mixer_first, mixer_rest) = match mixer {
+            MixerKind::Vdn => (0.0, 0.0),
+            MixerKind::Qmix => {
+                let (e, he) = (cfg.mixing_embed_dim as f64, cfg.hypernet_embed as f64);
+                // first layers read the state: w1, w_final (hypernets), b1, V
+                let first = 2.0 * s * (he + he + e + e);
+                let rest = 2.0 * he * e * n + 2.0 * he * e + 2.0 * e + 2.0 * n * e + 2.0 * e;
+                (first, rest)
+            }
+            MixerKind::Qplex => {
+                let (he, k, ae) = (cfg.hypernet_embed as f64, cfg.qplex_num_kernel as f64, cfg.qplex_adv_hypernet_embed as f64);
+                let first = 2.0 * s * (he + he) + 2.0 * k * ae * (s + s + s + n * a);
+                let rest = 2.0 * he * n * 2.0 + 2.0 * k * (ae * ae + ae) + 2.0 * k * (ae * ae + ae * n) * 2.0;
+                (first, rest)
+            }
+        };
+        let fwd = agent_rows * (first + rest) + mix_rows * (mixer_first + mixer_rest);
+        let bwd_no_input_grad = agent_rows * first + mix_rows * mixer_first;
+        // forward + backward (2x forward, minus the first layers' input gradients) + target
+        fwd + (2.0 * fwd - bwd_no_input_grad) + fwd
+    }
+}
+
+/// What one implementation measured: per-update milliseconds of every round.
+#[derive(Debug, Serialize)]
+pub(crate) struct Figure {
+    pub name: String,
+    pub mixer: String,
+    pub rounds_ms: Vec<f64>,
+    pub median_ms: f64,
+    pub gflops: f64,
+}
+
+fn mixer_name(m: MixerKind) -> &'static str {
+    match m {
+        MixerKind::Vdn => "vdn",
+        MixerKind::Qmix => "qmix",
+        MixerKind::Qplex => "qplex",
+    }
+}
+
+/// A learner filled with synthetic full-length episodes of `shape`.
+fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool) -> Result<Learner> {
+    let cfg = LearnConfig { mixer, rnn_hidden_dim: shape.hidden, fused_gru: fused, ..LearnConfig::default() };
+    let dims = shape.dims()?;
+    let mut learner = Learner::new(dims, cfg.clone(), Device::default())?;
+    let mut rng = LearnRng::seed_from(0);
+    for _ in 0..cfg.batch_size.max(shape.batch) * 2 {
+        learner.add_episode(Episode::synthetic(&dims, shape.steps, &mut rng, false))?;
+    }
+    Ok(learner)
+}
+
+/// The PyTorch anchor as a child process in `--serve` mode.
+struct Torch {
+    child: Child,
+    stdin: ChildStdin,
+    stdout: BufReader<ChildStdout>,
+    version: String,
+}
+
+impl Torch {
+    fn start(python: &PathBuf, script: &PathBuf, shape: &Shape, mixer: MixerKind, threads: usize) -> Result<Torch> {
+        let mut cmd = Command::new(python);
+        cmd.arg(script).arg("--serve").arg("--mixer").arg(mixer_name(mixer));
+        for (flag, v) in [
+            ("--batch", shape.batch),
+            ("--steps", shape.steps),
+            ("--agents", shape.agents),
+            ("--input", shape.input),
+            ("--actions", shape.actions),
+            ("--state", shape.state),
+            ("--hidden", shape.hidden),
+            ("--threads", threads),
+        ] {
+            cmd.arg(flag).arg(v.to_string());
+        }
+        let mut child = cmd
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .with_context(|| format!("starting {} {} (run benches/torch/setup.sh first)", python.display(), script.display()))?;
+        let stdin = child.stdin.take().context("torch child stdin")?;
+        let mut stdout = BufReader::new(child.stdout.take().context("torch child stdout")?);
+        let ready = read_json(&mut stdout)?;
+        if ready.get("ready").and_then(|v| v.as_bool()) != Some(true) {
+            bail!("the torch anchor did not report ready: {ready}");
+        }
+        let version = ready.get("version").and_then(|v| v.as_str()).unwrap_or("?").to_string();
+        Ok(Torch { child, stdin, stdout, version })
+    }
+
+    /// Run `k` updates; their milliseconds.
+    fn run(&mut self, k: usize) -> Result<Vec<f64>> {
+        writeln!(self.stdin, "run {k}")?;
+        self.stdin.flush()?;
+        let v = read_json(&mut self.stdout)?;
+        let ms = v.get("ms").and_then(|m| m.as_array()).with_context(|| format!("torch anchor replied {v}"))?;
+        Ok(ms.iter().filter_map(|x| x.as_f64()).collect())
+    }
+}
+
+impl Drop for Torch {
+    fn drop(&mut self) {
+        let _ = writeln!(self.stdin, "quit");
+        let _ = self.stdin.flush();
+        let _ = self.child.wait();
+    }
+}
+
+fn read_json(r: &mut impl BufRead) -> Result<serde_json::Value> {
+    let mut line = String::new();
+    if r.read_line(&mut line)? == 0 {
+        bail!("the torch anchor exited (see its error output above)");
+    }
+    serde_json::from_str(line.trim()).with_context(|| format!("the torch anchor printed {line:?}, not JSON"))
+}
+
+/// Milliseconds of each of `k` updates.
+fn time_updates(learner: &mut Learner, k: usize) -> Result<Vec<f64>> {
+    let mut out = Vec::with_capacity(k);
+    for _ in 0..k {
+        let t0 = Instant::now();
+        learner.train_step()?;
+        out.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok(out)
+}
+
+/// Single-thread sgemm throughput through burn's backend (512^3, best of 5): the ceiling the
+/// GFLOP/s figures are read against.
+fn sgemm_gflops() -> f64 {
+    use burn::tensor::{Distribution, Tensor};
+    let dev = Device::default();
+    let n = 512;
+    let a: Tensor<2> = Tensor::random([n, n], Distribution::Default, &dev);
+    let b: Tensor<2> = Tensor::random([n, n], Distribution::Default, &dev);
+    let mut best = f64::INFINITY;
+    for _ in 0..5 {
+        let t0 = Instant::now();
+        let c = a.clone().matmul(b.clone());
+        let _ = c.into_data();
+        best = best.min(t0.elapsed().as_secs_f64());
+    }
+    2.0 * (n * n * n) as f64 / best / 1e9
+}
+
+pub(crate) struct LearnerBenchOpts {
+    pub shape: Shape,
+    pub mixers: Vec<MixerKind>,
+    pub against_torch: bool,
+    pub python: Option<PathBuf>,
+    pub rounds: usize,
+    pub updates: usize,
+    pub stepwise: bool,
+    pub json: bool,
+    pub out: Option<PathBuf>,
+}
+
+pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
+    // One thread for lmac as for torch: burn's flex backend parallelizes large matmuls on rayon's
+    // global pool, which this sizes before its first use.
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        std::env::set_var("RAYON_NUM_THREADS", "1");
+    }
+    let threads: usize = std::env::var("RAYON_NUM_THREADS").ok().and_then(|v| v.parse().ok()).unwrap_or(1);
+    let root = lmac_trainer::supervisor::repo_root()?;
+    let script = root.join("benches/torch/qlearner.py");
+    let python = o.python.clone().unwrap_or_else(|| root.join("benches/torch/.venv/bin/python"));
+    let peak = sgemm_gflops();
+    eprintln!("lmac: single-thread sgemm through burn (512^3): {peak:.1} GFLOP/s");
+    let mut figures = Vec::new();
+    let mut torch_version = None;
+    for &mixer in &o.mixers {
+        let cfg = LearnConfig { mixer, ..LearnConfig::default() };
+        let flops = o.shape.update_flops(mixer, &cfg);
+        let mut fused = filled_learner(&o.shape, mixer, true)?;
+        let mut stepwise = if o.stepwise { Some(filled_learner(&o.shape, mixer, false)?) } else { None };
+        let mut torch = if o.against_torch { Some(Torch::start(&python, &script, &o.shape, mixer, threads)?) } else { None };
+        if let Some(t) = &torch {
+            torch_version = Some(t.version.clone());
+        }
+        // warm-up (allocator, caches); torch warmed up before reporting ready
+        time_updates(&mut fused, 3)?;
+        if let Some(s) = stepwise.as_mut() {
+            time_updates(s, 3)?;
+        }
+        let (mut f_rounds, mut s_rounds, mut t_rounds) = (Vec::new(), Vec::new(), Vec::new());
+        for round in 0..o.rounds {
+            f_rounds.push(median(time_updates(&mut fused, o.updates)?));
+            if let Some(s) = stepwise.as_mut() {
+                s_rounds.push(median(time_updates(s, o.updates)?));
+            }
+            if let Some(t) = torch.as_mut() {
+                t_rounds.push(median(t.run(o.updates)?));
+            }
+            eprintln!(
+                "lmac: {} round {}: lmac {:.1} ms{}{}",
+                mixer_name(mixer),
+                round + 1,
+                f_rounds[round],
+                s_rounds.get(round).map(|v| format!(", lmac stepwise {v:.1} ms")).unwrap_or_default(),
+                t_rounds.get(round).map(|v| format!(", torch {v:.1} ms")).unwrap_or_default()
+            );
+        }
+        for (name, rounds) in [("lmac", f_rounds), ("lmac-stepwise", s_rounds), ("torch", t_rounds)] {
+            if rounds.is_empty() {
+                continue;
+            }
+            let m = median(rounds.clone());
+            figures.push(Figure {
+                name: name.into(),
+                mixer: mixer_name(mixer).into(),
+                rounds_ms: rounds,
+                median_ms: m,
+                gflops: flops / (m * 1e-3) / 1e9,
+            });
+        }
+        drop(torch);
+    }
+    let flops: Vec<_> = o
+        .mixers
+        .iter()
+        .map(|&m| serde_json::json!({"mixer": mixer_name(m), "gflop_per_update": o.shape.update_flops(m, &LearnConfig { mixer: m, ..LearnConfig::default() }) / 1e9}))
+        .collect();
+    let report = serde_json::json!({
+        "shape": o.shape, "threads": threads, "rounds": o.rounds, "updates_per_round": o.updates,
+        "sgemm_gflops_single_thread": peak, "torch_version": torch_version, "flops": flops, "figures": figures,
+    });
+    if let Some(path) = &o.out {
+        std::fs::write(path, serde_json::to_string_pretty(&report)?).with_context(|| format!("writing {}", path.display()))?;
+    }
+    if o.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(0);
+    }
+    let s = &o.shape;
+    println!(
+        "one update: {} episodes x {} steps x {} agents, input {}, {} actions, state {}, GRU {}; {} thread(s); median of {} rounds x {} updates",
+        s.batch, s.steps, s.agents, s.input, s.actions, s.state, s.hidden, threads, o.rounds, o.updates
+    );
+    println!("| mixer | implementation | ms per update | GFLOP/s | of sgemm {peak:.0} GFLOP/s | torch / this |");
+    println!("| --- | --- | --- | --- | --- | --- |");
+    for f in &figures {
+        let torch = figures.iter().find(|g| g.mixer == f.mixer && g.name == "torch").map(|g| g.median_ms);
+        println!(
+            "| {} | {} | {:.1} | {:.1} | {:.0}% | {} |",
+            f.mixer,
+            f.name,
+            f.median_ms,
+            f.gflops,
+            100.0 * f.gflops / peak,
+            torch.map(|t| format!("{:.2}", t / f.median_ms)).unwrap_or_else(|| "-".into())
+        );
+    }
+    Ok(0)
+}
