@@ -125,6 +125,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
             rounds,
             updates,
             no_stepwise,
+            profile,
             out,
             json,
         }) => (|| {
@@ -155,6 +156,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
                 rounds,
                 updates,
                 stepwise: !no_stepwise,
+                profile,
                 json,
                 out,
             })

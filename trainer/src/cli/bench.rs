@@ -86,6 +86,10 @@ pub(crate) enum BenchCmd {
         /// Skip burn's per-step GRU cell (the reference of the fused recurrence).
         #[arg(long)]
         no_stepwise: bool,
+        /// Also time the phases of an update (target unroll, online forward, mixers and loss,
+        /// backward, optimizer).
+        #[arg(long)]
+        profile: bool,
         /// Write the report as JSON to this file too.
         #[arg(long)]
         out: Option<std::path::PathBuf>,

@@ -206,6 +206,65 @@ fn sgemm_gflops() -> f64 {
     2.0 * (n * n * n) as f64 / best / 1e9
 }
 
+/// Where one lmac update's time goes (median ms of `k` updates per phase): sampling the batch,
+/// the target network's agent unroll, the online agents' forward, the rest of the loss (mixers,
+/// targets, method terms), the backward pass, and clip + optimizer step.
+fn profile_update(learner: &mut Learner, k: usize) -> Result<Vec<(&'static str, f64)>> {
+    use burn::tensor::{Tensor, TensorData};
+    let step_inputs = |batch: &lmac_trainer::learn::Batch, device: &Device| -> Vec<Tensor<2>> {
+        let (b, n, iw) = (batch.b, batch.n_agents, batch.input_dim);
+        (0..batch.t)
+            .map(|ti| {
+                Tensor::from_data(TensorData::new(batch.inputs[ti * b * n * iw..(ti + 1) * b * n * iw].to_vec(), [b * n, iw]), device)
+            })
+            .collect()
+    };
+    let ms = |t0: Instant| t0.elapsed().as_secs_f64() * 1e3;
+    let mut phases: Vec<(&'static str, Vec<f64>)> = [
+        "sample batch",
+        "target agents (forward)",
+        "online agents (forward)",
+        "mixers, targets, loss",
+        "backward",
+        "clip + optimizer",
+        "whole update",
+    ]
+    .into_iter()
+    .map(|p| (p, Vec::new()))
+    .collect();
+    for _ in 0..k {
+        let t0 = Instant::now();
+        let batch = learner.sample_batch();
+        phases[0].1.push(ms(t0));
+        let dev = learner.device().clone();
+        let t0 = Instant::now();
+        let (q, _) = learner.target_net().agent.unroll(step_inputs(&batch, &dev), None);
+        let _ = q.into_data();
+        phases[1].1.push(ms(t0));
+        let t0 = Instant::now();
+        let (q, _) = learner.online_net().agent.unroll(step_inputs(&batch, &dev.clone().autodiff()), None);
+        let _ = q.inner().into_data();
+        phases[2].1.push(ms(t0));
+        let t0 = Instant::now();
+        let (loss, _) = learner.td_loss(&batch)?;
+        let whole_loss = ms(t0);
+        let agents = phases[1].1.last().copied().unwrap_or(0.0) + phases[2].1.last().copied().unwrap_or(0.0);
+        phases[3].1.push((whole_loss - agents).max(0.0));
+        let t0 = Instant::now();
+        let _ = loss.backward();
+        let backward = ms(t0);
+        phases[4].1.push(backward);
+        let (loss, stats) = learner.td_loss(&batch)?;
+        let t0 = Instant::now();
+        learner.apply_loss(loss, stats)?;
+        phases[5].1.push((ms(t0) - backward).max(0.0));
+        let t0 = Instant::now();
+        learner.train_on(&batch)?;
+        phases[6].1.push(ms(t0));
+    }
+    Ok(phases.into_iter().map(|(p, v)| (p, median(v))).collect())
+}
+
 pub(crate) struct LearnerBenchOpts {
     pub shape: Shape,
     pub mixers: Vec<MixerKind>,
@@ -214,6 +273,7 @@ pub(crate) struct LearnerBenchOpts {
     pub rounds: usize,
     pub updates: usize,
     pub stepwise: bool,
+    pub profile: bool,
     pub json: bool,
     pub out: Option<PathBuf>,
 }
@@ -232,6 +292,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     eprintln!("lmac: single-thread sgemm through burn (512^3): {peak:.1} GFLOP/s");
     let mut figures = Vec::new();
     let mut torch_version = None;
+    let mut profiles = Vec::new();
     for &mixer in &o.mixers {
         let cfg = LearnConfig { mixer, ..LearnConfig::default() };
         let flops = o.shape.update_flops(mixer, &cfg);
@@ -278,6 +339,17 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
             });
         }
         drop(torch);
+        if o.profile {
+            for (name, l) in [("lmac", Some(&mut fused)), ("lmac-stepwise", stepwise.as_mut())] {
+                let Some(l) = l else { continue };
+                let p = profile_update(l, o.updates)?;
+                for (phase, v) in &p {
+                    eprintln!("lmac: profile {} {name}: {phase}: {v:.2} ms", mixer_name(mixer));
+                }
+                profiles.push(serde_json::json!({"mixer": mixer_name(mixer), "implementation": name,
+                    "phases_ms": p.iter().map(|(k, v)| serde_json::json!({"phase": k, "ms": v})).collect::<Vec<_>>()}));
+            }
+        }
     }
     let flops: Vec<_> = o
         .mixers
@@ -286,7 +358,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
         .collect();
     let report = serde_json::json!({
         "shape": o.shape, "threads": threads, "rounds": o.rounds, "updates_per_round": o.updates,
-        "sgemm_gflops_single_thread": peak, "torch_version": torch_version, "flops": flops, "figures": figures,
+        "sgemm_gflops_single_thread": peak, "torch_version": torch_version, "flops": flops, "figures": figures, "profiles": profiles,
     });
     if let Some(path) = &o.out {
         std::fs::write(path, serde_json::to_string_pretty(&report)?).with_context(|| format!("writing {}", path.display()))?;

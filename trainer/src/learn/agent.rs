@@ -44,6 +44,19 @@ impl FusedGru {
         // (1 - z) * n + z * h = n + z * (h - n)
         cand.clone() + z * (h - cand)
     }
+
+    /// The hidden states over a whole sequence from zero: `x` holds every step's input,
+    /// time-major [T * N, in] -> [T, N, H]. The input projection runs once over all steps and
+    /// the recurrence is one fused operation (`gru_sequence`), equal to stepping `forward`.
+    pub fn sequence(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
+        let rows = x.dims()[0] / steps.max(1);
+        let gi = self.input.forward(x).reshape([steps, rows, 3 * self.hidden_dim]);
+        let bias = match &self.hidden.bias {
+            Some(b) => b.val(),
+            None => Tensor::zeros([3 * self.hidden_dim], &gi.device()),
+        };
+        gru_sequence(gi, self.hidden.weight.val(), bias)
+    }
 }
 
 #[derive(Module, Debug)]
@@ -95,14 +108,8 @@ impl RnnAgent {
         if !self.fused {
             return self.hidden_states_stepwise(inputs);
         }
-        let (t, n) = (inputs.len(), inputs[0].dims()[0]);
-        let x = if t == 1 { inputs[0].clone() } else { Tensor::cat(inputs.to_vec(), 0) };
-        let gi = self.gru.input.forward(relu(self.fc1.forward(x))).reshape([t, n, 3 * self.hidden_dim]);
-        let bias = match &self.gru.hidden.bias {
-            Some(b) => b.val(),
-            None => Tensor::zeros([3 * self.hidden_dim], &gi.device()),
-        };
-        gru_sequence(gi, self.gru.hidden.weight.val(), bias)
+        let x = if inputs.len() == 1 { inputs[0].clone() } else { Tensor::cat(inputs.to_vec(), 0) };
+        self.gru.sequence(relu(self.fc1.forward(x)), inputs.len())
     }
 
     /// The same hidden states with burn's per-step cell (the reference of the fused path).

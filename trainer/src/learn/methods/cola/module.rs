@@ -202,16 +202,11 @@ impl ColaAgent {
         let (t_len, rows) = (inputs.len(), inputs[0].dims()[0]);
         let hd = self.hidden_dim;
         let device = inputs[0].device();
-        let mut h: Tensor<2> = Tensor::zeros([rows, hd], &device);
-        let mut hs = Vec::with_capacity(t_len);
-        for x in &inputs {
-            h = self.gru.forward(relu(self.fc1.forward(x.clone())), h);
-            hs.push(h.clone());
-        }
-        let hs: Tensor<3> = Tensor::stack(hs, 0);
-        // Everything after the GRU over all steps at once (time-major rows t * N + r): the
-        // student's logits carry a gradient only into the consensus loss, the classes none.
+        // Everything over all steps at once (time-major rows t * N + r), the recurrence as one
+        // fused operation: the student's logits carry a gradient only into the consensus loss,
+        // the classes none.
         let x_all = Tensor::cat(inputs, 0);
+        let hs = self.gru.sequence(relu(self.fc1.forward(x_all.clone())), t_len);
         let alive = self.alive(&x_all);
         let src = match self.cfg.settings.input {
             ConsensusInput::Obs => x_all,

@@ -222,23 +222,15 @@ impl LmacAgent {
         let t_len = inputs.len();
         let n = inputs[0].dims()[0];
         let e = self.embed_dim();
-        let device = inputs[0].device();
         let z = match &self.encoder {
             Encoder::GruGate(g) => {
-                // The embedding stays per step: batched, it would reach the GRU as per-step
-                // slices of a gradient-carrying [T*N, E] tensor, and burn's backward of each
-                // slice writes a zero tensor of the full size (measured slower). The gate reads
-                // only x and h, so it runs once after the recurrence.
+                // The embedding stays per step so dropout draws in the per-step order; the
+                // recurrence is one fused operation over all steps, and the gate reads only x
+                // and h, so it runs once after it.
                 let xs: Vec<Tensor<2>> = inputs.iter().map(|u| self.embed(u.clone(), rng.as_deref_mut())).collect();
-                let mut h: Tensor<2> = Tensor::zeros([n, e], &device);
-                let hs: Vec<Tensor<2>> = xs
-                    .iter()
-                    .map(|x| {
-                        h = g.gru.forward(x.clone(), h.clone());
-                        h.clone()
-                    })
-                    .collect();
-                gate(g, Tensor::cat(xs, 0), Tensor::cat(hs, 0))
+                let x = Tensor::cat(xs, 0);
+                let hs = g.gru.sequence(x.clone(), t_len).reshape([t_len * n, e]);
+                gate(g, x, hs)
             }
             Encoder::Window(w) => {
                 // No recurrence: embedding and attention run over all steps at once.
