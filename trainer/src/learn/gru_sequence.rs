@@ -12,6 +12,8 @@
 //! `gh = h W_hh + b_hh`, `r = sigmoid(gi_r + gh_r)`, `z = sigmoid(gi_z + gh_z)`,
 //! `n = tanh(gi_n + r * gh_n)`, `h' = n + z (h - n)`, from `h_0 = 0`. `gi = x W_ih + b_ih` is
 //! the caller's. Tested against the step-by-step burn cell (values and gradients to 1e-5).
+// burn marks its ndarray backend deprecated; the `ndarray` feature still selects it.
+#![cfg_attr(feature = "ndarray", allow(deprecated))]
 
 use std::future::Future;
 use std::pin::pin;
@@ -47,7 +49,6 @@ impl GruSequenceBackend for burn::backend::Flex {
 }
 
 #[cfg(feature = "ndarray")]
-#[allow(deprecated)]
 impl GruSequenceBackend for burn::backend::NdArray {
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
         forward_on::<Self>(gi, w_hh, b_hh, false).0
