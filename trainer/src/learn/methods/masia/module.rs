@@ -79,6 +79,22 @@ impl AttentionEncoder {
         let z = self.out.forward(g.clone()).reshape([b, n * self.latent_dim]);
         (z, g)
     }
+
+    /// Every step at once: u [T * N, in] (time-major rows) -> z [T * N / n, n * L], what
+    /// stepping `step` from zero states gives, with the recurrence as one fused operation.
+    pub fn sequence(&self, u: Tensor<2>, steps: usize) -> Tensor<2> {
+        let rows = u.dims()[0];
+        let (n, d, hd) = (self.n_agents, self.attention_dim, self.gru.hidden_dim);
+        let groups = rows / n;
+        let qkv = self.qkv.forward(u).reshape([groups, n, 2 * d + hd]);
+        let q = qkv.clone().narrow(2, 0, d);
+        let k = qkv.clone().narrow(2, d, d);
+        let v = qkv.narrow(2, 2 * d, hd);
+        let score = softmax(q.matmul(k.swap_dims(1, 2)).div_scalar((d as f32).sqrt()), 2);
+        let att = score.matmul(v).reshape([rows, hd]);
+        let g = self.gru.sequence(att, steps).reshape([rows, hd]);
+        self.out.forward(g).reshape([groups, n * self.latent_dim])
+    }
 }
 
 #[derive(Module, Debug)]
@@ -154,10 +170,11 @@ fn blend<M: Module>(target: M, online: &M, tau: f32) -> M {
 
 /// What the unroll keeps for the losses (training only).
 struct Trace {
-    /// Per step: z [B, n * L], the rows the encoder read [N, in'], the gates [N, n * L] (detached).
-    z: Vec<Tensor<2>>,
-    rows: Vec<Tensor<2>>,
-    gates: Vec<Tensor<2>>,
+    /// z [T, B, n * L]; the rows the encoder read [T * N, in'] and the gates [T * N, n * L]
+    /// (detached), time-major.
+    z: Tensor<3>,
+    rows: Tensor<2>,
+    gates: Tensor<2>,
 }
 
 impl MasiaAgent {
@@ -241,49 +258,34 @@ impl MasiaAgent {
     }
 
     /// Unroll from zero states; in training (`train`) the self-supervised losses are returned.
+    /// Every step at once (time-major rows): the encoder's and the agent's recurrences are each
+    /// one fused operation, everything else one op over all steps.
     pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
         assert!(!inputs.is_empty(), "unroll needs at least one step");
-        let rows = inputs[0].dims()[0];
-        let device = inputs[0].device();
-        let mut g: Tensor<2> = Tensor::zeros([rows, self.encoder.gru.hidden_dim], &device);
-        let mut h: Tensor<2> = Tensor::zeros([rows, self.agent.hidden_dim], &device);
-        let mut hs = Vec::with_capacity(inputs.len());
-        let mut trace = train.map(|_| Trace { z: Vec::new(), rows: Vec::new(), gates: Vec::new() });
-        for u in inputs {
-            // Per step: the GRUs read per-step inputs (see `RnnAgent::unroll`).
-            let (row, own, extra) = self.split_row(u);
-            let (z, g2) = self.encoder.step(row.clone(), g);
-            g = g2;
-            let (x, gate) = self.agent_input(row.clone(), own, extra, z.clone());
-            h = self.agent.gru.forward(relu(self.agent.fc1.forward(x)), h);
-            hs.push(h.clone());
-            if let Some(tr) = trace.as_mut() {
-                tr.z.push(z);
-                tr.rows.push(row);
-                tr.gates.push(gate.detach());
+        let t_len = inputs.len();
+        let (row, own, extra) = self.split_row(Tensor::cat(inputs, 0));
+        let z = self.encoder.sequence(row.clone(), t_len);
+        let (x, gate) = self.agent_input(row.clone(), own, extra, z.clone());
+        let hs = self.agent.gru.sequence(relu(self.agent.fc1.forward(x)), t_len);
+        let q = self.agent.fc2.forward(hs);
+        let aux = match train {
+            Some(ctx) => {
+                let [groups, w] = z.dims();
+                let trace = Trace { z: z.reshape([t_len, groups / t_len, w]), rows: row, gates: gate.detach() };
+                self.losses(trace, ctx)
             }
-        }
-        let q = self.agent.fc2.forward(Tensor::stack::<3>(hs, 0));
-        let aux = match (train, trace) {
-            (Some(ctx), Some(tr)) => self.losses(tr, ctx),
-            _ => Vec::new(),
+            None => Vec::new(),
         };
         (q, aux)
     }
 
     /// The projections of the momentum target encoder's z' over the batch, [T, B, P]: constants,
-    /// computed without autodiff (the copies do not train).
-    fn target_projections(&self, rows: Vec<Tensor<2>>) -> Tensor<3> {
+    /// computed without autodiff (the copies do not train). `rows` [T * N, in'], time-major.
+    fn target_projections(&self, rows: Tensor<2>, steps: usize) -> Tensor<3> {
         let (encoder, projection) = (self.target_encoder.valid(), self.target_projection.valid());
-        let n = rows[0].dims()[0];
-        let mut g: Tensor<2> = Tensor::zeros([n, encoder.gru.hidden_dim], &rows[0].clone().inner().device());
-        let mut zs = Vec::with_capacity(rows.len());
-        for u in rows {
-            let (z, g2) = encoder.step(u.inner(), g);
-            g = g2;
-            zs.push(z);
-        }
-        projection.forward(Tensor::stack::<3>(zs, 0))
+        let z = encoder.sequence(rows.inner(), steps);
+        let [groups, w] = z.dims();
+        projection.forward(z.reshape([steps, groups / steps, w]))
     }
 
     /// ẑ' = ẑ + F([E_z(ẑ) | E_a(a)]): z [T', B, n * L], actions one-hot [T', B, n, A].
@@ -298,13 +300,13 @@ impl MasiaAgent {
         let s = &self.cfg.settings;
         let (b, n) = (ctx.b, self.n_agents);
         assert_eq!(ctx.n_agents, n, "the context's agent count");
-        let t = tr.z.len();
+        let t = tr.z.dims()[0];
         let a = self.agent.n_actions;
         let scalar = |x: &Tensor<1>| x.clone().detach().into_scalar::<f32>();
         let mask_host: Vec<f32> = ctx.mask.clone().detach().into_data().iter::<f32>().collect();
         assert_eq!(mask_host.len(), t * b, "the mask is [T * B]");
         let mask: Tensor<3> = ctx.mask.clone().reshape([t, b, 1]);
-        let z: Tensor<3> = Tensor::stack(tr.z, 0);
+        let z = tr.z;
 
         // Reconstruction of the state: squared error averaged over its dims.
         let sd = ctx.state.dims()[1];
@@ -317,7 +319,7 @@ impl MasiaAgent {
         let reward: Tensor<3> = reward.clone().reshape([t, b, 1]);
         let taken = ctx.actions.as_ref().expect("MASIA's transition model reads the batch's actions (TrainContext::actions)").taken.clone();
         let onehot: Tensor<4> = taken.reshape([t * b * n]).one_hot::<2>(a).float().reshape([t, b, n, a]);
-        let target = self.target_projections(tr.rows);
+        let target = self.target_projections(tr.rows, t);
         let predicted = rollout(z, s.pred_len, |cur, first, len| self.advance(cur, onehot.clone().narrow(0, first, len)));
         let mut latent: Option<Tensor<1>> = None;
         let mut rew: Option<Tensor<1>> = None;
@@ -340,7 +342,7 @@ impl MasiaAgent {
         let (latent, rew) = (latent.expect("k = 0 is always predicted"), rew.expect("k = 0 is always predicted"));
 
         // Diagnostic: the mean gate over the trained rows.
-        let gates: Tensor<3> = Tensor::stack::<3>(tr.gates, 0).reshape([t, b, n * n * s.latent_dim]);
+        let gates: Tensor<3> = tr.gates.reshape([t, b, n * n * s.latent_dim]);
         let gate_mean = scalar(&(gates.mean_dim(2) * mask).sum()) / ctx.mask_sum;
         vec![
             AuxTerm { name: "masia_recon", value: scalar(&recon), loss: Some(recon.mul_scalar(s.recon_weight)) },
