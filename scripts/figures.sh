@@ -8,6 +8,7 @@
 #   FIGURES=lmac bash scripts/figures.sh   # the LMAC comparisons (hours; not in the default set)
 #   FIGURES=design bash scripts/figures.sh   # offline designs and what FullComm's messages reveal (minutes)
 #   FIGURES=methods bash scripts/figures.sh   # ms per update of the communication baselines against QMIX
+#   FIGURES=learner bash scripts/figures.sh   # one update against pymarl's QLearner in PyTorch (installs torch: benches/torch/setup.sh)
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -68,6 +69,13 @@ if want train; then
   cargo build --release -q --bin lmac  # the default (flex) binary again
   "$ROOT/target/release/lmac-ndarray" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json \
     >"$OUT/train_ndarray.json"
+fi
+
+if want learner; then
+  log "bench learner against PyTorch (LBF 8x8 and 1o_10b shapes, 3 alternating rounds)"
+  bash "$ROOT/benches/torch/setup.sh"
+  "$LMAC" bench learner --shape lbf8x8 --against torch --rounds 3 --updates 10 --profile --out "$OUT/learner_vs_torch_lbf8x8.json"
+  "$LMAC" bench learner --shape 1o10b --against torch --rounds 3 --updates 5 --profile --out "$OUT/learner_vs_torch_1o10b.json"
 fi
 
 if want methods; then
