@@ -25,6 +25,33 @@ fn the_learner_bench_reports_each_mixer_and_refuses_what_it_cannot_run() {
     let phases = v["profiles"][0]["phases_ms"].as_array().unwrap();
     assert!(phases.iter().any(|p| p["phase"] == "backward"), "{phases:?}");
     assert_eq!(v["shape"]["batch"], 4);
+    // the FLOPs are those of the shape given (4 episodes x 5 steps), not of the default batch
+    let small = gflop("vdn");
+    let big = lmac()
+        .args([
+            "bench",
+            "learner",
+            "--batch",
+            "8",
+            "--steps",
+            "5",
+            "--state",
+            "20",
+            "--mixers",
+            "vdn",
+            "--rounds",
+            "1",
+            "--updates",
+            "1",
+            "--no-stepwise",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(big.status.success(), "{}", String::from_utf8_lossy(&big.stderr));
+    let big: serde_json::Value = serde_json::from_slice(&big.stdout).unwrap();
+    let ratio = big["flops"][0]["gflop_per_update"].as_f64().unwrap() / small;
+    assert!((ratio - 2.0).abs() < 1e-9, "twice the episodes, {ratio}x the FLOPs");
 
     let missing = lmac()
         .args(["bench", "learner", "--mixers", "vdn", "--rounds", "1", "--updates", "1", "--no-stepwise", "--against", "torch"])

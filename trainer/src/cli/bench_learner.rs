@@ -101,11 +101,11 @@ fn mixer_name(m: MixerKind) -> &'static str {
 
 /// A learner filled with synthetic full-length episodes of `shape`.
 fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool) -> Result<Learner> {
-    let cfg = LearnConfig { mixer, rnn_hidden_dim: shape.hidden, fused_gru: fused, ..LearnConfig::default() };
+    let cfg = LearnConfig { mixer, rnn_hidden_dim: shape.hidden, batch_size: shape.batch, fused_gru: fused, ..LearnConfig::default() };
     let dims = shape.dims()?;
-    let mut learner = Learner::new(dims, cfg.clone(), Device::default())?;
+    let mut learner = Learner::new(dims, cfg, Device::default())?;
     let mut rng = LearnRng::seed_from(0);
-    for _ in 0..cfg.batch_size.max(shape.batch) * 2 {
+    for _ in 0..shape.batch * 2 {
         learner.add_episode(Episode::synthetic(&dims, shape.steps, &mut rng, false))?;
     }
     Ok(learner)
