@@ -388,11 +388,6 @@ impl Saved {
         Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all }
     }
 
-    /// The hidden states [T, N, H].
-    pub fn hidden_states(&self) -> &[f32] {
-        &self.hs
-    }
-
     /// Backpropagation through time of `d_hs` = dL/dh_t for every step [T, N, H].
     pub fn backward(&self, d_hs: &[f32]) -> SequenceGrads {
         let (t, n, h) = (self.steps, self.rows, self.hidden);

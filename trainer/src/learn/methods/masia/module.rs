@@ -64,19 +64,24 @@ impl AttentionEncoder {
         }
     }
 
-    /// One step: u [N, in], g [N, H] -> (z [N / n, n * L], g' [N, H]).
-    pub fn step(&self, u: Tensor<2>, g: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+    /// Self-attention over each environment's agents: u [N, in] (N a multiple of n, rows of one
+    /// environment together) -> the attended values [N, H] the GRU reads.
+    fn attend(&self, u: Tensor<2>) -> Tensor<2> {
         let rows = u.dims()[0];
         let (n, d, hd) = (self.n_agents, self.attention_dim, self.gru.hidden_dim);
-        let b = rows / n;
-        let qkv = self.qkv.forward(u).reshape([b, n, 2 * d + hd]);
+        let qkv = self.qkv.forward(u).reshape([rows / n, n, 2 * d + hd]);
         let q = qkv.clone().narrow(2, 0, d);
         let k = qkv.clone().narrow(2, d, d);
         let v = qkv.narrow(2, 2 * d, hd);
         let score = softmax(q.matmul(k.swap_dims(1, 2)).div_scalar((d as f32).sqrt()), 2);
-        let att = score.matmul(v).reshape([rows, hd]);
-        let g = self.gru.forward(att, g);
-        let z = self.out.forward(g.clone()).reshape([b, n * self.latent_dim]);
+        score.matmul(v).reshape([rows, hd])
+    }
+
+    /// One step: u [N, in], g [N, H] -> (z [N / n, n * L], g' [N, H]).
+    pub fn step(&self, u: Tensor<2>, g: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+        let groups = u.dims()[0] / self.n_agents;
+        let g = self.gru.forward(self.attend(u), g);
+        let z = self.out.forward(g.clone()).reshape([groups, self.n_agents * self.latent_dim]);
         (z, g)
     }
 
@@ -84,16 +89,8 @@ impl AttentionEncoder {
     /// stepping `step` from zero states gives, with the recurrence as one fused operation.
     pub fn sequence(&self, u: Tensor<2>, steps: usize) -> Tensor<2> {
         let rows = u.dims()[0];
-        let (n, d, hd) = (self.n_agents, self.attention_dim, self.gru.hidden_dim);
-        let groups = rows / n;
-        let qkv = self.qkv.forward(u).reshape([groups, n, 2 * d + hd]);
-        let q = qkv.clone().narrow(2, 0, d);
-        let k = qkv.clone().narrow(2, d, d);
-        let v = qkv.narrow(2, 2 * d, hd);
-        let score = softmax(q.matmul(k.swap_dims(1, 2)).div_scalar((d as f32).sqrt()), 2);
-        let att = score.matmul(v).reshape([rows, hd]);
-        let g = self.gru.sequence(att, steps).reshape([rows, hd]);
-        self.out.forward(g).reshape([groups, n * self.latent_dim])
+        let g = self.gru.sequence(self.attend(u), steps).reshape([rows, self.gru.hidden_dim]);
+        self.out.forward(g).reshape([rows / self.n_agents, self.n_agents * self.latent_dim])
     }
 }
 
