@@ -8,6 +8,7 @@
 #   FIGURES=lmac bash scripts/figures.sh   # the LMAC comparisons (hours; not in the default set)
 #   FIGURES=design bash scripts/figures.sh   # offline designs and what FullComm's messages reveal (minutes)
 #   FIGURES=methods bash scripts/figures.sh   # ms per update of the communication baselines against QMIX
+#   FIGURES=sweep bash scripts/figures.sh   # a 4-trial sweep through Ray against the same trials one after another
 #   FIGURES=learner bash scripts/figures.sh   # one update against pymarl's QLearner in PyTorch (installs torch: benches/torch/setup.sh)
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -71,11 +72,16 @@ if want train; then
     >"$OUT/train_ndarray.json"
 fi
 
+if want sweep; then
+  log "sweep: 4 LBF 8x8 trials through Ray (cpus_per_trial 2 and 1) against the same runs one after another"
+  "$ROOT/.venv/bin/python" scripts/sweep_walltime.py --steps 200k --out "$OUT/sweep_lbf8x8.json"
+fi
+
 if want learner; then
   log "bench learner against PyTorch (LBF 8x8 and 1o_10b shapes, 3 alternating rounds)"
   bash "$ROOT/benches/torch/setup.sh"
   "$LMAC" bench learner --shape lbf8x8 --against torch --rounds 3 --updates 10 --profile --out "$OUT/learner_vs_torch_lbf8x8.json"
-  "$LMAC" bench learner --shape 1o10b --against torch --rounds 3 --updates 5 --profile --out "$OUT/learner_vs_torch_1o10b.json"
+  "$LMAC" bench learner --shape 1o10b --against torch --rounds 5 --updates 5 --profile --out "$OUT/learner_vs_torch_1o10b.json"
 fi
 
 if want methods; then
