@@ -65,3 +65,48 @@ fn the_learner_bench_reports_each_mixer_and_refuses_what_it_cannot_run() {
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(!bad.status.success() && err.contains("unknown shape"), "{err}");
 }
+
+/// `--algo` times a method's agent network on the same shape: LMAC's module (more work than
+/// the plain agent it wraps), an algorithm that names its backbone runs on that one only, no FLOP
+/// figure (the count describes the plain agent), and inputs that do not fit are refused.
+#[test]
+fn the_learner_bench_times_a_methods_agent_network() {
+    let run = |extra: &[&str]| {
+        lmac()
+            .args(["bench", "learner", "--batch", "4", "--steps", "5", "--state", "20", "--mixers", "vdn"])
+            .args(["--rounds", "1", "--updates", "2", "--no-stepwise", "--json"])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let ok = |out: &std::process::Output| -> serde_json::Value {
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let plain = ok(&run(&[]));
+    let lmac_v = ok(&run(&["--algo", "lmac", "--messages", "10", "--critical", "8", "--method", "encoder=\"gru-gate\""]));
+    assert_eq!(lmac_v["method"]["algo"], "lmac");
+    assert_eq!(lmac_v["method"]["critical_dims"], 8);
+    let fig = &lmac_v["figures"][0];
+    assert!(fig["gflops"].is_null() && fig["median_ms"].as_f64().unwrap() > 0.0, "{fig}");
+    assert!(lmac_v["flops"].as_array().unwrap().is_empty(), "{}", lmac_v["flops"]);
+    assert!(plain["figures"][0]["gflops"].as_f64().unwrap() > 0.0);
+
+    let fixed = ok(&run(&["--algo", "qplex"]));
+    let mixers: Vec<&str> = fixed["figures"].as_array().unwrap().iter().map(|f| f["mixer"].as_str().unwrap()).collect();
+    assert_eq!(mixers, ["qplex"], "--algo qplex fixes its mixer whatever --mixers says");
+
+    for (extra, says) in [
+        (&["--messages", "3"][..], "give --algo"),
+        (&["--algo", "lmac", "--messages", "500"][..], "--messages 500"),
+        (&["--algo", "lmac", "--critical", "21"][..], "--critical 21"),
+        (&["--algo", "lmac", "--method", "encoder"][..], "KEY=VALUE"),
+        (&["--algo", "lmac", "--method", "nope=1"][..], "nope"),
+        (&["--algo", "nosuch"][..], "unknown algorithm"),
+        (&["--algo", "lmac", "--against", "torch"][..], "drop --algo"),
+    ] {
+        let out = run(extra);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(says), "{extra:?}: {err}");
+    }
+}

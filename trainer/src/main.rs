@@ -120,6 +120,10 @@ fn dispatch(cli: Cli) -> Result<i32> {
             actions,
             state,
             mixers,
+            algo,
+            messages,
+            critical,
+            method_settings,
             against,
             python,
             rounds,
@@ -148,9 +152,20 @@ fn dispatch(cli: Cli) -> Result<i32> {
                 Some("torch") => true,
                 Some(other) => anyhow::bail!("--against {other:?}: only torch is known"),
             };
+            if against_torch && algo.is_some() {
+                anyhow::bail!("--against torch: the PyTorch anchor is pymarl's plain RNN agent; drop --algo to compare with it");
+            }
+            let method = match algo {
+                Some(name) => Some(cli::bench_learner::MethodUnderTest::new(&name, messages, critical, &method_settings, &s)?),
+                None if messages > 0 || critical.is_some() || !method_settings.is_empty() => {
+                    anyhow::bail!("--messages, --critical and --method describe a method's input: give --algo")
+                }
+                None => None,
+            };
             cli::bench_learner::bench_learner(cli::bench_learner::LearnerBenchOpts {
                 shape: s,
                 mixers,
+                method,
                 against_torch,
                 python,
                 rounds,

@@ -68,9 +68,24 @@ pub(crate) enum BenchCmd {
         actions: Option<usize>,
         #[arg(long)]
         state: Option<usize>,
-        /// Mixers, comma separated.
+        /// Mixers, comma separated (--algo qmix, vdn or qplex runs on that mixer only).
         #[arg(long, value_delimiter = ',', default_value = "qmix,vdn,qplex")]
         mixers: Vec<String>,
+        /// A method's agent network instead of the plain RNN agent: lmac, ndq, maic, masia,
+        /// t2mac, cola, qmix-state, ... (`lmac train --help`); no GFLOP/s then, the FLOP count
+        /// describes the plain agent.
+        #[arg(long)]
+        algo: Option<String>,
+        /// Message columns at the end of each agent's observation (what the method reads as
+        /// messages; they count in --input).
+        #[arg(long, default_value_t = 0)]
+        messages: usize,
+        /// State dims a designed protocol names as task-critical: the first N (default: all).
+        #[arg(long)]
+        critical: Option<usize>,
+        /// A `[method]` setting, KEY=VALUE in TOML (repeatable): --method encoder='"gru-gate"'.
+        #[arg(long = "method", value_name = "KEY=VALUE")]
+        method_settings: Vec<String>,
         /// Also run the PyTorch anchor (`torch`).
         #[arg(long)]
         against: Option<String>,

@@ -5,7 +5,8 @@
 
 use anyhow::{bail, Context, Result};
 use lmac_trainer::episode::{Episode, EpisodeDims};
-use lmac_trainer::learn::{Device, LearnConfig, LearnRng, Learner, MixerKind};
+use lmac_trainer::learn::methods::{self, MethodContext};
+use lmac_trainer::learn::{AgentConfig, Device, LearnConfig, LearnRng, Learner, MixerKind};
 use serde::Serialize;
 use std::io::{BufRead, BufReader, Write};
 use std::path::PathBuf;
@@ -81,14 +82,53 @@ impl Shape {
     }
 }
 
-/// What one implementation measured: per-update milliseconds of every round.
+/// A method's agent network in place of the plain RNN agent (`--algo`): its configured agent
+/// and what it fixes of the learner.
+pub(crate) struct MethodUnderTest {
+    pub name: String,
+    pub agent: AgentConfig,
+    pub mixer: Option<MixerKind>,
+    pub agent_sees_state: bool,
+    /// The command-line description, for the report.
+    pub settings: serde_json::Value,
+}
+
+impl MethodUnderTest {
+    /// `name` configured as `lmac train` would (`[method]` settings parsed by the same code),
+    /// for an input whose last `messages` observation columns are messages and whose first
+    /// `critical` state dims (default all) are task-critical.
+    pub(crate) fn new(name: &str, messages: usize, critical: Option<usize>, settings: &[String], shape: &Shape) -> Result<Self> {
+        let spec = methods::method(name).map_err(|e| anyhow::anyhow!("--algo: {e}"))?;
+        let obs = shape.dims()?.obs_width;
+        if messages >= obs {
+            bail!("--messages {messages}: the observation has {obs} columns (--input minus actions and agents)");
+        }
+        let critical = critical.unwrap_or(shape.state);
+        if critical == 0 || critical > shape.state {
+            bail!("--critical {critical}: must be 1..={} (the state's dims)", shape.state);
+        }
+        let mut table = toml::Table::new();
+        for kv in settings {
+            let (key, value) =
+                kv.split_once('=').with_context(|| format!("--method {kv:?}: expected KEY=VALUE, e.g. encoder='\"window\"'"))?;
+            table.insert(key.trim().to_string(), lmac_trainer::train::config::override_value(value));
+        }
+        let ctx = MethodContext { msg_cols: messages, alpha: 0.05, critical_dims: (0..critical).collect(), state_dim: shape.state };
+        let agent = (spec.configure)(&table, &ctx).map_err(|e| anyhow::anyhow!("--method: {name}: {e}"))?;
+        let described = serde_json::json!({"algo": name, "messages": messages, "critical_dims": critical, "method": settings});
+        Ok(MethodUnderTest { name: name.into(), agent, mixer: spec.mixer, agent_sees_state: spec.agent_sees_state, settings: described })
+    }
+}
+
+/// What one implementation measured: per-update milliseconds of every round (GFLOP/s only for
+/// the plain RNN agent, the network the FLOP count describes).
 #[derive(Debug, Serialize)]
 pub(crate) struct Figure {
     pub name: String,
     pub mixer: String,
     pub rounds_ms: Vec<f64>,
     pub median_ms: f64,
-    pub gflops: f64,
+    pub gflops: Option<f64>,
 }
 
 fn mixer_name(m: MixerKind) -> &'static str {
@@ -99,11 +139,19 @@ fn mixer_name(m: MixerKind) -> &'static str {
     }
 }
 
-/// A learner filled with synthetic full-length episodes of `shape`.
-fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool) -> Result<Learner> {
-    let cfg = LearnConfig { mixer, rnn_hidden_dim: shape.hidden, batch_size: shape.batch, fused_gru: fused, ..LearnConfig::default() };
+/// A learner (the plain RNN agent, or `method`'s) filled with synthetic full-length episodes of
+/// `shape`.
+fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool, method: Option<&MethodUnderTest>) -> Result<Learner> {
+    let mut cfg = LearnConfig { mixer, rnn_hidden_dim: shape.hidden, batch_size: shape.batch, fused_gru: fused, ..LearnConfig::default() };
     let dims = shape.dims()?;
-    let mut learner = Learner::new(dims, cfg, Device::default())?;
+    let agent = match method {
+        Some(m) => {
+            cfg.agent_sees_state |= m.agent_sees_state;
+            m.agent.clone()
+        }
+        None => AgentConfig::Rnn,
+    };
+    let mut learner = Learner::with_agent(dims, cfg, agent, Device::default())?;
     let mut rng = LearnRng::seed_from(0);
     for _ in 0..shape.batch * 2 {
         learner.add_episode(Episode::synthetic(&dims, shape.steps, &mut rng, false))?;
@@ -269,6 +317,7 @@ fn profile_update(learner: &mut Learner, k: usize) -> Result<Vec<(&'static str, 
 pub(crate) struct LearnerBenchOpts {
     pub shape: Shape,
     pub mixers: Vec<MixerKind>,
+    pub method: Option<MethodUnderTest>,
     pub against_torch: bool,
     pub python: Option<PathBuf>,
     pub rounds: usize,
@@ -293,11 +342,17 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     let mut figures = Vec::new();
     let mut torch_version = None;
     let mut profiles = Vec::new();
-    for &mixer in &o.mixers {
+    let method = o.method.as_ref();
+    // An algorithm that names its backbone (qmix, vdn, qplex) runs on that one only.
+    let mixers = match method.and_then(|m| m.mixer) {
+        Some(fixed) => vec![fixed],
+        None => o.mixers.clone(),
+    };
+    for &mixer in &mixers {
         let cfg = LearnConfig { mixer, ..LearnConfig::default() };
-        let flops = o.shape.update_flops(mixer, &cfg);
-        let mut fused = filled_learner(&o.shape, mixer, true)?;
-        let mut stepwise = if o.stepwise { Some(filled_learner(&o.shape, mixer, false)?) } else { None };
+        let flops = if method.is_none() { Some(o.shape.update_flops(mixer, &cfg)) } else { None };
+        let mut fused = filled_learner(&o.shape, mixer, true, method)?;
+        let mut stepwise = if o.stepwise { Some(filled_learner(&o.shape, mixer, false, method)?) } else { None };
         let mut torch = if o.against_torch { Some(Torch::start(&python, &script, &o.shape, mixer, threads)?) } else { None };
         if let Some(t) = &torch {
             torch_version = Some(t.version.clone());
@@ -335,7 +390,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
                 mixer: mixer_name(mixer).into(),
                 rounds_ms: rounds,
                 median_ms: m,
-                gflops: flops / (m * 1e-3) / 1e9,
+                gflops: flops.map(|f| f / (m * 1e-3) / 1e9),
             });
         }
         drop(torch);
@@ -353,14 +408,15 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     }
     let peak = peak_before.max(sgemm_gflops());
     eprintln!("lmac: single-thread sgemm through burn (512^3): {peak:.1} GFLOP/s");
-    let flops: Vec<_> = o
-        .mixers
+    let flops: Vec<_> = mixers
         .iter()
+        .filter(|_| method.is_none())
         .map(|&m| serde_json::json!({"mixer": mixer_name(m), "gflop_per_update": o.shape.update_flops(m, &LearnConfig { mixer: m, ..LearnConfig::default() }) / 1e9}))
         .collect();
     let report = serde_json::json!({
         "shape": o.shape, "threads": threads, "rounds": o.rounds, "updates_per_round": o.updates,
         "sgemm_gflops_single_thread": peak, "torch_version": torch_version, "flops": flops, "figures": figures, "profiles": profiles,
+        "method": method.map(|m| m.settings.clone()),
     });
     if let Some(path) = &o.out {
         std::fs::write(path, serde_json::to_string_pretty(&report)?).with_context(|| format!("writing {}", path.display()))?;
@@ -371,20 +427,30 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     }
     let s = &o.shape;
     println!(
-        "one update: {} episodes x {} steps x {} agents, input {}, {} actions, state {}, GRU {}; {} thread(s); median of {} rounds x {} updates",
-        s.batch, s.steps, s.agents, s.input, s.actions, s.state, s.hidden, threads, o.rounds, o.updates
+        "one update{}: {} episodes x {} steps x {} agents, input {}, {} actions, state {}, GRU {}; {} thread(s); median of {} rounds x {} updates",
+        method.map(|m| format!(" of {} ({})", m.name, m.settings)).unwrap_or_default(),
+        s.batch,
+        s.steps,
+        s.agents,
+        s.input,
+        s.actions,
+        s.state,
+        s.hidden,
+        threads,
+        o.rounds,
+        o.updates
     );
     println!("| mixer | implementation | ms per update | GFLOP/s | of sgemm {peak:.0} GFLOP/s | torch / this |");
     println!("| --- | --- | --- | --- | --- | --- |");
     for f in &figures {
         let torch = figures.iter().find(|g| g.mixer == f.mixer && g.name == "torch").map(|g| g.median_ms);
         println!(
-            "| {} | {} | {:.1} | {:.1} | {:.0}% | {} |",
+            "| {} | {} | {:.1} | {} | {} | {} |",
             f.mixer,
             f.name,
             f.median_ms,
-            f.gflops,
-            100.0 * f.gflops / peak,
+            f.gflops.map(|g| format!("{g:.1}")).unwrap_or_else(|| "-".into()),
+            f.gflops.map(|g| format!("{:.0}%", 100.0 * g / peak)).unwrap_or_else(|| "-".into()),
             torch.map(|t| format!("{:.2}", t / f.median_ms)).unwrap_or_else(|| "-".into())
         );
     }
