@@ -1,8 +1,9 @@
-"""Final test return (mean of the last 5 test phases) and win rate of every smaclite:1o_10b_vs_1r
-run committed under docs/figures, with the best checkpoint's greedy evaluation where the run has
-one (marl_eval.json). Issue 13/15 figures:
+"""Final test return (mean of the last 5 test phases), win rate and peak (the best mean of 5
+consecutive test phases) of every smaclite:1o_10b_vs_1r run committed under docs/figures, with
+the best checkpoint's greedy evaluation where the run has one (marl_eval.json). Issue 13/15
+figures:
 
-    .venv/bin/python scripts/final_1o10b.py qmix,fullcomm,qmix-state,ndq,cola,t2mac,maic docs/figures/final_1o10b_all.json
+    .venv/bin/python scripts/final_1o10b.py qmix,fullcomm,qmix-state,lmac,ndq,cola,t2mac,maic,masia docs/figures/final_1o10b_all.json
 """
 import csv
 import json
@@ -11,15 +12,22 @@ import statistics as st
 import sys
 
 FIGURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "figures")
-# where each seed's flat copies (<algo>_seed<k>.csv, .marl_eval.json) live
-FOLDERS = {0: ["lmac_1o10b", "comm_baselines_1o10b"], 1: ["baselines_1o10b_seeds12"], 2: ["baselines_1o10b_seeds12"]}
+# where the flat copies (<algo>_seed<k>.csv, .marl_eval.json) live, first match wins: LMAC's row
+# is the window encoder (the default); the gru-gate seed of lmac_1o10b is `lmac-gru-gate`
+FOLDERS = ["lmac_1o10b_window", "lmac_1o10b", "baselines_1o10b_seeds12", "comm_baselines_1o10b", "lmac_1o10b_ablations",
+           "lmac_1o10b_diagnosis"]
+ALIASES = {"lmac-gru-gate": ("lmac_1o10b", "lmac")}
 
 
 def last5(path):
-    rows = [r for r in csv.DictReader(open(path)) if r.get("test_return_mean") not in (None, "")][-5:]
+    """(final return, final win rate, last t_env, peak): means of test phases."""
+    tests = [r for r in csv.DictReader(open(path)) if r.get("test_return_mean") not in (None, "")]
+    rows = tests[-5:]
     ret = sum(float(r["test_return_mean"]) for r in rows) / len(rows)
     win = sum(float(r["test_win_rate"]) for r in rows) / len(rows)
-    return ret, win, int(float(rows[-1]["t_env"]))
+    returns = [float(r["test_return_mean"]) for r in tests]
+    peak = max(st.mean(returns[i:i + 5]) for i in range(max(1, len(returns) - 4)))
+    return ret, win, int(float(rows[-1]["t_env"])), peak
 
 
 def best_checkpoint(path):
@@ -35,18 +43,25 @@ def main(algos, out_path):
     out = {}
     for algo in algos:
         res = []
-        for seed, folders in FOLDERS.items():
+        folders, name = ([ALIASES[algo][0]], ALIASES[algo][1]) if algo in ALIASES else (FOLDERS, algo)
+        for seed in range(3):
             for folder in folders:
-                base = os.path.join(FIGURES, folder, f"{algo}_seed{seed}")
+                base = os.path.join(FIGURES, folder, f"{name}_seed{seed}")
                 if os.path.exists(base + ".csv"):
-                    r, w, t = last5(base + ".csv")
-                    res.append({"seed": f"seed{seed}", "final_test_return": round(r, 3), "final_win_rate": round(w, 3), "t_env": t,
+                    r, w, t, peak = last5(base + ".csv")
+                    res.append({"seed": f"seed{seed}", "folder": folder, "final_test_return": round(r, 3), "final_win_rate": round(w, 3),
+                                "t_env": t, "peak_test_return": round(peak, 3),
                                 "best_checkpoint_eval": best_checkpoint(base + ".marl_eval.json")})
                     break
         out[algo] = res
+        if not res:
+            print(algo, "no runs")
+            continue
         rs = [x["final_test_return"] for x in res]
         ws = [x["final_win_rate"] for x in res]
-        print(algo, len(rs), f"{st.mean(rs):.2f} ± {st.pstdev(rs) if len(rs) > 1 else 0:.2f}", rs, f"win {st.mean(ws):.3f}")
+        ps = [x["peak_test_return"] for x in res]
+        print(algo, len(rs), f"{st.mean(rs):.2f} ± {st.pstdev(rs) if len(rs) > 1 else 0:.2f}", rs, f"win {st.mean(ws):.3f}",
+              f"peak {st.mean(ps):.2f}", ps)
     json.dump(out, open(out_path, "w"), indent=1)
 
 
