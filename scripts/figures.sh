@@ -160,7 +160,7 @@ if want lmac; then
   for e in lbf8x8 1o10b; do
     mkdir -p "$OUT/lmac_$e"
     cp "$EV/$e"/comparison.* "$EV/$e"/*.png "$OUT/lmac_$e/"
-    for r in "$EV/$e"/runs/*/seed*; do cp "$r/metrics.csv" "$OUT/lmac_$e/$(basename "$(dirname "$r")")_$(basename "$r").csv"; done
+    bash scripts/copy_runs.sh "$OUT/lmac_$e" $(for r in "$EV/$e"/runs/*/seed*; do echo "$r=$(basename "$(dirname "$r")")"; done)
   done
 fi
 if want design; then

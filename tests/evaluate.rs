@@ -1,7 +1,8 @@
 //! `lmac evaluate` end to end: NDQ trained for a few thousand steps through the pipeline (the run
 //! ends with a final evaluation of its best checkpoint, in marl-eval's shape), then its
 //! checkpoint evaluated greedily at two message cuts; a change that would need other weights is
-//! refused and the checkpoint is left as it was.
+//! refused (naming what differs) and the checkpoint is left as it was; a finished run whose
+//! final evaluation cannot run is reported without failing the command.
 
 use lmac_e2e::harness::lmac;
 
@@ -54,6 +55,30 @@ fn a_trained_run_is_evaluated_at_each_message_cut_and_a_shape_change_is_refused(
     assert!(!bad.status.success());
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("only test-time settings can change") && err.contains("method.cut"), "{err}");
+    assert!(err.contains("msg_dim: 3 -> 2"), "the error names what differs: {err}");
     assert_eq!(std::fs::read(&ck).unwrap(), before);
+
+    // A finished run whose config now describes another network (a protocol or setting changed
+    // since it trained): rerunning it reports that its final evaluation failed and exits 0 (the
+    // seeds after it go on), leaves marl_eval.json unwritten for a later rerun, and touches
+    // nothing else.
+    let seed_dir = group.join("seed0");
+    let config = seed_dir.join("config.toml");
+    let text = std::fs::read_to_string(&config).unwrap();
+    let edited = if text.contains("[method]") {
+        text.replace("[method]", "[method]\nmsg_dim = 2")
+    } else {
+        format!("{text}\n[method]\nmsg_dim = 2\n")
+    };
+    std::fs::write(&config, edited).unwrap();
+    std::fs::remove_file(seed_dir.join("marl_eval.json")).unwrap();
+    let metrics_before = std::fs::read(seed_dir.join("metrics.csv")).unwrap();
+    let rerun = lmac().args(["train", "--resume"]).arg(&seed_dir).output().unwrap();
+    let err = String::from_utf8_lossy(&rerun.stderr);
+    assert!(rerun.status.success(), "{err}");
+    assert!(err.contains("already finished") && err.contains("the final evaluation failed") && err.contains("msg_dim: 3 -> 2"), "{err}");
+    assert!(!seed_dir.join("marl_eval.json").exists());
+    assert_eq!(std::fs::read(&ck).unwrap(), before);
+    assert_eq!(std::fs::read(seed_dir.join("metrics.csv")).unwrap(), metrics_before);
     let _ = std::fs::remove_dir_all(&out);
 }

@@ -173,8 +173,24 @@ pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBoo
 
 /// A finished run's `marl_eval.json`, with its absolute metrics: the best test phase's
 /// checkpoint evaluated greedily over `run.final_eval_episodes` episodes (10 x the test phase
-/// by default). Done once; a rerun of a finished run finds the file and skips it.
+/// by default). Done once; a rerun of a finished run finds the file and skips it. An evaluation
+/// that fails (a dead env server, a checkpoint whose network the run's settings no longer
+/// describe) is reported and leaves the file unwritten, so a rerun tries again; the training
+/// itself is finished and intact, and the seeds after it go on. Ctrl-C still stops everything.
 fn final_evaluation(d: &std::path::Path, cfg: &lmac_trainer::train::TrainConfig, interrupted: Arc<AtomicBool>) -> Result<()> {
+    match write_final_evaluation(d, cfg, interrupted.clone()) {
+        Err(e) if !interrupted.load(std::sync::atomic::Ordering::SeqCst) => {
+            eprintln!(
+                "lmac: warning: {}: the final evaluation failed, marl_eval.json not written (a rerun tries again): {e:#}",
+                d.display()
+            );
+            Ok(())
+        }
+        other => other,
+    }
+}
+
+fn write_final_evaluation(d: &std::path::Path, cfg: &lmac_trainer::train::TrainConfig, interrupted: Arc<AtomicBool>) -> Result<()> {
     use lmac_trainer::train::evaluate::EvalSpec;
     if d.join("marl_eval.json").exists() {
         return Ok(());

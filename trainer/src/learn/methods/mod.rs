@@ -339,7 +339,11 @@ impl AgentNet {
                 a.cfg.settings.prune = t.settings.prune;
                 Ok(())
             }
-            _ => Err("only test-time settings can change for a trained network: method.cut (ndq), method.prune (maic)".into()),
+            _ => Err(format!(
+                "the network in the checkpoint was built for other settings than the run's config now gives ({}); only \
+                 test-time settings can change for a trained network: method.cut (ndq), method.prune (maic)",
+                config_differences(from, to)
+            )),
         }
     }
 
@@ -384,4 +388,42 @@ pub fn standard_normal<const D: usize>(rng: &mut LearnRng, shape: [usize; D], de
     }
     v.truncate(n);
     Tensor::from_data(burn::tensor::TensorData::new(v, shape), device)
+}
+
+/// What differs between two agent configs, as `path: trained -> now` (at most six), e.g.
+/// `lmac.msg_cols: 450 -> 211` when a protocol's message layout changed since training.
+fn config_differences(trained: &AgentConfig, now: &AgentConfig) -> String {
+    fn walk(path: &str, a: &serde_json::Value, b: &serde_json::Value, out: &mut Vec<String>) {
+        match (a, b) {
+            (serde_json::Value::Object(x), serde_json::Value::Object(y)) => {
+                let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+                for k in keys {
+                    let null = serde_json::Value::Null;
+                    let sub = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                    walk(&sub, x.get(k).unwrap_or(&null), y.get(k).unwrap_or(&null), out);
+                }
+            }
+            _ if a != b => {
+                let short = |v: &serde_json::Value| {
+                    let t = v.to_string();
+                    if t.chars().count() > 40 {
+                        format!("{}...", t.chars().take(40).collect::<String>())
+                    } else {
+                        t
+                    }
+                };
+                out.push(format!("{path}: {} -> {}", short(a), short(b)));
+            }
+            _ => {}
+        }
+    }
+    let as_json = |c: &AgentConfig| serde_json::to_value(c).unwrap_or(serde_json::Value::Null);
+    let mut out = Vec::new();
+    walk("", &as_json(trained), &as_json(now), &mut out);
+    let more = out.len().saturating_sub(6);
+    out.truncate(6);
+    if more > 0 {
+        out.push(format!("{more} more"));
+    }
+    out.join(", ")
 }
