@@ -10,14 +10,14 @@
 
 use burn::module::{Module, Param, RunningState};
 use burn::nn::Linear;
-use burn::tensor::activation::{leaky_relu, relu, softmax};
+use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 
 use super::{BatchNormMode, MaicConfig, MessageInput, MiAction};
 use crate::learn::agent::RnnAgent;
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
-use crate::learn::methods::{standard_normal, AuxTerm, TrainContext};
+use crate::learn::methods::{leaky_relu, standard_normal, AuxTerm, TrainContext};
 use crate::learn::{InputLayout, LearnRng};
 
 const LEAK: f64 = 0.01; // torch's LeakyReLU default
