@@ -157,6 +157,12 @@ if want lmac; then
   log "lmac experiment on smaclite:1o_10b_vs_1r with Table 1(a)'s ablations (many hours here)"
   "$LMAC" experiment --env smaclite:1o_10b_vs_1r --seeds 0,1,2 --steps 1M --design docs/figures/design_1o_10b_vs_1r --ablations \
     --out "$EV/1o10b"
+  log "LMAC on 1o_10b, seed 0: FullComm's messages as a protocol, the raw designed messages, TD into the encoder"
+  "$LMAC" train --env smaclite:1o_10b_vs_1r --algo lmac --steps 1M --seeds 0 --out "$EV/1o10b_fullproto" \
+    --protocol docs/figures/lmac_1o10b_diagnosis/fullcomm_1o_10b.protocol.json
+  "$LMAC" experiment --env smaclite:1o_10b_vs_1r --seeds 0 --steps 1M --design docs/figures/design_1o_10b_vs_1r --out "$EV/1o10b" \
+    --algos lmac --variant lmac-raw=lmac,method.raw_messages=true --variant lmac-td=lmac,method.td_to_encoder=true
+  bash scripts/copy_runs.sh "$OUT/lmac_1o10b_diagnosis" "$(ls -d "$EV"/1o10b_fullproto/*/lmac/*/seed0 | tail -n 1)=lmac-fullproto"
   for e in lbf8x8 1o10b; do
     mkdir -p "$OUT/lmac_$e"
     cp "$EV/$e"/comparison.* "$EV/$e"/*.png "$OUT/lmac_$e/"
@@ -178,6 +184,17 @@ if want design; then
     env=lbf:8x8-2p-2f-s1-coop; [ "$v" = entity ] && env=lbf:8x8-2p-2f-s1-coop-entity
     data="$(ls -d "$DS/${env//:/_}"/*/collect/dataset | tail -n 1)"
     "$LMAC" protocol measure --env "$env" "$S/fullcomm_$v.protocol.json" --dataset "$data" --out "$S/${v}_fullcomm"
+  done
+  # What the 1o_10b design's messages and FullComm's reveal of the Overseer's and the Roach's
+  # positions (state dims 62, 63, 67, 68), on the design's dataset.
+  data="$(ls -d "$DS/smaclite_1o_10b_vs_1r"/*/collect/dataset | tail -n 1)"
+  D1="$ROOT/docs/figures/design_1o_10b_vs_1r"
+  for p in fullcomm design; do
+    files="$OUT/lmac_1o10b_diagnosis/fullcomm_1o_10b.protocol.json"
+    [ "$p" = design ] && files="$D1/phase0/protocol.json $D1/phase1/protocol.json $D1/phase2/protocol.json"
+    # shellcheck disable=SC2086
+    "$LMAC" protocol measure --env smaclite:1o_10b_vs_1r --dataset "$data" --dims 62,63,67,68 --out "$DS/measure_1o10b_$p" $files
+    cp "$DS/measure_1o10b_$p/summary.json" "$OUT/lmac_1o10b_diagnosis/measure_${p}_positions.json"
   done
 fi
 log "figures in $OUT"
