@@ -218,14 +218,15 @@ impl MaicAgent {
             None => (None, mu.clone()),
         };
 
-        // Messages m_ij from (h_i or h_j, z_ij).
-        let h4 = h.clone().reshape([t, b, n, hd]);
-        let h_pair = match s.message_input {
-            MessageInput::Sender => h4.reshape([t, b, n, 1, hd]).expand([t, b, n, n, hd]),
-            MessageInput::Receiver => h4.reshape([t, b, 1, n, hd]).expand([t, b, n, n, hd]),
+        // Messages m_ij from (h_i or h_j, z_ij): the first layer over [h | z_ij] is split into its
+        // h part, computed once per agent and broadcast over the pairs, and its z part (the
+        // same sums; n times fewer products than over the concatenated pair rows).
+        let pair_axis = match s.message_input {
+            MessageInput::Sender => 3,
+            MessageInput::Receiver => 2,
         };
-        let m_in = Tensor::cat(vec![h_pair, z.clone()], 4).reshape([t * b * n * n, hd + l]);
-        let msg = self.msg2.forward(leaky_relu(self.msg1.forward(m_in), LEAK)).reshape([t, b, n, n, a]);
+        let pre = pair_linear(&self.msg1, h.clone().reshape([t * b * n, hd]), z.clone(), [t, b, n], pair_axis);
+        let msg = self.msg2.forward(leaky_relu(pre, LEAK)).reshape([t, b, n, n, a]);
 
         // Attention of each sender over its teammates.
         let alpha = self.attention(h.clone(), z.clone(), [t, b, n]);
@@ -272,8 +273,11 @@ impl MaicAgent {
             MiAction::Greedy => q.detach().argmax(2).reshape([t, rows]),
         };
         let onehot = act.reshape([t * rows]).one_hot::<2>(a).float().reshape([t, b, 1, n, a]).expand([t, b, n, n, a]);
-        let h_i = h.clone().reshape([t, b, n, 1, hd]).expand([t, b, n, n, hd]);
-        let x = self.infer1.forward(Tensor::cat(vec![h_i, onehot], 4).reshape([t, b * n * n, hd + a]));
+        let x = pair_linear(&self.infer1, h.clone().reshape([t * b * n, hd]), onehot, [t, b, n], 3).reshape([
+            t,
+            b * n * n,
+            self.cfg.settings.hidden,
+        ]);
         let x = self.infer_norm.forward_masked(x, Self::row_mask(ctx, t, n * n), s.batch_norm == BatchNormMode::Running);
         let x = self.infer2.forward(leaky_relu(x, LEAK)).reshape([t, b, n, n, 2 * l]);
         let mu2 = x.clone().narrow(4, 0, l);
@@ -317,6 +321,28 @@ fn eye_mask(n: usize, device: &Device) -> Tensor<2, Bool> {
     Tensor::from_data(TensorData::new(v, [n, n]), device)
 }
 
+/// `lin` over [own_i | pair_ij] for every pair, without building the concatenated rows:
+/// own [T * B * n, d_own] (one row per agent), pair [T, B, n, n, d_pair]; the own part of the
+/// product is broadcast along `axis` (3: the row's agent is i, the first pair index; 2: it is
+/// j, the second). Returns [T, B, n, n, out].
+fn pair_linear(lin: &Linear, own: Tensor<2>, pair: Tensor<5>, [t, b, n]: [usize; 3], axis: usize) -> Tensor<5> {
+    let d_own = own.dims()[1];
+    let [.., d_pair] = pair.dims();
+    let w = lin.weight.val();
+    let out = w.dims()[1];
+    let own_part = own.matmul(w.clone().narrow(0, 0, d_own));
+    let own_part = match axis {
+        3 => own_part.reshape([t, b, n, 1, out]),
+        _ => own_part.reshape([t, b, 1, n, out]),
+    };
+    let pair_part = pair.reshape([t * b * n * n, d_pair]).matmul(w.narrow(0, d_own, d_pair)).reshape([t, b, n, n, out]);
+    let sum = pair_part + own_part;
+    match &lin.bias {
+        Some(bias) => sum + bias.val().reshape([1, 1, 1, 1, out]),
+        None => sum,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -356,5 +382,29 @@ mod tests {
         // Over a dim (the released code's always-training mode): rows [1, 3] -> -1, +1.
         let g = values(bn.forward_over(Tensor::<2>::from_data(TensorData::new(vec![1.0, 3.0], [2, 1]), &device), 0));
         assert!((g[0] + 1.0).abs() < 1e-4 && (g[1] - 1.0).abs() < 1e-4, "{g:?}");
+    }
+
+    /// The split first layer equals the layer over the concatenated pair rows, for the row's
+    /// agent as sender (axis 3) and as receiver (axis 2).
+    #[test]
+    fn pair_linear_equals_the_linear_layer_over_concatenated_rows() {
+        let device = Device::default();
+        let mut rng = LearnRng::seed_from(7);
+        let (t, b, n, d_own, d_pair, out) = (3, 2, 4, 5, 3, 6);
+        let lin = linear(&mut rng, d_own + d_pair, out, &device);
+        let own: Tensor<2> = Tensor::random([t * b * n, d_own], burn::tensor::Distribution::Default, &device);
+        let pair: Tensor<5> = Tensor::random([t, b, n, n, d_pair], burn::tensor::Distribution::Default, &device);
+        for axis in [3, 2] {
+            let own4 = own.clone().reshape([t, b, n, d_own]);
+            let own_pair = match axis {
+                3 => own4.reshape([t, b, n, 1, d_own]).expand([t, b, n, n, d_own]),
+                _ => own4.reshape([t, b, 1, n, d_own]).expand([t, b, n, n, d_own]),
+            };
+            let rows = Tensor::cat(vec![own_pair, pair.clone()], 4).reshape([t * b * n * n, d_own + d_pair]);
+            let want = lin.forward(rows).reshape([t, b, n, n, out]);
+            let got = pair_linear(&lin, own.clone(), pair.clone(), [t, b, n], axis);
+            let diff = (want - got).abs().max().into_scalar::<f32>();
+            assert!(diff < 1e-5, "axis {axis}: {diff}");
+        }
     }
 }
