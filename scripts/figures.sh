@@ -95,20 +95,8 @@ if want methods; then
       "$LMAC" bench train --env lbf:8x8-2p-2f-s1-coop --algo "$a" --envs 16 --steps 5000 --updates 20 --json >"$T/${a}_$r.json"
     done
   done
-  .venv/bin/python - "$T" "$OUT/train_methods_lbf8x8.json" <<'PY'
-import json, sys, pathlib, statistics
-t, out = pathlib.Path(sys.argv[1]), sys.argv[2]
-algos = ["qmix", "ndq", "maic", "masia", "cola", "t2mac"]
-runs = {a: [json.loads((t / f"{a}_{r}.json").read_text()) for r in (1, 2, 3)] for a in algos}
-ms = {a: [x["ms_per_update"] for x in runs[a]] for a in algos}
-med = {a: statistics.median(ms[a]) for a in algos}
-ratio = {a: med[a] / med["qmix"] for a in algos}
-doc = {"command": "lmac bench train --algo A --envs 16 --steps 5000 --updates 20 --json; 3 rounds, each A in turn (scripts/figures.sh methods)",
-       "ms_per_update_median": med, "ms_per_update_rounds": ms, "ratio_to_qmix": ratio, "runs": runs}
-pathlib.Path(out).write_text(json.dumps(doc, indent=1) + "\n")
-for a in algos:
-    print(f"{a:6s} {med[a]:7.1f} ms/update (rounds {', '.join(f'{v:.1f}' for v in ms[a])})  x{ratio[a]:.2f} of qmix")
-PY
+  .venv/bin/python scripts/median_per_method.py "$T" "$OUT/train_methods_lbf8x8.json" qmix ndq maic masia cola t2mac \
+    --command "lmac bench train --algo A --envs 16 --steps 5000 --updates 20 --json; 3 rounds, each A in turn (scripts/figures.sh methods)"
   # The same on smaclite:1o_10b_vs_1r's update shape (32 episodes x 50 steps x 11 agents, obs 85,
   # 7 actions, state 148) through `lmac bench learner --algo`: LMAC reads the committed design's
   # 211 message columns and reconstructs its 48 task-critical dims, FullComm's agents read 960.
@@ -125,20 +113,9 @@ PY
       "$LMAC" bench learner "${shape[@]}" --input 103 --algo "$a" >"$T/l_${a}_$r.json"
     done
   done
-  .venv/bin/python - "$T" "$OUT/learner_methods_1o10b.json" <<'PY'
-import json, sys, pathlib, statistics
-t, out = pathlib.Path(sys.argv[1]), sys.argv[2]
-algos = ["qmix", "lmac", "lmac-gru-gate", "fullcomm", "qmix-state", "ndq", "maic", "masia", "cola", "t2mac"]
-runs = {a: [json.loads((t / f"l_{a}_{r}.json").read_text()) for r in (1, 2, 3)] for a in algos}
-ms = {a: [x["figures"][0]["median_ms"] for x in runs[a]] for a in algos}
-med = {a: statistics.median(ms[a]) for a in algos}
-ratio = {a: med[a] / med["qmix"] for a in algos}
-doc = {"command": "lmac bench learner --shape 1o10b --actions 7 --mixers qmix --no-stepwise --rounds 1 --updates 3 --algo A ...; 3 rounds, each A in turn (scripts/figures.sh methods)",
-       "ms_per_update_median": med, "ms_per_update_rounds": ms, "ratio_to_qmix": ratio, "runs": runs}
-pathlib.Path(out).write_text(json.dumps(doc, indent=1) + "\n")
-for a in algos:
-    print(f"{a:13s} {med[a]:7.1f} ms/update (rounds {', '.join(f'{v:.1f}' for v in ms[a])})  x{ratio[a]:.2f} of qmix")
-PY
+  .venv/bin/python scripts/median_per_method.py "$T" "$OUT/learner_methods_1o10b.json" --prefix l_ --key figures.0.median_ms \
+    qmix lmac lmac-gru-gate fullcomm qmix-state ndq maic masia cola t2mac \
+    --command "lmac bench learner --shape 1o10b --actions 7 --mixers qmix --no-stepwise --rounds 1 --updates 3 --algo A ...; 3 rounds, each A in turn (scripts/figures.sh methods)"
 fi
 
 if want criterion; then
