@@ -56,3 +56,33 @@ fn an_experiment_designs_trains_resumes_after_an_interruption_and_writes_its_tab
     assert!(third.status.success() && String::from_utf8_lossy(&third.stderr).contains("already finished"));
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// `--algos ''` trains only the extra rows (here one --variant), and an experiment with no row
+/// at all is refused before anything is created.
+#[test]
+fn an_empty_algo_list_trains_only_the_variant_rows() {
+    let out = std::env::temp_dir().join(format!("lmac-experiment-variant-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let run = |extra: &[&str]| {
+        let mut c = lmac();
+        c.args(["experiment", "--env", "lbf:8x8-2p-2f-s1-coop", "--seeds", "0", "--steps", "2000", "--algos", ""])
+            .args(extra)
+            .args(["--set", "run.envs=8", "--set", "run.servers=1", "--set", "run.test_interval=1000", "--set", "run.test_episodes=2"])
+            .arg("--out")
+            .arg(&out)
+            .stdin(Stdio::null());
+        c.output().unwrap()
+    };
+    let none = run(&[]);
+    assert!(!none.status.success());
+    assert!(String::from_utf8_lossy(&none.stderr).contains("nothing to train"), "{}", String::from_utf8_lossy(&none.stderr));
+    assert!(!out.exists(), "a refused experiment created {}", out.display());
+    let only = run(&["--variant", "qmix-lr=qmix,learn.lr=0.001"]);
+    assert!(only.status.success(), "{}", String::from_utf8_lossy(&only.stderr));
+    let rows: Vec<String> =
+        std::fs::read_dir(out.join("runs")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    assert_eq!(rows, vec!["qmix-lr".to_string()]);
+    let cfg = std::fs::read_to_string(out.join("runs/qmix-lr/seed0/config.toml")).unwrap();
+    assert!(cfg.contains("lr = 0.001"), "{cfg}");
+    let _ = std::fs::remove_dir_all(&out);
+}

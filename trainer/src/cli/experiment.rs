@@ -26,7 +26,8 @@ pub(crate) struct ExperimentArgs {
     /// Env steps per training run, e.g. 1M, 200k.
     #[arg(long, default_value = "1M", value_parser = parse_steps)]
     steps: u64,
-    /// Algorithms to compare, comma separated (`lmac train --help` lists them).
+    /// Algorithms to compare, comma separated (`lmac train --help` lists them); `--algos ''`
+    /// trains only the --ablations and --variant rows.
     #[arg(long, default_value = "lmac,qmix,fullcomm,qmix-state", value_delimiter = ',')]
     algos: Vec<String>,
     /// Also train Table 1(a)'s rows: k = 0 and k = 1 (the design's first phases), LMAC without
@@ -95,7 +96,8 @@ pub(crate) struct Row {
 
 /// The rows to train: (label, algo, extra overrides).
 fn variants(a: &ExperimentArgs) -> Result<Vec<(String, String, Vec<String>)>> {
-    let mut v: Vec<(String, String, Vec<String>)> = a.algos.iter().map(|al| (al.clone(), al.clone(), Vec::new())).collect();
+    let mut v: Vec<(String, String, Vec<String>)> =
+        a.algos.iter().filter(|al| !al.is_empty()).map(|al| (al.clone(), al.clone(), Vec::new())).collect();
     if a.ablations {
         for (label, o) in [
             ("lmac-k0", "run.design_k=0"),
@@ -115,6 +117,9 @@ fn variants(a: &ExperimentArgs) -> Result<Vec<(String, String, Vec<String>)>> {
         }
         v.push((label.into(), algo.into(), parts.map(str::to_string).collect()));
     }
+    if v.is_empty() {
+        bail!("nothing to train: --algos is empty and there are no --ablations or --variant rows");
+    }
     let mut labels: Vec<&str> = v.iter().map(|x| x.0.as_str()).collect();
     labels.sort_unstable();
     if let Some(w) = labels.windows(2).find(|w| w[0] == w[1]) {
@@ -124,6 +129,7 @@ fn variants(a: &ExperimentArgs) -> Result<Vec<(String, String, Vec<String>)>> {
 }
 
 pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
+    let rows_to_train = variants(&a)?;
     let interrupted = interrupt_flag();
     let dir = a.out.clone().unwrap_or_else(|| PathBuf::from("experiments").join(a.env.replace(':', "_")));
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -141,7 +147,6 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     }
 
     // 1. The protocol design, once.
-    let rows_to_train = variants(&a)?;
     let needs_design = rows_to_train.iter().any(|(_, algo, _)| algo == "lmac");
     let design = match (&a.design, needs_design) {
         (Some(d), _) => Some(std::fs::canonicalize(d).with_context(|| format!("--design {}", d.display()))?),
