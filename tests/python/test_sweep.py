@@ -191,8 +191,14 @@ def _first_checkpointed_trial(s: Sweep, name: str, attempt: int = 1):
         for ck in sorted(store.glob("run_trial_*/checkpoint_*/lmac_sweep.json")):
             trial_id = "_".join(ck.parent.parent.name.split("_")[2:4])
             pids = _trainer_pids(str(store / "lmac-runs" / trial_id / f"attempt{attempt}"))
-            if pids:
+            if not pids:
+                continue
+            try:
+                # Tune copies a reported checkpoint into the store file by file: a file seen
+                # mid-copy is empty or cut short, and that checkpoint is not held yet.
                 return trial_id, json.loads(ck.read_text())["t_env"], pids[0]
+            except (OSError, ValueError):
+                continue
         time.sleep(0.2)
     pytest.fail("no trial reached a checkpoint while its trainer ran:\n" + s.output()[-4000:])
 
