@@ -3,8 +3,16 @@ consecutive test phases) of every smaclite:1o_10b_vs_1r run committed under docs
 the best checkpoint's greedy evaluation where the run has one (marl_eval.json). Issue 13/15
 figures:
 
-    .venv/bin/python scripts/final_1o10b.py qmix,fullcomm,qmix-state,lmac,lmac-gru-gate,lmac-fullproto,lmac-td,lmac-raw,lmac-k0,lmac-k1,lmac-k2,lmac-no-cons,lmac-no-meta,ndq,ndq-rerun,cola,t2mac,maic,masia docs/figures/final_1o10b_all.json
+    .venv/bin/python scripts/final_1o10b.py qmix,fullcomm,qmix-state,lmac,lmac-gru-gate,lmac-fullproto,lmac-td,lmac-raw,lmac-k0,lmac-k1,lmac-k2,lmac-no-cons,lmac-no-meta,lmac-cons-detached,ndq,ndq-rerun,cola,t2mac,maic,masia docs/figures/final_1o10b_all.json
+
+`--stage DIR` gathers the found runs' metrics as flat `<label>_seed<k>.csv` and `.config.toml` copies in DIR
+(`lmac-k2` as `lmac`; no marl_eval.json, so every run is scored on its last 5 test phases) for
+`lmac report`; the 1o_10b comparison's curves and CIs:
+
+    .venv/bin/python scripts/final_1o10b.py qmix,fullcomm,qmix-state,lmac-k2,ndq,cola,t2mac,maic,masia /tmp/final.json --stage /tmp/r1o10b
+    target/release/lmac report /tmp/r1o10b --out docs/figures/comm_baselines_1o10b/report
 """
+import shutil
 import csv
 import json
 import os
@@ -39,8 +47,10 @@ def best_checkpoint(path):
     return {"return": st.mean(am["return"]), "win_rate": st.mean(am["win_rate"]) if "win_rate" in am else None}
 
 
-def main(algos, out_path):
+def main(algos, out_path, stage=None):
     out = {}
+    if stage:
+        os.makedirs(stage, exist_ok=True)
     for algo in algos:
         res = []
         folders, name = ([ALIASES[algo][0]], ALIASES[algo][1]) if algo in ALIASES else (FOLDERS, algo)
@@ -52,6 +62,10 @@ def main(algos, out_path):
                     res.append({"seed": f"seed{seed}", "folder": folder, "final_test_return": round(r, 3), "final_win_rate": round(w, 3),
                                 "t_env": t, "peak_test_return": round(peak, 3),
                                 "best_checkpoint_eval": best_checkpoint(base + ".marl_eval.json")})
+                    if stage:
+                        label = "lmac" if algo == "lmac-k2" else algo
+                        for ext in (".csv", ".config.toml"):
+                            shutil.copy(base + ext, os.path.join(stage, f"{label}_seed{seed}{ext}"))
                     break
         out[algo] = res
         if not res:
@@ -66,4 +80,10 @@ def main(algos, out_path):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1].split(","), sys.argv[2])
+    args = sys.argv[1:]
+    stage = None
+    if "--stage" in args:
+        i = args.index("--stage")
+        stage = args[i + 1]
+        del args[i:i + 2]
+    main(args[0].split(","), args[1], stage)
