@@ -12,10 +12,11 @@ figures:
     .venv/bin/python scripts/final_1o10b.py qmix,fullcomm,qmix-state,lmac-k2,ndq,cola,t2mac,maic,masia /tmp/final.json --stage /tmp/r1o10b
     target/release/lmac report /tmp/r1o10b --out docs/figures/comm_baselines_1o10b/report
 """
-import shutil
+import argparse
 import csv
 import json
 import os
+import shutil
 import statistics as st
 import sys
 
@@ -80,10 +81,9 @@ def main(algos, out_path, stage=None):
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    stage = None
-    if "--stage" in args:
-        i = args.index("--stage")
-        stage = args[i + 1]
-        del args[i:i + 2]
-    main(args[0].split(","), args[1], stage)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("labels", help="comma-separated run labels")
+    ap.add_argument("out", help="the summary JSON to write")
+    ap.add_argument("--stage", help="also gather the found runs as flat copies here, for `lmac report`")
+    a = ap.parse_args()
+    main(a.labels.split(","), a.out, a.stage)
