@@ -109,8 +109,9 @@ fn ref_embed(a: &LmacAgent, u: Tensor<2>, rng: Option<&mut LearnRng>) -> Tensor<
     }
 }
 
-fn ref_gate(g: &GruGateEncoder, x: Tensor<2>, h: Tensor<2>) -> Tensor<2> {
-    let r = h + x.clone();
+/// The gate on the carried state c = h + x.
+fn ref_gate(g: &GruGateEncoder, x: Tensor<2>, c: Tensor<2>) -> Tensor<2> {
+    let r = c;
     let score = sigmoid((g.query.forward(x) * g.key.forward(r.clone())).sum_dim(1));
     g.value.forward(r) * score
 }
@@ -150,7 +151,8 @@ fn ref_latent(a: &LmacAgent, inputs: &[Tensor<2>], mut rng: Option<&mut LearnRng
             let mut h: Tensor<2> = Tensor::zeros(xs[0].dims(), &xs[0].device());
             xs.iter()
                 .map(|x| {
-                    h = g.gru.forward(x.clone(), h.clone());
+                    // the released code carries h + x to the next step
+                    h = g.gru.forward(x.clone(), h.clone()) + x.clone();
                     ref_gate(g, x.clone(), h.clone())
                 })
                 .collect()

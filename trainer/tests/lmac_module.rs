@@ -8,7 +8,7 @@ use burn::nn::Linear;
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor, TensorData};
 use lmac_trainer::episode::EpisodeDims;
-use lmac_trainer::learn::methods::lmac::{LmacAgent, LmacConfig, LmacSettings};
+use lmac_trainer::learn::methods::lmac::{AuxLayout, LmacAgent, LmacConfig, LmacSettings};
 use lmac_trainer::learn::methods::{AgentConfig, AgentNet, TrainContext};
 use lmac_trainer::learn::{InputLayout, LearnConfig, LearnRng};
 
@@ -107,6 +107,7 @@ fn the_consistency_loss_is_zero_when_the_cycle_encoder_inverts_the_decoder() {
     let cfg = config(|s| {
         s.latent_dim = 3;
         s.decoder_hidden = 6;
+        s.aux_layout = AuxLayout::Compact;
     });
     let mut a = agent(&cfg, &device);
     let (l, h) = (3, 6);
@@ -240,4 +241,57 @@ fn lmac_without_a_protocol_or_with_another_environments_design_is_a_clear_error(
     let bad = ["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "method.latent_dims=3".into()];
     let e = format!("{:#}", TrainConfig::resolve(None, &bad).unwrap_err());
     assert!(e.contains("latent_dims"), "an unknown [method] key is named: {e}");
+}
+
+#[test]
+fn the_consistency_loss_averages_over_the_latent_unless_told_to_sum() {
+    use lmac_trainer::learn::methods::lmac::LatentReduction;
+    let device = Device::default();
+    let (inputs, ctx, _) = data(3, 2, &[1., 1., 1., 1., 0., 1.], &device);
+    let cons = |r: LatentReduction| {
+        let a = agent(&config(|s| s.consistency_over_latent = r), &device);
+        let z = Tensor::stack(a.latent(&inputs, None), 0);
+        term(&a.losses(z, &ctx), "lmac_cons")
+    };
+    let (mean, sum) = (cons(LatentReduction::Mean), cons(LatentReduction::Sum));
+    let latent = LmacSettings::default().latent_dim as f32;
+    assert!(mean > 0.0, "an untrained cycle encoder does not invert the decoder");
+    assert!((sum - latent * mean).abs() <= 1e-4 * sum, "sum {sum} = {latent} x mean {mean}");
+}
+
+/// Rewards in the TD targets: LMAC standardises them by default (its released config), QMIX
+/// keeps them raw (EPyMARL's default); `released` folds the padding's zero rewards into the
+/// statistics, `valid-steps` only the real steps.
+#[test]
+fn lmac_standardises_rewards_over_valid_steps_and_qmix_does_not() {
+    use lmac_trainer::episode::Episode;
+    use lmac_trainer::learn::methods::{self, MethodContext};
+    use lmac_trainer::learn::{Learner, RewardStandardisation};
+    let dims = EpisodeDims { n_agents: 2, obs_width: 6, state_dim: 4, n_actions: 3 };
+    let ctx = MethodContext { msg_cols: 2, alpha: 0.1, critical_dims: vec![0, 1], state_dim: 4 };
+    let count_after_one_update = |algo: &str, standardise: RewardStandardisation| {
+        let spec = methods::method(algo).unwrap();
+        let agent = (spec.configure)(&toml::Table::new(), &ctx).unwrap();
+        let learn = LearnConfig { batch_size: 2, buffer_size: 2, reward_standardisation: standardise, ..LearnConfig::default() };
+        let mut l = Learner::with_agent(dims, learn, agent, Device::default()).unwrap();
+        let mut rng = LearnRng::seed_from(1);
+        // lengths 3 and 5: the batch is padded to 5 steps, 8 of its 10 rows are real
+        for len in [3, 5] {
+            let mut ep = Episode::synthetic(&dims, len, &mut rng, true);
+            ep.reward = (0..len).map(|i| i as f32 * 2.0 + 1.0).collect();
+            l.add_episode(ep).unwrap();
+        }
+        l.train_step().unwrap();
+        l.counters().reward_stats
+    };
+    let prior = lmac_trainer::learn::RewardStats::default();
+    assert_eq!(count_after_one_update("qmix", RewardStandardisation::Method), prior, "QMIX keeps raw rewards");
+    let valid = count_after_one_update("lmac", RewardStandardisation::Method);
+    assert!((valid.count - prior.count - 8.0).abs() < 1e-9, "LMAC folds in the 8 real steps: {valid:?}");
+    // rewards 1,3,5 and 1,3,5,7,9: mean 34/8
+    assert!((valid.mean - 34.0 / 8.0 * 8.0 / (8.0 + prior.count)).abs() < 1e-6, "{valid:?}");
+    let released = count_after_one_update("lmac", RewardStandardisation::Released);
+    assert!((released.count - prior.count - 10.0).abs() < 1e-9, "released: the 2 padded steps too: {released:?}");
+    let off = count_after_one_update("lmac", RewardStandardisation::Off);
+    assert_eq!(off, prior, "off: raw rewards");
 }

@@ -7,7 +7,7 @@ use burn::nn::Linear;
 use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::{Device, Tensor};
 
-use super::gru_sequence::gru_sequence;
+use super::gru_sequence::{gru_sequence, gru_sequence_carry};
 use super::init::linear;
 use super::LearnRng;
 
@@ -56,6 +56,21 @@ impl FusedGru {
             None => Tensor::zeros([3 * self.hidden_dim], &gi.device()),
         };
         gru_sequence(gi, self.hidden.weight.val(), bias)
+    }
+}
+
+impl FusedGru {
+    /// [`sequence`](Self::sequence) with each step's input added to its new state before it is
+    /// carried on: c_t = GRU(x_t, c_{t-1}) + x_t (input width = hidden width), [T, N, H].
+    pub fn sequence_carry(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
+        let rows = x.dims()[0] / steps.max(1);
+        let res = x.clone().reshape([steps, rows, self.hidden_dim]);
+        let gi = self.input.forward(x).reshape([steps, rows, 3 * self.hidden_dim]);
+        let bias = match &self.hidden.bias {
+            Some(b) => b.val(),
+            None => Tensor::zeros([3 * self.hidden_dim], &gi.device()),
+        };
+        gru_sequence_carry(gi, self.hidden.weight.val(), bias, res)
     }
 }
 
@@ -110,6 +125,21 @@ impl RnnAgent {
         }
         let x = if inputs.len() == 1 { inputs[0].clone() } else { Tensor::cat(inputs.to_vec(), 0) };
         self.gru.sequence(relu(self.fc1.forward(x)), inputs.len())
+    }
+
+    /// [`unroll`](Self::unroll) of inputs already stacked time-major: x [T * N, in] -> Q [T, N, A]
+    /// (a method that builds its agents' inputs for all steps at once saves the per-step split
+    /// and the concatenation).
+    pub fn unroll_stacked(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
+        assert!(steps > 0, "unroll needs at least one step");
+        let hs = if self.fused {
+            self.gru.sequence(relu(self.fc1.forward(x)), steps)
+        } else {
+            let n = x.dims()[0] / steps;
+            let inputs: Vec<Tensor<2>> = x.split(n.max(1), 0);
+            self.hidden_states_stepwise(&inputs)
+        };
+        self.fc2.forward(hs)
     }
 
     /// The same hidden states with burn's per-step cell (the reference of the fused path).

@@ -23,6 +23,22 @@ pub enum OptimizerKind {
     Rmsprop,
 }
 
+/// Whether TD targets read standardised rewards ((r - mean) / std with running statistics).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RewardStandardisation {
+    /// The method's own choice: LMAC standardises (the released LMAC config sets
+    /// `standardise_rewards: True`), every other method keeps raw rewards (EPyMARL's default).
+    Method,
+    /// Raw rewards.
+    Off,
+    /// Standardised; statistics over the batch's valid steps.
+    ValidSteps,
+    /// Standardised as the released code computes its statistics: over every step of the
+    /// padded batch, the padding's zero rewards included.
+    Released,
+}
+
 /// All learner hyperparameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -82,6 +98,9 @@ pub struct LearnConfig {
     /// The agents' recurrence in training unrolls as one fused operation with a hand-written
     /// backward (`learn::gru_sequence`); false: burn's per-step GRU cell, the slower reference.
     pub fused_gru: bool,
+    /// Standardised rewards in the TD targets: `method` (default: as the method's reference
+    /// code), `off`, `valid-steps` or `released`.
+    pub reward_standardisation: RewardStandardisation,
 }
 
 impl Default for LearnConfig {
@@ -115,6 +134,7 @@ impl Default for LearnConfig {
             seed: 0,
             parallel_target: false,
             fused_gru: true,
+            reward_standardisation: RewardStandardisation::Method,
         }
     }
 }

@@ -15,10 +15,7 @@
 // burn marks its ndarray backend deprecated; the `ndarray` feature still selects it.
 #![cfg_attr(feature = "ndarray", allow(deprecated))]
 
-use std::future::Future;
-use std::pin::pin;
 use std::sync::Arc;
-use std::task::{Context, Poll, Waker};
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -29,10 +26,19 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
 
-/// The recurrence as a backend operation: gi [T, N, 3H], w_hh [H, 3H], b_hh [3H] -> h [T, N, H].
+use super::host_kernel::{host, matmul, sigmoid, tanh_approx, with_simd};
+
+/// The recurrence as a backend operation: gi [T, N, 3H], w_hh [H, 3H], b_hh [3H] -> h [T, N, H];
+/// `gru_sequence_carry` adds res [T, N, H] to each step's new state before it is carried on.
 #[backend_extension(Flex: cfg(feature = "flex"), NdArray: cfg(feature = "ndarray"), Autodiff)]
 pub trait GruSequenceBackend: Backend {
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self>;
+    fn gru_sequence_carry(
+        gi: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+        res: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
 }
 
 /// The hidden states of the GRU over time: `gi` [T, N, 3H] (input projections of all steps,
@@ -41,17 +47,45 @@ pub fn gru_sequence(gi: Tensor<3>, w_hh: Tensor<2>, b_hh: Tensor<1>) -> Tensor<3
     Tensor::from_dispatch(<Dispatch as GruSequenceBackend>::gru_sequence(gi.into_dispatch(), w_hh.into_dispatch(), b_hh.into_dispatch()))
 }
 
+/// The carried states of a GRU whose every new state gets `res` added before it is carried to
+/// the next step: c_t = GRUCell(gi_t, c_{t-1}) + res_t from c_{-1} = 0, [T, N, H]. The LMAC
+/// encoder of the released code carries h + x this way (`meta.py`). Differentiable in all four.
+pub fn gru_sequence_carry(gi: Tensor<3>, w_hh: Tensor<2>, b_hh: Tensor<1>, res: Tensor<3>) -> Tensor<3> {
+    Tensor::from_dispatch(<Dispatch as GruSequenceBackend>::gru_sequence_carry(
+        gi.into_dispatch(),
+        w_hh.into_dispatch(),
+        b_hh.into_dispatch(),
+        res.into_dispatch(),
+    ))
+}
+
 #[cfg(feature = "flex")]
 impl GruSequenceBackend for burn::backend::Flex {
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
-        forward_on::<Self>(gi, w_hh, b_hh, false).0
+        forward_on::<Self>(gi, w_hh, b_hh, None, false).0
+    }
+    fn gru_sequence_carry(
+        gi: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+        res: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        forward_on::<Self>(gi, w_hh, b_hh, Some(res), false).0
     }
 }
 
 #[cfg(feature = "ndarray")]
 impl GruSequenceBackend for burn::backend::NdArray {
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
-        forward_on::<Self>(gi, w_hh, b_hh, false).0
+        forward_on::<Self>(gi, w_hh, b_hh, None, false).0
+    }
+    fn gru_sequence_carry(
+        gi: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+        res: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        forward_on::<Self>(gi, w_hh, b_hh, Some(res), false).0
     }
 }
 
@@ -59,12 +93,30 @@ impl<B: Backend + GruSequenceBackend, C: CheckpointStrategy> GruSequenceBackend 
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
         match GruSequenceBackward.prepare::<C>([gi.node(), w_hh.node(), b_hh.node()]).compute_bound().stateful() {
             OpsKind::Tracked(prep) => {
-                let (out, saved) = forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), true);
+                let (out, saved) = forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), None, true);
                 prep.finish(saved.expect("saved activations"), out)
             }
             OpsKind::UnTracked(prep) => {
-                prep.finish(forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), false).0)
+                prep.finish(forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), None, false).0)
             }
+        }
+    }
+
+    fn gru_sequence_carry(
+        gi: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+        res: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        match GruCarryBackward.prepare::<C>([gi.node(), w_hh.node(), b_hh.node(), res.node()]).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => {
+                let (out, saved) =
+                    forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), Some(res.into_primitive()), true);
+                prep.finish(saved.expect("saved activations"), out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(
+                forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), Some(res.into_primitive()), false).0,
+            ),
         }
     }
 }
@@ -95,12 +147,40 @@ impl<B: Backend> Backward<B, 3> for GruSequenceBackward {
     }
 }
 
+#[derive(Debug)]
+struct GruCarryBackward;
+
+impl<B: Backend> Backward<B, 4> for GruCarryBackward {
+    type State = Arc<Saved>;
+
+    fn backward(self, ops: Ops<Self::State, 4>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+        let [node_gi, node_w, node_b, node_res] = ops.parents;
+        let grad = grads.consume::<B>(&ops.node);
+        let device = grad.device();
+        let saved = ops.state;
+        let g = saved.backward(&host::<B>(grad));
+        let (t, n, h) = (saved.steps, saved.rows, saved.hidden);
+        let parts = [
+            (node_gi, g.gi, vec![t, n, 3 * h]),
+            (node_w, g.w_hh, vec![h, 3 * h]),
+            (node_b, g.b_hh, vec![3 * h]),
+            (node_res, g.res, vec![t, n, h]),
+        ];
+        for (node, values, shape) in parts {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, B::float_from_data(TensorData::new(values, shape), &device));
+            }
+        }
+    }
+}
+
 /// Run the forward on backend `B`'s tensors through the host kernel; with `save`, also keep
 /// what the backward needs.
 fn forward_on<B: Backend>(
     gi: FloatTensor<B>,
     w_hh: FloatTensor<B>,
     b_hh: FloatTensor<B>,
+    res: Option<FloatTensor<B>>,
     save: bool,
 ) -> (FloatTensor<B>, Option<Arc<Saved>>) {
     let device = gi.device();
@@ -111,29 +191,17 @@ fn forward_on<B: Backend>(
         h3 % 3 == 0 && w_dims == [h3 / 3, h3] && b_dims == [h3],
         "gru_sequence: gi {dims:?}, w_hh {w_dims:?}, b_hh {b_dims:?} do not fit [T, N, 3H], [H, 3H], [3H]"
     );
-    let saved = Saved::forward(&host::<B>(gi), host::<B>(w_hh), &host::<B>(b_hh), t, n, h3 / 3, save);
+    let res = res.map(|r| {
+        let r_dims = r.shape().dims::<3>();
+        assert!(r_dims == [t, n, h3 / 3], "gru_sequence_carry: res {r_dims:?} does not fit [T, N, H] = {:?}", [t, n, h3 / 3]);
+        host::<B>(r)
+    });
+    let saved = Saved::forward_carry(&host::<B>(gi), host::<B>(w_hh), &host::<B>(b_hh), res.as_deref(), t, n, h3 / 3, save);
     let shape = [t, n, h3 / 3];
     if save {
         (B::float_from_data(TensorData::new(saved.hs.clone(), shape), &device), Some(Arc::new(saved)))
     } else {
         (B::float_from_data(TensorData::new(saved.hs, shape), &device), None)
-    }
-}
-
-/// A backend tensor's values on the host (CPU backends hand them over without waiting).
-fn host<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
-    let data = block_on(B::float_into_data(t)).expect("reading a CPU tensor");
-    data.try_into_vec::<f32>().expect("gru_sequence works on f32 tensors")
-}
-
-fn block_on<F: Future>(f: F) -> F::Output {
-    let mut f = pin!(f);
-    let mut cx = Context::from_waker(Waker::noop());
-    loop {
-        if let Poll::Ready(v) = f.as_mut().poll(&mut cx) {
-            return v;
-        }
-        std::thread::yield_now();
     }
 }
 
@@ -151,121 +219,16 @@ pub struct Saved {
     n: Vec<f32>,
     /// The hidden projection's candidate part `gh_n` (bias included), which `r` multiplies.
     gh_n: Vec<f32>,
+    /// Whether each step's state had a residual added (`gru_sequence_carry`).
+    carry: bool,
 }
 
-/// Gradients of the three inputs.
+/// Gradients of the inputs (`res` empty without a residual).
 pub struct SequenceGrads {
     pub gi: Vec<f32>,
     pub w_hh: Vec<f32>,
     pub b_hh: Vec<f32>,
-}
-
-/// dst [m, n] (row stride `dst_rs`) = (accumulate ? dst : 0) + lhs [m, k] * rhs [k, n], with
-/// arbitrary row/column strides for lhs and rhs (a transposed operand is a swap of strides).
-#[allow(clippy::too_many_arguments)]
-fn matmul(
-    m: usize,
-    n: usize,
-    k: usize,
-    dst: &mut [f32],
-    dst_rs: usize,
-    accumulate: bool,
-    lhs: &[f32],
-    (lhs_rs, lhs_cs): (usize, usize),
-    rhs: &[f32],
-    (rhs_rs, rhs_cs): (usize, usize),
-) {
-    if m == 0 || n == 0 {
-        return;
-    }
-    assert!(dst.len() > (m - 1) * dst_rs + n - 1, "matmul: destination too small");
-    if k == 0 {
-        if !accumulate {
-            for i in 0..m {
-                dst[i * dst_rs..i * dst_rs + n].fill(0.0);
-            }
-        }
-        return;
-    }
-    assert!(lhs.len() > (m - 1) * lhs_rs + (k - 1) * lhs_cs, "matmul: lhs too small");
-    assert!(rhs.len() > (k - 1) * rhs_rs + (n - 1) * rhs_cs, "matmul: rhs too small");
-    // SAFETY: the asserts above keep every index gemm touches inside the three slices; dst is
-    // borrowed mutably and does not alias lhs or rhs.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            1,
-            dst_rs as isize,
-            accumulate,
-            lhs.as_ptr(),
-            lhs_cs as isize,
-            lhs_rs as isize,
-            rhs.as_ptr(),
-            rhs_cs as isize,
-            rhs_rs as isize,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
-    }
-}
-
-/// e^x, branch-free so loops over it vectorize (libm's `expf` is a call per element, which was
-/// most of the forward's time): 2^k e^r with |r| <= ln2/2 and a degree-6 Taylor polynomial,
-/// relative error about 1e-7, x clamped to [-87, 88] (no infinities, no denormal inputs).
-#[inline(always)]
-fn exp_approx(x: f32) -> f32 {
-    const LOG2E: f32 = std::f32::consts::LOG2_E;
-    const LN2_HI: f32 = 0.693_359_4;
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    let x = x.clamp(-87.0, 88.0);
-    let k = (x * LOG2E + 0.5).floor();
-    let r = x - k * LN2_HI - k * LN2_LO;
-    let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
-    // 2^k from k's bits: adding 1.5 * 2^23 puts the integer k in the low mantissa bits (plain
-    // integer lanes; a float-to-int `as` cast saturates, which does not vectorize as well).
-    let k_bits = (k + 12_582_912.0).to_bits().wrapping_sub(0x4B40_0000);
-    p * f32::from_bits(k_bits.wrapping_add(127) << 23)
-}
-
-#[inline(always)]
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + exp_approx(-x))
-}
-
-#[inline(always)]
-fn tanh_approx(x: f32) -> f32 {
-    1.0 - 2.0 / (exp_approx(2.0 * x) + 1.0)
-}
-
-/// Run `body` compiled for AVX2 + FMA when the CPU has them (the crate is built for the
-/// baseline x86-64, whose vectors are 4 wide), else as built.
-macro_rules! with_simd {
-    ($body:ident($($arg:expr),* $(,)?)) => {{
-        #[cfg(target_arch = "x86_64")]
-        {
-            #[target_feature(enable = "avx2,fma")]
-            unsafe fn wide<F: FnOnce()>(f: F) {
-                f()
-            }
-            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-                // SAFETY: both features were detected on this CPU at run time.
-                unsafe { wide(|| $body($($arg),*)) };
-            } else {
-                $body($($arg),*);
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            $body($($arg),*);
-        }
-    }};
+    pub res: Vec<f32>,
 }
 
 /// One step's gates for all rows: gi, gh [N, 3H], prev [N, H] -> h' (out) and the saved
@@ -351,6 +314,13 @@ impl Saved {
     /// Unroll from h_0 = 0. `gi` [T, N, 3H], `w_hh` [H, 3H], `b_hh` [3H]. Without `keep`, the
     /// gate activations are not stored (inference, the target network).
     pub fn forward(gi: &[f32], w_hh: Vec<f32>, b_hh: &[f32], t: usize, n: usize, h: usize, keep: bool) -> Saved {
+        Self::forward_carry(gi, w_hh, b_hh, None, t, n, h, keep)
+    }
+
+    /// [`forward`](Self::forward) with `res` [T, N, H] added to each step's new state before it
+    /// is carried on (and returned).
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_carry(gi: &[f32], w_hh: Vec<f32>, b_hh: &[f32], res: Option<&[f32]>, t: usize, n: usize, h: usize, keep: bool) -> Saved {
         let h3 = 3 * h;
         assert_eq!(gi.len(), t * n * h3, "gru_sequence: gi length");
         let step = n * h;
@@ -384,8 +354,13 @@ impl Saved {
                 (a, b, c, d)
             };
             with_simd!(gates_forward(h, gi_t, &gh, &prev[..step], out, r, z, c, ghn));
+            if let Some(res) = res {
+                for (o, x) in out.iter_mut().zip(&res[ti * step..(ti + 1) * step]) {
+                    *o += x;
+                }
+            }
         }
-        Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all }
+        Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all, carry: res.is_some() }
     }
 
     /// Backpropagation through time of `d_hs` = dL/dh_t for every step [T, N, H].
@@ -400,8 +375,15 @@ impl Saved {
         let mut d_next = vec![0.0f32; step]; // dL/dh_{t} arriving from step t + 1
         let zeros = vec![0.0f32; step];
         let mut d_prev = vec![0.0f32; step];
+        // With a residual, dL/d(res_t) is the whole gradient arriving at the carried state c_t.
+        let mut d_res = vec![0.0f32; if self.carry { t * step } else { 0 }];
         for ti in (0..t).rev() {
             let at = ti * step..(ti + 1) * step;
+            if self.carry {
+                for ((r, a), b) in d_res[at.clone()].iter_mut().zip(&d_hs[at.clone()]).zip(&d_next) {
+                    *r = a + b;
+                }
+            }
             let prev = if ti > 0 { &self.hs[(ti - 1) * step..ti * step] } else { &zeros[..] };
             let saved = (&self.r[at.clone()], &self.z[at.clone()], &self.n[at.clone()], &self.gh_n[at.clone()]);
             let g_at = ti * n * h3..(ti + 1) * n * h3;
@@ -423,7 +405,7 @@ impl Saved {
                 *acc += v;
             }
         }
-        SequenceGrads { gi: d_gi, w_hh: d_w, b_hh: d_b }
+        SequenceGrads { gi: d_gi, w_hh: d_w, b_hh: d_b, res: d_res }
     }
 }
 
@@ -494,6 +476,36 @@ mod tests {
         let bias = plain.hidden.bias.as_ref().expect("bias").val();
         let out = gru_sequence(gi, plain.hidden.weight.val(), bias).reshape([t * n, hd]);
         assert!(max_diff(reference.inner(), out) < 1e-5);
+    }
+
+    /// The carried form c_t = GRU(x_t, c_{t-1}) + x_t against the cell stepped by hand, values
+    /// and gradients (the residual's included) to 1e-5.
+    #[test]
+    fn the_carried_residual_matches_the_step_by_step_cell() {
+        let (t, n, hd) = (6, 4, 5);
+        let dev = Device::default().autodiff();
+        let mut rng = LearnRng::seed_from(9);
+        let gru = FusedGru::new(&mut rng, hd, hd, &dev);
+        let xs: Vec<Tensor<2>> = (0..t).map(|_| random(&mut rng, [n, hd], &dev).require_grad()).collect();
+        let weights = random(&mut rng, [t * n, hd], &dev);
+        let mut c = Tensor::zeros([n, hd], &dev);
+        let mut cs = Vec::new();
+        for x in &xs {
+            c = gru.forward(x.clone(), c) + x.clone();
+            cs.push(c.clone());
+        }
+        let reference = Tensor::cat(cs, 0);
+        let ref_grads = (reference.clone() * weights.clone()).sum().backward();
+        let fused = gru.sequence_carry(Tensor::cat(xs.clone(), 0), t).reshape([t * n, hd]);
+        assert!(max_diff(reference.inner(), fused.clone().inner()) < 1e-5);
+        let grads = (fused * weights).sum().backward();
+        let w_hh = &gru.hidden.weight;
+        let d = max_diff(w_hh.val().grad(&ref_grads).expect("reference"), w_hh.val().grad(&grads).expect("fused"));
+        assert!(d < 1e-5, "w_hh: gradients differ by {d}");
+        for (i, x) in xs.iter().enumerate() {
+            let d = max_diff(x.grad(&ref_grads).expect("x gradient"), x.grad(&grads).expect("fused x gradient"));
+            assert!(d < 1e-5, "input of step {i} (through the GRU and the residual): gradients differ by {d}");
+        }
     }
 
     /// One step and zero rows are valid sequences.

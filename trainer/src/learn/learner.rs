@@ -10,7 +10,7 @@ use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use super::buffer::{Batch, ReplayBuffer};
-use super::config::{ConfigError, LearnConfig, MixerKind, OptimizerKind};
+use super::config::{ConfigError, LearnConfig, MixerKind, OptimizerKind, RewardStandardisation};
 use super::methods::{AgentConfig, AgentNet, StepActions, TrainContext};
 use super::mixer::{Mixer, QplexInputs};
 use super::{InputLayout, LearnRng};
@@ -46,8 +46,53 @@ pub enum LearnError {
     Checkpoint(String),
 }
 
+/// Running mean and variance of the rewards the TD targets read (`learn.reward_standardisation`),
+/// updated per batch as EPyMARL's `RunningMeanStd` (parallel-moments update, unbiased batch
+/// variance, prior count 1e-4 with mean 0 and variance 1).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RewardStats {
+    pub mean: f64,
+    pub var: f64,
+    pub count: f64,
+}
+
+impl Default for RewardStats {
+    fn default() -> Self {
+        RewardStats { mean: 0.0, var: 1.0, count: 1e-4 }
+    }
+}
+
+impl RewardStats {
+    /// Fold in one batch of rewards.
+    pub fn update(&mut self, values: &[f32]) {
+        let k = values.len();
+        if k == 0 {
+            return;
+        }
+        let mean = values.iter().map(|&v| v as f64).sum::<f64>() / k as f64;
+        // torch.var's default: the unbiased estimate (0 for a single value would be NaN there;
+        // a one-value batch adds no spread here).
+        let var = if k > 1 { values.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / (k - 1) as f64 } else { 0.0 };
+        let (n, m) = (self.count, k as f64);
+        let delta = mean - self.mean;
+        let total = n + m;
+        let m2 = self.var * n + var * m + delta * delta * n * m / total;
+        self.mean += delta * m / total;
+        self.var = m2 / total;
+        self.count = total;
+    }
+
+    /// (r - mean) / sqrt(var); a variance of 0 (every reward so far equal) leaves the centred
+    /// value unscaled instead of dividing by zero.
+    pub fn standardise(&self, r: f32) -> f32 {
+        let sd = self.var.sqrt();
+        let c = r as f64 - self.mean;
+        (if sd > 1e-8 { c / sd } else { c }) as f32
+    }
+}
+
 /// Progress counters; saved in checkpoints.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Counters {
     /// Environment steps of all episodes added.
     pub t_env: u64,
@@ -57,6 +102,9 @@ pub struct Counters {
     pub updates: u64,
     /// `episodes` at the last target copy.
     pub last_target_update_episode: u64,
+    /// Reward statistics for standardised rewards (checkpoints from before it load the prior).
+    #[serde(default)]
+    pub reward_stats: RewardStats,
 }
 
 #[derive(Clone, Debug, Default)]
@@ -222,16 +270,49 @@ impl Learner {
         self.counters.last_target_update_episode = self.counters.episodes;
     }
 
-    /// One gradient update on a prepared batch (no target-copy bookkeeping).
+    /// One gradient update on a prepared batch (no target-copy bookkeeping). With standardised
+    /// rewards, the batch's rewards first update the running statistics.
     pub fn train_on(&mut self, batch: &Batch) -> Result<TrainStats, LearnError> {
-        let (loss, stats) = self.td_loss(batch)?;
+        let rewards = self.standardised_rewards(batch);
+        let (loss, stats) = self.td_loss_with(batch, rewards.as_deref())?;
         self.apply_loss(loss, stats)
+    }
+
+    /// Whether this run standardises rewards (`learn.reward_standardisation`, by default the
+    /// method's choice).
+    pub fn standardises_rewards(&self) -> Option<RewardStandardisation> {
+        match self.cfg.reward_standardisation {
+            RewardStandardisation::Method => self.agent_cfg.standardises_rewards().then_some(RewardStandardisation::ValidSteps),
+            RewardStandardisation::Off => None,
+            other => Some(other),
+        }
+    }
+
+    /// The batch's rewards standardised with the running statistics after folding this batch
+    /// in (EPyMARL updates before it standardises), or `None` when the run keeps raw rewards.
+    fn standardised_rewards(&mut self, batch: &Batch) -> Option<Vec<f32>> {
+        let kind = self.standardises_rewards()?;
+        let seen: Vec<f32> = match kind {
+            // The released code folds in the padded steps' zero rewards too.
+            RewardStandardisation::Released => batch.reward.clone(),
+            _ => batch.reward.iter().zip(&batch.mask).filter(|(_, &m)| m > 0.0).map(|(&r, _)| r).collect(),
+        };
+        self.counters.reward_stats.update(&seen);
+        let st = self.counters.reward_stats;
+        Some(batch.reward.iter().map(|&r| st.standardise(r)).collect())
     }
 
     /// The masked double-Q TD(0) loss of `batch` (a scalar on the autodiff device, graph kept)
     /// and its statistics, with the method's extra losses (`AgentNet::unroll`) added in and
-    /// each logged in `TrainStats::method`.
+    /// each logged in `TrainStats::method`. Rewards as stored (see [`train_on`](Self::train_on)).
     pub fn td_loss(&self, batch: &Batch) -> Result<(Tensor<1>, TrainStats), LearnError> {
+        self.td_loss_with(batch, None)
+    }
+
+    /// [`td_loss`](Self::td_loss) with the TD targets' rewards replaced by `rewards` (one per
+    /// (t, b) row, as `batch.reward`).
+    fn td_loss_with(&self, batch: &Batch, rewards: Option<&[f32]>) -> Result<(Tensor<1>, TrainStats), LearnError> {
+        let reward = rewards.unwrap_or(&batch.reward);
         let (b, t, n, a) = (batch.b, batch.t, batch.n_agents, batch.n_actions);
         let (nb, iw, sd) = (t * b, batch.input_dim, batch.state_dim);
         let dev = self.device.clone();
@@ -272,7 +353,7 @@ impl Learner {
             n_agents: n,
             seed: self.cfg.seed ^ (self.counters.updates + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
             actions: Some(step_actions),
-            reward: Some(Tensor::from_data(TensorData::new(batch.reward.clone(), [nb]), &ad)),
+            reward: Some(Tensor::from_data(TensorData::new(reward.to_vec(), [nb]), &ad)),
         };
         let target_unroll = || {
             // Filled with `None` if the unroll panics, so an online unroll waiting for the greedy
@@ -327,7 +408,7 @@ impl Learner {
                 let i = ti * b + bi;
                 let next = if batch.has_next[i] > 0.0 && batch.terminated[i] == 0.0 { target_tot[(ti + 1) * b + bi] } else { 0.0 };
                 // Masked transitions get target 0 so a NaN in one cannot leak through `0 * NaN`.
-                y[i] = if batch.mask[i] > 0.0 { batch.reward[i] + self.cfg.gamma * next } else { 0.0 };
+                y[i] = if batch.mask[i] > 0.0 { reward[i] + self.cfg.gamma * next } else { 0.0 };
             }
         }
         let target_mean = y.iter().zip(&batch.mask).map(|(v, m)| v * m).sum::<f32>() / mask_sum;

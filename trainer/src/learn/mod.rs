@@ -26,16 +26,18 @@ pub mod checkpoint;
 pub mod config;
 pub mod controller;
 pub mod gru_sequence;
+mod host_kernel;
 pub mod input_row;
 pub mod learner;
 pub mod methods;
 pub mod mixer;
+pub mod window_attention;
 
 pub use buffer::{Batch, ReplayBuffer};
-pub use config::{ConfigError, LearnConfig, MixerKind, OptimizerKind};
+pub use config::{ConfigError, LearnConfig, MixerKind, OptimizerKind, RewardStandardisation};
 pub use controller::Controller;
 pub use input_row::{InputLayout, RowParts};
-pub use learner::{Counters, LearnError, Learner, QNet, TrainStats};
+pub use learner::{Counters, LearnError, Learner, QNet, RewardStats, TrainStats};
 pub use methods::{AgentConfig, AgentNet};
 
 /// The burn device type (re-exported so callers need no direct burn dependency).

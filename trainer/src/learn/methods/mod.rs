@@ -153,6 +153,15 @@ impl AgentConfig {
         }
     }
 
+    /// Whether the method's reference code standardises rewards (`learn.reward_standardisation
+    /// = "method"`): LMAC's released config does; the baselines run EPyMARL's default (no).
+    pub fn standardises_rewards(&self) -> bool {
+        match self {
+            AgentConfig::Lmac(c) => c.settings.standardise_rewards,
+            _ => false,
+        }
+    }
+
     /// The names of the numbers `unroll` logs in training (losses and diagnostics), in order.
     pub fn stat_names(&self) -> &'static [&'static str] {
         match self {

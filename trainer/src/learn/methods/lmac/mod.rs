@@ -7,6 +7,9 @@
 //! results:
 //! - The consistency loss is masked over padded steps like every other loss
 //!   (`mask_consistency = true`); the released code averages it over padding too (`false`).
+//!   Both average over the latent's dims (`consistency_over_latent = "mean"`, the released
+//!   `F.mse_loss`); lmac before this setting existed summed over them ("sum"), which weighs
+//!   the term `latent_dim` (20) times more.
 //! - Dropout acts only in training updates; acting, test episodes and the target network use the
 //!   deterministic module (the released code leaves dropout on everywhere). Not an option: a
 //!   greedy test episode with random units switched off is not the policy being tested.
@@ -50,6 +53,28 @@ pub enum EncoderKind {
     Window,
 }
 
+/// How the consistency loss reduces over the latent's dims.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LatentReduction {
+    /// Mean over the latent dims (the released code's `F.mse_loss`; the paper's ||z_hat - z||^2
+    /// at the scale its lambda_cons = 1 was tuned for).
+    Mean,
+    /// Sum over the latent dims (lmac's earlier runs: `latent_dim` times the weight).
+    Sum,
+}
+
+/// The decoder's and the cycle encoder's layers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AuxLayout {
+    /// As the released code (`meta.py`): dropout after the decoder's first layer; the cycle
+    /// encoder is linear -> ReLU -> LayerNorm -> linear -> ReLU -> dropout -> linear.
+    Released,
+    /// lmac's earlier layout: no dropout in the decoder, cycle encoder linear -> ReLU -> linear.
+    Compact,
+}
+
 /// The `[method]` settings of `--algo lmac` (defaults: the paper's Table C.3 and the authors'
 /// code).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -80,6 +105,14 @@ pub struct LmacSettings {
     pub raw_messages: bool,
     /// Mask the consistency loss over padded steps (the released code does not).
     pub mask_consistency: bool,
+    /// Mean (default, the released code) or sum of the consistency loss over the latent dims.
+    pub consistency_over_latent: LatentReduction,
+    /// The decoder's and cycle encoder's layers: `released` (default) or `compact`.
+    pub aux_layout: AuxLayout,
+    /// Standardise rewards with running statistics before the TD target, as the released
+    /// LMAC config does (`standardise_rewards: True`; EPyMARL's default and its QMIX config
+    /// leave rewards as they are). Used when `learn.standardise_rewards` is not set.
+    pub standardise_rewards: bool,
     /// Regress z_hat onto a detached z, so the consistency loss trains the decoder and the cycle
     /// encoder but cannot shrink z itself. With the paper's loss (false) the encoder can lower
     /// ||z_hat - z||^2 by scaling z towards 0, which it does: measured on LBF 8x8, mean ||z||^2
@@ -109,6 +142,9 @@ impl Default for LmacSettings {
             td_to_encoder: false,
             raw_messages: false,
             mask_consistency: true,
+            consistency_over_latent: LatentReduction::Mean,
+            aux_layout: AuxLayout::Released,
+            standardise_rewards: true,
             detach_consistency_target: false,
             alpha: None,
         }

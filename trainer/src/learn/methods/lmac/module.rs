@@ -4,16 +4,20 @@
 //! Per agent-row and step, with u = [observation | messages | last action | agent id]:
 //! - embedding  x = dropout(relu(W2 LayerNorm(relu(W1 u))))          (dropout in training only)
 //! - encoder    z = Enc(x, trajectory):
-//!     `gru-gate`: h = GRU(x, h_prev), r = h + x; z = sigmoid(W_q x . W_k r) * W_v r
+//!     `gru-gate`: c = GRU(x, c_prev) + x (carried to the next step, as the released code);
+//!                 z = sigmoid(W_q x . W_k c) * W_v c
 //!     `window`:   multi-head softmax(W_q x_t . W_k x_{t-o} / sqrt(d)) over o < W, values W_v x_{t-o},
 //!                 then a linear map to the latent width (steps before the episode are masked)
-//! - decoder    (s_hat, xi_hat) = Dec(z): z -> H -> H -> (|critical dims| values, as many logits)
-//! - cycle      z_hat = Enc_c(s_hat, sigmoid(xi_hat)): -> H -> latent
+//! - decoder    (s_hat, xi_hat) = Dec(z): z -> H (-> dropout) -> H -> (|critical dims| values,
+//!              as many logits)
+//! - cycle      z_hat = Enc_c(s_hat, sigmoid(xi_hat)): `released` layout
+//!              -> H -> LayerNorm -> H -> dropout -> latent; `compact` -> H -> latent
 //! - agent      Q = RNN([observation (| messages) | last action | id | z])
 //!
 //! Losses (means over the trained steps, agents and dims):
 //! L_recon = (s_hat - s)^2 + lambda_meta BCE(xi_hat, xi), xi = 1[(s_hat - s)^2 <= alpha]
-//! (no gradient through xi); L_cons = ||z_hat - z||^2 (summed over the latent), weighted by
+//! (no gradient through xi); L_cons = (z_hat - z)^2 averaged over the latent's dims too (the
+//! released code's `F.mse_loss`; `consistency_over_latent = "sum"` sums over them), weighted by
 //! lambda_cons. Logged besides: the share of (agent, dim, step) recovered within alpha, the mean
 //! predicted reliability, and the mean ||z||^2.
 
@@ -22,11 +26,12 @@ use burn::nn::{LayerNorm, LayerNormConfig, Linear};
 use burn::tensor::activation::{relu, sigmoid, softmax};
 use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 
-use super::{EncoderKind, LmacConfig};
+use super::{AuxLayout, EncoderKind, LatentReduction, LmacConfig};
 use crate::learn::agent::{FusedGru, RnnAgent};
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
 use crate::learn::methods::{dropout, AuxTerm, TrainContext};
+use crate::learn::window_attention::window_attention;
 use crate::learn::{InputLayout, LearnRng};
 
 /// The `gru-gate` encoder (the authors' code).
@@ -66,6 +71,9 @@ pub struct LmacAgent {
     pub dec_state: Linear,
     pub dec_meta: Linear,
     pub cycle1: Linear,
+    /// `released` layout only: the cycle encoder's LayerNorm and middle layer.
+    pub cycle_norm: Option<LayerNorm>,
+    pub cycle_mid: Option<Linear>,
     pub cycle2: Linear,
     pub agent: RnnAgent,
     #[module(skip)]
@@ -100,6 +108,7 @@ impl LmacAgent {
             }),
         };
         let agent_in = in_width - if s.raw_messages { 0 } else { cfg.msg_cols } + l;
+        let released = s.aux_layout == AuxLayout::Released;
         LmacAgent {
             embed1,
             norm: LayerNormConfig::new(e).init(device),
@@ -110,6 +119,8 @@ impl LmacAgent {
             dec_state: linear(rng, hd, dc, device),
             dec_meta: linear(rng, hd, dc, device),
             cycle1: linear(rng, 2 * dc, hd, device),
+            cycle_norm: released.then(|| LayerNormConfig::new(hd).init(device)),
+            cycle_mid: released.then(|| linear(rng, hd, hd, device)),
             cycle2: linear(rng, hd, l, device),
             agent: RnnAgent::new(rng, agent_in, learn.rnn_hidden_dim, layout.dims.n_actions, device),
             cfg: cfg.clone(),
@@ -166,8 +177,9 @@ impl LmacAgent {
         let x = self.embed(u.clone(), None);
         let (z, enc_next) = match &self.encoder {
             Encoder::GruGate(g) => {
-                let h = g.gru.forward(x.clone(), enc_state);
-                (gate(g, x, h.clone()), h)
+                // The released code carries c = h + x to the next step, not h.
+                let c = g.gru.forward(x.clone(), enc_state) + x.clone();
+                (gate(g, x, c.clone()), c)
             }
             Encoder::Window(w) => {
                 let e = self.embed_dim();
@@ -189,18 +201,17 @@ impl LmacAgent {
     }
 
     /// Unroll from zero states; in training also the module's losses (see the file's header).
+    /// The steps are stacked once ([T * N, in], time-major) and every part that does not depend
+    /// on a recurrence runs over all of them at once; the agents' input is built in one
+    /// concatenation for all steps.
     pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
         assert!(!inputs.is_empty(), "unroll needs at least one step");
+        let t_len = inputs.len();
         let mut rng = train.map(|c| LearnRng::seed_from(c.seed ^ 0xD80F_0000_0000_0001));
-        let z = self.latents(&inputs, rng.as_mut());
+        let u = if t_len == 1 { inputs.into_iter().next().expect("one step") } else { Tensor::cat(inputs, 0) };
+        let z = self.latents_stacked(u.clone(), t_len, rng.as_mut());
         let [_, n, l] = z.dims();
-        // Detached once before the per-step split (unless TD trains the encoder): slices of an
-        // untracked tensor are free, while each slice of a gradient-carrying one costs a
-        // full-size zero tensor in the backward pass.
-        let z_agent = if self.cfg.settings.td_to_encoder { z.clone() } else { z.clone().detach() };
-        let agent_inputs: Vec<Tensor<2>> =
-            inputs.into_iter().zip(z_agent.split(1, 0)).map(|(u, z_t)| self.agent_input(u, z_t.reshape([n, l]))).collect();
-        let q = self.agent.unroll(agent_inputs);
+        let q = self.agent.unroll_stacked(self.agent_input(u, z.clone().reshape([t_len * n, l])), t_len);
         let aux = match train {
             Some(ctx) => self.losses(z, ctx),
             None => Vec::new(),
@@ -215,42 +226,67 @@ impl LmacAgent {
         z.split(1, 0).into_iter().map(|z_t| z_t.reshape([n, l])).collect()
     }
 
-    /// The latent z of every step, [T, N, L] (`rng`: dropout, in training). Everything that does
-    /// not depend on the encoder's recurrence runs once over all steps (one matmul each instead
-    /// of one per step). Dropout draws in the per-step order either way: rows are time-major.
-    pub fn latents(&self, inputs: &[Tensor<2>], mut rng: Option<&mut LearnRng>) -> Tensor<3> {
-        let t_len = inputs.len();
-        let n = inputs[0].dims()[0];
+    /// The latent z of every step, [T, N, L] (`rng`: dropout, in training).
+    pub fn latents(&self, inputs: &[Tensor<2>], rng: Option<&mut LearnRng>) -> Tensor<3> {
+        self.latents_stacked(Tensor::cat(inputs.to_vec(), 0), inputs.len(), rng)
+    }
+
+    /// [`latents`](Self::latents) of the steps stacked time-major, u [T * N, in]. The embedding
+    /// and everything else that does not depend on the encoder's recurrence is one matmul per
+    /// layer over all steps; dropout draws in the per-step order, since rows are time-major.
+    fn latents_stacked(&self, u: Tensor<2>, t_len: usize, rng: Option<&mut LearnRng>) -> Tensor<3> {
+        let n = u.dims()[0] / t_len;
         let e = self.embed_dim();
+        let x = self.embed(u, rng);
         let z = match &self.encoder {
+            // The recurrence is one fused operation over all steps, and the gate reads only x
+            // and h, so it runs once after it.
             Encoder::GruGate(g) => {
-                // The embedding stays per step so dropout draws in the per-step order; the
-                // recurrence is one fused operation over all steps, and the gate reads only x
-                // and h, so it runs once after it.
-                let xs: Vec<Tensor<2>> = inputs.iter().map(|u| self.embed(u.clone(), rng.as_deref_mut())).collect();
-                let x = Tensor::cat(xs, 0);
-                let hs = g.gru.sequence(x.clone(), t_len).reshape([t_len * n, e]);
-                gate(g, x, hs)
+                let cs = g.gru.sequence_carry(x.clone(), t_len).reshape([t_len * n, e]);
+                gate(g, x, cs)
             }
-            Encoder::Window(w) => {
-                // No recurrence: embedding and attention run over all steps at once.
-                let x = self.embed(Tensor::cat(inputs.to_vec(), 0), rng);
-                window_attend_all(w, x.reshape([t_len, n, e]))
-            }
+            // No recurrence: the attention runs over all steps at once.
+            Encoder::Window(w) => window_attend_all(w, x.reshape([t_len, n, e])),
         };
         let l = z.dims()[1];
         z.reshape([t_len, n, l])
     }
 
-    /// Decode the latent: (s_hat, xi_hat logits), each [.., critical dims].
+    /// Decode the latent: (s_hat, xi_hat logits), each [.., critical dims] (deterministic).
     pub fn decode(&self, z: Tensor<3>) -> (Tensor<3>, Tensor<3>) {
-        let h = relu(self.dec2.forward(relu(self.dec1.forward(z))));
+        self.decode_with(z, None)
+    }
+
+    /// [`decode`](Self::decode) with the `released` layout's dropout when `rng` is given.
+    fn decode_with(&self, z: Tensor<3>, rng: Option<&mut LearnRng>) -> (Tensor<3>, Tensor<3>) {
+        let h1 = relu(self.dec1.forward(z));
+        let h1 = match rng {
+            Some(r) if self.cfg.settings.aux_layout == AuxLayout::Released => dropout(h1, self.cfg.settings.dropout, r),
+            _ => h1,
+        };
+        let h = relu(self.dec2.forward(h1));
         (self.dec_state.forward(h.clone()), self.dec_meta.forward(h))
     }
 
-    /// The cycle encoder: z_hat from (s_hat, sigmoid(xi_hat)).
+    /// The cycle encoder: z_hat from (s_hat, sigmoid(xi_hat)) (deterministic).
     pub fn cycle(&self, s_hat: Tensor<3>, xi_logit: Tensor<3>) -> Tensor<3> {
-        self.cycle2.forward(relu(self.cycle1.forward(Tensor::cat(vec![s_hat, sigmoid(xi_logit)], 2))))
+        self.cycle_with(s_hat, xi_logit, None)
+    }
+
+    /// [`cycle`](Self::cycle) with the `released` layout's dropout when `rng` is given.
+    fn cycle_with(&self, s_hat: Tensor<3>, xi_logit: Tensor<3>, rng: Option<&mut LearnRng>) -> Tensor<3> {
+        let h = relu(self.cycle1.forward(Tensor::cat(vec![s_hat, sigmoid(xi_logit)], 2)));
+        let h = match (&self.cycle_norm, &self.cycle_mid) {
+            (Some(norm), Some(mid)) => {
+                let h = relu(mid.forward(norm.forward(h)));
+                match rng {
+                    Some(r) => dropout(h, self.cfg.settings.dropout, r),
+                    None => h,
+                }
+            }
+            _ => h,
+        };
+        self.cycle2.forward(h)
     }
 
     /// z [T, N, L] with N = B * n (batch-major rows); the context's state and mask are per
@@ -262,7 +298,10 @@ impl LmacAgent {
         let dc = self.cfg.critical_dims.len();
         let device = z.device();
         let s = &self.cfg.settings;
-        let (s_hat, xi_logit) = self.decode(z.clone());
+        // The decoder's and cycle encoder's dropout draws (released layout), apart from the
+        // embedding's so either can change without moving the other.
+        let mut rng = LearnRng::seed_from(ctx.seed ^ 0xDEC0_0000_0000_0001);
+        let (s_hat, xi_logit) = self.decode_with(z.clone(), Some(&mut rng));
         let s_hat = s_hat.reshape([t, b, n, dc]);
         let xi_logit = xi_logit.reshape([t, b, n, dc]);
         let idx: Tensor<1, Int> =
@@ -280,12 +319,17 @@ impl LmacAgent {
         let bce = (bce * mask.clone()).sum().div_scalar(denom);
         let recon = mse.clone() + bce.clone().mul_scalar(s.lambda_meta);
 
-        let z_hat = self.cycle(s_hat.reshape([t, n_rows, dc]), xi_logit.clone().reshape([t, n_rows, dc]));
+        let z_hat = self.cycle_with(s_hat.reshape([t, n_rows, dc]), xi_logit.clone().reshape([t, n_rows, dc]), Some(&mut rng));
         // The latent's size: the consistency loss alone is smallest for a z shrunk towards 0,
         // so its value only means something next to ||z||^2.
         let z_sq = (z.clone().detach().square().sum_dim(2).reshape([t, b, n, 1]) * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32);
         let z_target = if s.detach_consistency_target { z.detach() } else { z };
-        let cyc = (z_hat - z_target).square().sum_dim(2).reshape([t, b, n, 1]);
+        let sq_z = (z_hat - z_target).square();
+        let cyc = match s.consistency_over_latent {
+            LatentReduction::Mean => sq_z.mean_dim(2),
+            LatentReduction::Sum => sq_z.sum_dim(2),
+        }
+        .reshape([t, b, n, 1]);
         let cons = if s.mask_consistency { (cyc * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32) } else { cyc.mean() };
 
         let scalar = |x: &Tensor<1>| x.clone().detach().into_scalar::<f32>();
@@ -302,9 +346,9 @@ impl LmacAgent {
     }
 }
 
-/// z = sigmoid(W_q x . W_k r) * W_v r with r = h + x (the residual).
-fn gate(g: &GruGateEncoder, x: Tensor<2>, h: Tensor<2>) -> Tensor<2> {
-    let r = h + x.clone();
+/// z = sigmoid(W_q x . W_k c) * W_v c, c = h + x the carried state.
+fn gate(g: &GruGateEncoder, x: Tensor<2>, c: Tensor<2>) -> Tensor<2> {
+    let r = c;
     let q = g.query.forward(x);
     let k = g.key.forward(r.clone());
     let score = sigmoid((q * k).sum_dim(1));
@@ -330,41 +374,16 @@ fn window_attend(w: &WindowEncoder, x: Tensor<2>, entries: &[Tensor<2>], valid: 
 }
 
 /// [`window_attend`] for all T steps of an unroll at once: x [T, N, E] (time-major) ->
-/// z [T * N, L]. Query, key and value are one matmul each over all steps (the per-step form
-/// projects every embedding once per window entry); the window is a shift of the keys and values
-/// by o steps, so the only sequence slices are the W shifts.
+/// z [T * N, L]. Query, key and value are one matmul each over all steps; the windowed
+/// attention itself is one operation with a hand-written backward (`learn::window_attention`;
+/// entries older than the unroll's first step are not attended to, as the per-step form masks
+/// them).
 fn window_attend_all(w: &WindowEncoder, x: Tensor<3>) -> Tensor<2> {
     let [t, n, _] = x.dims();
-    let device = x.device();
     let a = w.query.weight.dims()[1];
-    let (h, dh) = (w.heads, a / w.heads);
-    // Entries older than the unroll's first step are masked out; with fewer steps than the
-    // window they are dropped altogether (a masked entry has weight exactly 0).
-    let window = w.window.min(t);
-    let q = w.query.forward(x.clone()).reshape([t, n, h, dh]);
-    let k = w.key.forward(x.clone()).reshape([t, n, h, dh]);
-    let v = w.value.forward(x).reshape([t, n, h, dh]);
-    // Entry o of step s is step s - o: shifted down by o steps, zeros before the first step.
-    let shift = |m: &Tensor<4>, o: usize| -> Tensor<4> {
-        match o {
-            0 => m.clone(),
-            _ => Tensor::cat(vec![Tensor::zeros([o, n, h, dh], &device), m.clone().narrow(0, 0, t - o)], 0),
-        }
-    };
-    let scores: Vec<Tensor<3>> =
-        (0..window).map(|o| (shift(&k, o) * q.clone()).sum_dim(3).reshape([t, n, h]).div_scalar((dh as f32).sqrt())).collect();
-    let scores = Tensor::stack::<4>(scores, 0); // [W, T, N, heads]
-    let invalid: Vec<bool> = (0..window).flat_map(|o| (0..t).map(move |s| o > s)).collect();
-    let invalid: Tensor<4, Bool> = Tensor::from_data(TensorData::new(invalid, [window, t, 1, 1]), &device);
-    let att = softmax(scores.mask_fill(invalid.expand([window, t, n, h]), -1e9), 0);
-    // Weighted values accumulated entry by entry: stacking the W shifted copies first costs a
-    // [W, T, N, A] tensor and measured slower.
-    let out = att
-        .split(1, 0)
-        .into_iter()
-        .enumerate()
-        .map(|(o, att_o)| att_o.reshape([t, n, h, 1]) * shift(&v, o))
-        .reduce(|acc, term| acc + term)
-        .expect("a window of at least one entry");
+    let q = w.query.forward(x.clone());
+    let k = w.key.forward(x.clone());
+    let v = w.value.forward(x);
+    let out = window_attention(q, k, v, w.heads, w.window);
     w.out.forward(out.reshape([t * n, a]))
 }

@@ -1,0 +1,138 @@
+//! What the hand-written training kernels share (`gru_sequence.rs`, `window_attention.rs`):
+//! reading a CPU backend tensor on the host, a strided gemm call, a vectorizable exp, and
+//! running a loop compiled for AVX2 + FMA when the CPU has them.
+// burn marks its ndarray backend deprecated; the `ndarray` feature still selects it.
+#![cfg_attr(feature = "ndarray", allow(deprecated))]
+
+use std::future::Future;
+use std::pin::pin;
+use std::task::{Context, Poll, Waker};
+
+use burn::backend::tensor::FloatTensor;
+use burn::backend::Backend;
+
+/// A backend tensor's values on the host (CPU backends hand them over without waiting).
+pub(crate) fn host<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
+    let data = block_on(B::float_into_data(t)).expect("reading a CPU tensor");
+    data.try_into_vec::<f32>().expect("gru_sequence works on f32 tensors")
+}
+
+pub(crate) fn block_on<F: Future>(f: F) -> F::Output {
+    let mut f = pin!(f);
+    let mut cx = Context::from_waker(Waker::noop());
+    loop {
+        if let Poll::Ready(v) = f.as_mut().poll(&mut cx) {
+            return v;
+        }
+        std::thread::yield_now();
+    }
+}
+
+/// dst [m, n] (row stride `dst_rs`) = (accumulate ? dst : 0) + lhs [m, k] * rhs [k, n], with
+/// arbitrary row/column strides for lhs and rhs (a transposed operand is a swap of strides).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn matmul(
+    m: usize,
+    n: usize,
+    k: usize,
+    dst: &mut [f32],
+    dst_rs: usize,
+    accumulate: bool,
+    lhs: &[f32],
+    (lhs_rs, lhs_cs): (usize, usize),
+    rhs: &[f32],
+    (rhs_rs, rhs_cs): (usize, usize),
+) {
+    if m == 0 || n == 0 {
+        return;
+    }
+    assert!(dst.len() > (m - 1) * dst_rs + n - 1, "matmul: destination too small");
+    if k == 0 {
+        if !accumulate {
+            for i in 0..m {
+                dst[i * dst_rs..i * dst_rs + n].fill(0.0);
+            }
+        }
+        return;
+    }
+    assert!(lhs.len() > (m - 1) * lhs_rs + (k - 1) * lhs_cs, "matmul: lhs too small");
+    assert!(rhs.len() > (k - 1) * rhs_rs + (n - 1) * rhs_cs, "matmul: rhs too small");
+    // SAFETY: the asserts above keep every index gemm touches inside the three slices; dst is
+    // borrowed mutably and does not alias lhs or rhs.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            dst_rs as isize,
+            accumulate,
+            lhs.as_ptr(),
+            lhs_cs as isize,
+            lhs_rs as isize,
+            rhs.as_ptr(),
+            rhs_cs as isize,
+            rhs_rs as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
+
+/// e^x, branch-free so loops over it vectorize (libm's `expf` is a call per element, which was
+/// most of the forward's time): 2^k e^r with |r| <= ln2/2 and a degree-6 Taylor polynomial,
+/// relative error about 1e-7, x clamped to [-87, 88] (no infinities, no denormal inputs).
+#[inline(always)]
+pub(crate) fn exp_approx(x: f32) -> f32 {
+    const LOG2E: f32 = std::f32::consts::LOG2_E;
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    let x = x.clamp(-87.0, 88.0);
+    let k = (x * LOG2E + 0.5).floor();
+    let r = x - k * LN2_HI - k * LN2_LO;
+    let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
+    // 2^k from k's bits: adding 1.5 * 2^23 puts the integer k in the low mantissa bits (plain
+    // integer lanes; a float-to-int `as` cast saturates, which does not vectorize as well).
+    let k_bits = (k + 12_582_912.0).to_bits().wrapping_sub(0x4B40_0000);
+    p * f32::from_bits(k_bits.wrapping_add(127) << 23)
+}
+
+#[inline(always)]
+pub(crate) fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + exp_approx(-x))
+}
+
+#[inline(always)]
+pub(crate) fn tanh_approx(x: f32) -> f32 {
+    1.0 - 2.0 / (exp_approx(2.0 * x) + 1.0)
+}
+
+/// Run `body` compiled for AVX2 + FMA when the CPU has them (the crate is built for the
+/// baseline x86-64, whose vectors are 4 wide), else as built.
+macro_rules! with_simd {
+    ($body:ident($($arg:expr),* $(,)?)) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn wide<F: FnOnce()>(f: F) {
+                f()
+            }
+            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                // SAFETY: both features were detected on this CPU at run time.
+                unsafe { wide(|| $body($($arg),*)) };
+            } else {
+                $body($($arg),*);
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            $body($($arg),*);
+        }
+    }};
+}
+pub(crate) use with_simd;
