@@ -146,6 +146,8 @@ pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBoo
         let done_t_env = if checkpoint_exists(&ck) {
             peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("{}: {e}", d.display()))?.counters.t_env
         } else {
+            // Said here, before any process starts (the trainer checks it again).
+            lmac_trainer::train::refuse_restart_over_metrics(d)?;
             0
         };
         let dataset_done = cfg.run.dataset_episodes == 0 || lmac_trainer::train::dataset_dir(d).exists();
