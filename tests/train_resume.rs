@@ -269,3 +269,39 @@ fn a_checkpoint_left_as_tmp_is_not_a_restart_and_no_checkpoint_refuses() {
     assert_eq!(std::fs::read_to_string(dir.join("metrics.csv")).unwrap(), rows, "the metrics are kept");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// The group directory a `lmac train` said it trains in.
+fn group_of(stderr: &str) -> PathBuf {
+    let line = stderr.lines().find_map(|l| l.strip_prefix("lmac: training ")).expect("the group line");
+    PathBuf::from(line.split_once(" run(s) in ").expect("the group").1.trim())
+}
+
+/// Issue 30, item 4: two `lmac train --out R` started together with the same stamp (forced with
+/// LMAC_STAMP; the clock to the second gave the same one) get two group directories, and each
+/// is trained with its own config (its own learning rate and step target).
+#[test]
+fn two_launches_in_the_same_second_train_their_own_configs() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("lmac-same-second-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let stamp = [("LMAC_STAMP", "20260101-000000")];
+    let launches = [(1000u64, "learn.lr=0.001"), (2000u64, "learn.lr=0.002")];
+    let children: Vec<_> = launches
+        .iter()
+        .map(|&(steps, lr)| short_training(&out, steps, &[lr], &stamp).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap())
+        .collect();
+    let mut groups = Vec::new();
+    for (child, &(steps, lr)) in children.into_iter().zip(&launches) {
+        let (ok, stderr) = finish(child);
+        assert!(ok, "{lr}: {stderr}");
+        let group = group_of(&stderr);
+        let cfg: toml::Value = toml::from_str(&std::fs::read_to_string(group.join("seed0/config.toml")).unwrap()).unwrap();
+        assert_eq!(cfg["run"]["steps"].as_integer(), Some(steps as i64), "{lr}: {}", group.display());
+        assert_eq!(cfg["learn"]["lr"].as_float(), lr.split('=').nth(1).unwrap().parse().ok(), "{}", group.display());
+        let t = metrics_t_env(&group.join("seed0"));
+        assert!(*t.last().unwrap() >= steps && *t.last().unwrap() < steps + 1000, "{lr}: trained to its own target: {t:?}");
+        groups.push(group);
+    }
+    assert_ne!(groups[0], groups[1], "two launches, two directories");
+    let _ = std::fs::remove_dir_all(&out);
+}
