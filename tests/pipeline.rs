@@ -332,7 +332,11 @@ fn the_trainers_report_is_never_written_through_a_planted_symlink() {
     assert!(out.status.success(), "lmac run failed: {stderr}");
     let _: serde_json::Value = serde_json::from_slice(&out.stdout).expect("the report reached the parent");
     assert_eq!(std::fs::read_to_string(&victim).unwrap(), "precious\n", "the report was written through a planted symlink");
-    assert!(report.parent() != Some(shared.as_path()), "the report lives in a directory of its own, not in the shared one: {}", report.display());
+    assert!(
+        report.parent() != Some(shared.as_path()),
+        "the report lives in a directory of its own, not in the shared one: {}",
+        report.display()
+    );
     let dirs_left: Vec<_> =
         std::fs::read_dir(&shared).unwrap().flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_dir())).map(|e| e.path()).collect();
     assert!(dirs_left.is_empty(), "the run's private directory is removed when it ends: {dirs_left:?}");

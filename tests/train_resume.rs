@@ -222,20 +222,17 @@ fn two_crashes_inside_checkpoint_saves_resume_from_the_surviving_checkpoint() {
     assert!(!first.status.success() && stderr.contains("aborting inside the checkpoint save"), "{stderr}");
     let dir = seed_dir(&out);
     assert!(dir.join("checkpoint.old").is_dir() && dir.join("checkpoint.tmp").is_dir() && !dir.join("checkpoint").exists());
-    let second = lmac()
-        .arg("train")
-        .arg("--resume")
-        .arg(&dir)
-        .env("LMAC_FAULT_CHECKPOINT", "moved-dir-to-old")
-        .output()
-        .unwrap();
+    let second = lmac().arg("train").arg("--resume").arg(&dir).env("LMAC_FAULT_CHECKPOINT", "moved-dir-to-old").output().unwrap();
     let stderr = String::from_utf8_lossy(&second.stderr).replace('\r', "\n");
     assert!(!second.status.success() && stderr.contains("aborting inside the checkpoint save"), "{stderr}");
     assert!(stderr.contains("at t_env 2000"), "the first resume continues from the first checkpoint: {stderr}");
     let third = lmac().arg("train").arg("--resume").arg(&dir).output().unwrap();
     let stderr = String::from_utf8_lossy(&third.stderr).replace('\r', "\n");
     assert!(third.status.success(), "{stderr}");
-    assert!(stderr.contains("at t_env 2000") && !stderr.contains("at t_env 0 "), "the second resume continues from the checkpoint: {stderr}");
+    assert!(
+        stderr.contains("at t_env 2000") && !stderr.contains("at t_env 0 "),
+        "the second resume continues from the checkpoint: {stderr}"
+    );
     let t = metrics_t_env(&dir);
     assert!(t.first().is_some_and(|&f| f <= 2000) && t.windows(2).all(|w| w[0] <= w[1]) && *t.last().unwrap() >= 6000, "{t:?}");
     assert!(dir.join("checkpoint").is_dir() && !dir.join("checkpoint.old").exists() && !dir.join("checkpoint.tmp").exists());
@@ -265,7 +262,10 @@ fn a_checkpoint_left_as_tmp_is_not_a_restart_and_no_checkpoint_refuses() {
     let refused = lmac().arg("train").arg("--resume").arg(&dir).output().unwrap();
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(!refused.status.success(), "{stderr}");
-    assert!(stderr.contains("no usable checkpoint") && stderr.contains("refusing") && stderr.contains(&dir.display().to_string()), "{stderr}");
+    assert!(
+        stderr.contains("no usable checkpoint") && stderr.contains("refusing") && stderr.contains(&dir.display().to_string()),
+        "{stderr}"
+    );
     assert_eq!(std::fs::read_to_string(dir.join("metrics.csv")).unwrap(), rows, "the metrics are kept");
     let _ = std::fs::remove_dir_all(&out);
 }

@@ -72,9 +72,7 @@ pub fn write_replace(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let tmp = PathBuf::from(tmp);
     // remove_file removes a symlink itself, not what it points to.
     match std::fs::remove_file(&tmp) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            return Err(std::io::Error::new(e.kind(), format!("{}: {e}", tmp.display())))
-        }
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(std::io::Error::new(e.kind(), format!("{}: {e}", tmp.display()))),
         _ => {}
     }
     write_new(&tmp, bytes)?;

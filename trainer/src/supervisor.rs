@@ -167,7 +167,8 @@ fn stop_with_parent(c: &mut Command) {
 pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunOutcome> {
     let exe = std::env::current_exe().context("locating the lmac executable")?;
     // Removed (with the report) when this function returns, after every child has ended.
-    let scratch = crate::safe_fs::PrivateDir::new(&format!("{}-run", plan.run)).context("creating the run's private temporary directory")?;
+    let scratch =
+        crate::safe_fs::PrivateDir::new(&format!("{}-run", plan.run)).context("creating the run's private temporary directory")?;
     let mut procs: Vec<Proc> = Vec::new();
     let spawn_all = |procs: &mut Vec<Proc>| -> Result<()> {
         let h = plan.sub_batches;

@@ -250,7 +250,11 @@ fn two_crashes_at_any_steps_of_the_save_never_lose_the_checkpoint() {
             fault::stop_at(None);
 
             // The first resume: a complete checkpoint, the old one or the new one.
-            assert!(checkpoint_exists(&dir), "{case}: {:?}", std::fs::read_dir(&parent).unwrap().flatten().map(|e| e.file_name()).collect::<Vec<_>>());
+            assert!(
+                checkpoint_exists(&dir),
+                "{case}: {:?}",
+                std::fs::read_dir(&parent).unwrap().flatten().map(|e| e.file_name()).collect::<Vec<_>>()
+            );
             let mut resumed = Learner::load_checkpoint(&dir, Device::default()).unwrap_or_else(|e| panic!("{case}: first resume: {e}"));
             let r1 = resumed.counters().t_env;
             assert!(r1 == t0 || r1 == t1, "{case}: resumed at {r1}, saved {t0} and {t1}");
@@ -263,14 +267,16 @@ fn two_crashes_at_any_steps_of_the_save_never_lose_the_checkpoint() {
 
             // The second resume.
             let where_ = locate(&dir).unwrap_or_else(|| panic!("{case}: no checkpoint survived"));
-            let mut again = Learner::load_checkpoint(&dir, Device::default()).unwrap_or_else(|e| panic!("{case}: second resume from {}: {e}", where_.display()));
+            let mut again = Learner::load_checkpoint(&dir, Device::default())
+                .unwrap_or_else(|e| panic!("{case}: second resume from {}: {e}", where_.display()));
             let r2 = again.counters().t_env;
             assert!(r2 == r1 || r2 == t2, "{case}: resumed at {r2}, expected {r1} (the first resume's) or {t2} (the save stopped)");
             // And the run goes on: a save that completes is what the next resume reads.
             let t3 = step(&mut again, &mut rng);
             again.save_checkpoint(&dir, true).unwrap_or_else(|e| panic!("{case}: a full save after two crashes: {e}"));
             assert_eq!(Learner::load_checkpoint(&dir, Device::default()).unwrap().counters().t_env, t3, "{case}");
-            let left: Vec<_> = std::fs::read_dir(&parent).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+            let left: Vec<_> =
+                std::fs::read_dir(&parent).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
             assert_eq!(left, ["checkpoint"], "{case}: a completed save leaves only the checkpoint");
             std::fs::remove_dir_all(&parent).unwrap();
         }

@@ -154,5 +154,6 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
 /// Write the report atomically (the parent reads it once this process has exited), never
 /// through a symlink planted at its temporary name.
 fn write_report(path: &std::path::Path, report: &TrainerReport) -> Result<()> {
-    lmac_trainer::safe_fs::write_replace(path, &serde_json::to_vec(report)?).with_context(|| format!("writing the report {}", path.display()))
+    lmac_trainer::safe_fs::write_replace(path, &serde_json::to_vec(report)?)
+        .with_context(|| format!("writing the report {}", path.display()))
 }

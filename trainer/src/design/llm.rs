@@ -619,7 +619,11 @@ impl HttpLlm {
                             || "nowhere (no Location header)".to_string(),
                             |l| String::from_utf8_lossy(l.as_bytes()).into_owned(),
                         );
-                        return Err(LlmError::Redirect { endpoint, status: status.as_u16(), location: self.redact(&excerpt(&location, 300)) });
+                        return Err(LlmError::Redirect {
+                            endpoint,
+                            status: status.as_u16(),
+                            location: self.redact(&excerpt(&location, 300)),
+                        });
                     }
                     let retry_after = retry_after(resp.headers());
                     match read_body(resp) {

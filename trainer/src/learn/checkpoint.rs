@@ -419,9 +419,9 @@ impl Learner {
         let mut l = Learner::with_agent(dims, st.config, st.agent, device).map_err(|e| ck(e, "load", &dir.join("state.json")))?;
         let ad = l.device.clone().autodiff();
         let mut scratch = LearnRng::seed_from(0); // initial values are overwritten by the load
-        // Whole files into memory: burn's file loader maps tensors to the file lazily, and the
-        // next save renames or removes this directory (a resume from `.old` or `.tmp` first
-        // renames it into place), after which a lazy read would fail.
+                                                  // Whole files into memory: burn's file loader maps tensors to the file lazily, and the
+                                                  // next save renames or removes this directory (a resume from `.old` or `.tmp` first
+                                                  // renames it into place), after which a lazy read would fail.
         let resident = |p: &Path| fs::read(p).map(burn::tensor::Bytes::from_bytes_vec).map_err(|e| ck(e, "read", p));
         let record = |p: &Path| resident(p).and_then(|b| burn::store::ModuleRecord::from_bytes(b).map_err(|e| ck(e, "load", p)));
         let p = dir.join("net.bpk");
