@@ -274,3 +274,71 @@ fn the_pipeline_bench_interleaves_raw_and_pipeline_blocks_and_cleans_up() {
     let left: Vec<String> = all_shm_files().difference(&before).cloned().collect();
     assert!(left.is_empty(), "shared-memory files left after the bench: {left:?}");
 }
+
+/// The arguments of a live process, from /proc.
+fn cmdline(pid: i32) -> Vec<String> {
+    let raw = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+    raw.split(|&b| b == 0).filter(|a| !a.is_empty()).map(|a| String::from_utf8_lossy(a).into_owned()).collect()
+}
+
+/// Issue 30, item 1: the trainer's report is never written through a symlink another local user
+/// planted. The attacker reads the run id and the report's path from the trainer's argv (which
+/// every user can) and links every name the report may use to a file of the victim's: the names
+/// it had in the shared temp directory (`lmac-<run>-report.json` and `.tmp`) and its own path
+/// and temporary name. The run must succeed and the victim's file stay as it was.
+#[test]
+fn the_trainers_report_is_never_written_through_a_planted_symlink() {
+    use lmac_trainer::faults::{pipeline_children, Role};
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    // The shared temp directory of this test (TMPDIR), where the report used to go.
+    let shared = std::env::temp_dir().join(format!("lmac-symlink-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&shared);
+    std::fs::create_dir_all(&shared).unwrap();
+    let victim = shared.join("victim.conf");
+    std::fs::write(&victim, "precious\n").unwrap();
+    let child = lmac()
+        .env("TMPDIR", &shared)
+        .args(["run", "--env", "lbf:8x8-2p-2f-s1-coop", "--envs", "8", "--servers", "1", "--protocol", "none"])
+        .args(["--steps", "20000", "--json"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The trainer is started at once; its report is written only after 20000 env steps.
+    let trainer = wait_for(Duration::from_secs(30), || {
+        pipeline_children(child.id() as i32).into_iter().find(|p| p.role == Role::Trainer).map(|p| p.pid)
+    })
+    .expect("the trainer child appears");
+    let args = cmdline(trainer);
+    let after = |flag: &str| args.iter().position(|a| a == flag).and_then(|i| args.get(i + 1)).cloned().expect(flag);
+    let (run, report) = (after("--run"), std::path::PathBuf::from(after("--report")));
+    let mut report_tmp = report.clone().into_os_string();
+    report_tmp.push(".tmp");
+    let planted = [
+        shared.join(format!("lmac-{run}-report.json")),
+        shared.join(format!("lmac-{run}-report.tmp")),
+        report.clone(),
+        report.with_extension("tmp"),
+        report_tmp.into(),
+    ];
+    for p in &planted {
+        // Where the directory is private to the run, only its owner could plant (this test can:
+        // it is the same user); the write must still not follow the link.
+        let _ = std::os::unix::fs::symlink(&victim, p);
+    }
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "lmac run failed: {stderr}");
+    let _: serde_json::Value = serde_json::from_slice(&out.stdout).expect("the report reached the parent");
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "precious\n", "the report was written through a planted symlink");
+    assert!(
+        report.parent() != Some(shared.as_path()),
+        "the report lives in a directory of its own, not in the shared one: {}",
+        report.display()
+    );
+    let dirs_left: Vec<_> =
+        std::fs::read_dir(&shared).unwrap().flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_dir())).map(|e| e.path()).collect();
+    assert!(dirs_left.is_empty(), "the run's private directory is removed when it ends: {dirs_left:?}");
+    let _ = std::fs::remove_dir_all(&shared);
+}

@@ -190,3 +190,118 @@ fn a_checkpoint_that_cannot_be_written_ends_the_run_naming_the_file() {
     assert!(new_shm_files(&shm_before).is_empty(), "{:?}", new_shm_files(&shm_before));
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// A short QMIX run on LBF 8x8 to `steps`, checkpoints every 2000 steps, no test phases (so only
+/// the run's own checkpoint is saved), with `env` set for the lmac process and its children.
+fn short_training(out: &Path, steps: u64, set: &[&str], env: &[(&str, &str)]) -> std::process::Command {
+    let mut c = lmac();
+    c.args(["train", "--env", "lbf:8x8-2p-2f-s1-coop", "--algo", "qmix", "--steps", &steps.to_string()])
+        .args(["--set", "run.envs=8", "--set", "run.servers=1", "--set", "run.checkpoint_interval=2000"])
+        .args(["--set", "run.log_interval=500", "--set", "run.test_episodes=0", "--set", "run.final_eval_episodes=0"]);
+    for s in set {
+        c.args(["--set", s]);
+    }
+    c.arg("--out").arg(out).stdin(Stdio::null());
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c
+}
+
+/// Issue 30, item 3, end to end with real crashes: the trainer aborts inside the save of its
+/// second checkpoint just after `checkpoint` became `checkpoint.old` (the window of the issue),
+/// the resume aborts in its first save at the same step, and the next resume still continues
+/// from the complete checkpoint (t_env 2000), not from 0, and reaches the target.
+#[test]
+fn two_crashes_inside_checkpoint_saves_resume_from_the_surviving_checkpoint() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("lmac-ck-double-crash-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let first = short_training(&out, 6000, &[], &[("LMAC_FAULT_CHECKPOINT", "moved-dir-to-old@2")]).output().unwrap();
+    let stderr = String::from_utf8_lossy(&first.stderr);
+    assert!(!first.status.success() && stderr.contains("aborting inside the checkpoint save"), "{stderr}");
+    let dir = seed_dir(&out);
+    assert!(dir.join("checkpoint.old").is_dir() && dir.join("checkpoint.tmp").is_dir() && !dir.join("checkpoint").exists());
+    let second = lmac().arg("train").arg("--resume").arg(&dir).env("LMAC_FAULT_CHECKPOINT", "moved-dir-to-old").output().unwrap();
+    let stderr = String::from_utf8_lossy(&second.stderr).replace('\r', "\n");
+    assert!(!second.status.success() && stderr.contains("aborting inside the checkpoint save"), "{stderr}");
+    assert!(stderr.contains("at t_env 2000"), "the first resume continues from the first checkpoint: {stderr}");
+    let third = lmac().arg("train").arg("--resume").arg(&dir).output().unwrap();
+    let stderr = String::from_utf8_lossy(&third.stderr).replace('\r', "\n");
+    assert!(third.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("at t_env 2000") && !stderr.contains("at t_env 0 "),
+        "the second resume continues from the checkpoint: {stderr}"
+    );
+    let t = metrics_t_env(&dir);
+    assert!(t.first().is_some_and(|&f| f <= 2000) && t.windows(2).all(|w| w[0] <= w[1]) && *t.last().unwrap() >= 6000, "{t:?}");
+    assert!(dir.join("checkpoint").is_dir() && !dir.join("checkpoint.old").exists() && !dir.join("checkpoint.tmp").exists());
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Issue 30, item 3, the end state: a finished run whose checkpoint is only `checkpoint.tmp`
+/// (complete: its manifest verifies) is still finished, not trained again from t_env 0; with no
+/// usable checkpoint at all, a resume refuses instead of dropping the metrics.
+#[test]
+fn a_checkpoint_left_as_tmp_is_not_a_restart_and_no_checkpoint_refuses() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("lmac-ck-tmp-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let run = short_training(&out, 2000, &[], &[]).output().unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let dir = seed_dir(&out);
+    let rows = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
+    std::fs::rename(dir.join("checkpoint"), dir.join("checkpoint.tmp")).unwrap();
+    let again = lmac().arg("train").arg("--resume").arg(&dir).output().unwrap();
+    let stderr = String::from_utf8_lossy(&again.stderr).replace('\r', "\n");
+    assert!(again.status.success() && stderr.contains("already finished (t_env "), "{stderr}");
+    assert_eq!(std::fs::read_to_string(dir.join("metrics.csv")).unwrap(), rows, "the metrics are kept");
+
+    // No usable checkpoint: a clear refusal naming the run, and the metrics stay.
+    std::fs::remove_dir_all(dir.join("checkpoint.tmp")).unwrap();
+    let refused = lmac().arg("train").arg("--resume").arg(&dir).output().unwrap();
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("no usable checkpoint") && stderr.contains("refusing") && stderr.contains(&dir.display().to_string()),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read_to_string(dir.join("metrics.csv")).unwrap(), rows, "the metrics are kept");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The group directory a `lmac train` said it trains in.
+fn group_of(stderr: &str) -> PathBuf {
+    let line = stderr.lines().find_map(|l| l.strip_prefix("lmac: training ")).expect("the group line");
+    PathBuf::from(line.split_once(" run(s) in ").expect("the group").1.trim())
+}
+
+/// Issue 30, item 4: two `lmac train --out R` started together with the same stamp (forced with
+/// LMAC_STAMP; the clock to the second gave the same one) get two group directories, and each
+/// is trained with its own config (its own learning rate and step target).
+#[test]
+fn two_launches_in_the_same_second_train_their_own_configs() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("lmac-same-second-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let stamp = [("LMAC_STAMP", "20260101-000000")];
+    let launches = [(1000u64, "learn.lr=0.001"), (2000u64, "learn.lr=0.002")];
+    let children: Vec<_> = launches
+        .iter()
+        .map(|&(steps, lr)| short_training(&out, steps, &[lr], &stamp).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap())
+        .collect();
+    let mut groups = Vec::new();
+    for (child, &(steps, lr)) in children.into_iter().zip(&launches) {
+        let (ok, stderr) = finish(child);
+        assert!(ok, "{lr}: {stderr}");
+        let group = group_of(&stderr);
+        let cfg: toml::Value = toml::from_str(&std::fs::read_to_string(group.join("seed0/config.toml")).unwrap()).unwrap();
+        assert_eq!(cfg["run"]["steps"].as_integer(), Some(steps as i64), "{lr}: {}", group.display());
+        assert_eq!(cfg["learn"]["lr"].as_float(), lr.split('=').nth(1).unwrap().parse().ok(), "{}", group.display());
+        let t = metrics_t_env(&group.join("seed0"));
+        assert!(*t.last().unwrap() >= steps && *t.last().unwrap() < steps + 1000, "{lr}: trained to its own target: {t:?}");
+        groups.push(group);
+    }
+    assert_ne!(groups[0], groups[1], "two launches, two directories");
+    let _ = std::fs::remove_dir_all(&out);
+}

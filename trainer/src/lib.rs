@@ -6,6 +6,7 @@ pub mod faults;
 pub mod learn;
 pub mod pipeline;
 pub mod run_dir;
+pub mod safe_fs;
 pub mod stats;
 pub mod supervisor;
 pub mod tensorboard;

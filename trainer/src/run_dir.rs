@@ -1,15 +1,37 @@
 //! Names of runs: the time stamp of a run directory and the short id of a pipeline run (its
 //! shared memory and iceoryx2 services carry it).
 
-/// UTC time as `YYYYMMDD-HHMMSS`, the name of a training group or design directory.
+/// UTC time as `YYYYMMDD-HHMMSS`, the name of a training group or design directory (made with
+/// [`create_unique_dir`]: two launches in the same second get two directories).
+/// `$LMAC_STAMP` fixes it, so tests can make launches collide.
 pub fn stamp() -> String {
-    chrono::Utc::now().format("%Y%m%d-%H%M%S").to_string()
+    match std::env::var("LMAC_STAMP") {
+        Ok(s) if !s.is_empty() => s,
+        _ => chrono::Utc::now().format("%Y%m%d-%H%M%S").to_string(),
+    }
 }
 
-/// 8 hex digits from the clock and the process id: unique among the runs of one machine.
+/// Create `parent/name`, or `parent/name-2`, `-3`, ... when taken: each `mkdir` fails if the
+/// name exists, so two processes racing for the same name get different directories, and a
+/// directory another process made is never reused. Returns the directory made.
+pub fn create_unique_dir(parent: &std::path::Path, name: &str) -> anyhow::Result<std::path::PathBuf> {
+    std::fs::create_dir_all(parent).map_err(|e| anyhow::anyhow!("creating {}: {e}", parent.display()))?;
+    for n in 1..10_000u32 {
+        let d = if n == 1 { parent.join(name) } else { parent.join(format!("{name}-{n}")) };
+        match std::fs::create_dir(&d) {
+            Ok(()) => return Ok(d),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => anyhow::bail!("creating {}: {e}", d.display()),
+        }
+    }
+    anyhow::bail!("creating a directory in {}: {name} and 9999 suffixed names are taken", parent.display())
+}
+
+/// 12 hex digits, unique among the live runs of one machine: the process id (live processes
+/// have distinct ones) and 20 random bits (a pid reused after a crash, or two runs of one
+/// process). Short, because it is part of shared-memory and iceoryx2 names.
 pub fn run_id() -> String {
-    let t = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
-    format!("{:08x}", (t as u64 ^ ((std::process::id() as u64) << 32)) as u32)
+    format!("{:07x}{:05x}", std::process::id() & 0xfff_ffff, rand::random::<u32>() & 0xf_ffff)
 }
 
 /// An exclusive advisory lock on a run directory (`<dir>/lock`), held while the value lives (and
@@ -54,6 +76,26 @@ mod tests {
         assert_eq!(&s[8..9], "-");
         assert!(s[..8].chars().chain(s[9..].chars()).all(|c| c.is_ascii_digit()), "{s}");
         assert!(s.as_str() > "20260101-000000");
+    }
+
+    #[test]
+    fn run_ids_carry_the_pid_and_do_not_repeat() {
+        let a = super::run_id();
+        assert_eq!(a.len(), 12, "{a}");
+        assert_eq!(u32::from_str_radix(&a[..7], 16).unwrap(), std::process::id() & 0xfff_ffff, "{a}");
+        let ids: std::collections::HashSet<String> = (0..64).map(|_| super::run_id()).collect();
+        assert!(ids.len() > 60, "ids of one process differ by their random bits: {ids:?}");
+    }
+
+    #[test]
+    fn a_taken_name_gets_a_suffix_never_the_same_directory() {
+        let parent = std::env::temp_dir().join(format!("lmac-unique-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&parent);
+        let a = super::create_unique_dir(&parent, "20260101-000000").unwrap();
+        let b = super::create_unique_dir(&parent, "20260101-000000").unwrap();
+        assert_eq!(a, parent.join("20260101-000000"));
+        assert_eq!(b, parent.join("20260101-000000-2"));
+        let _ = std::fs::remove_dir_all(&parent);
     }
 
     #[test]

@@ -133,9 +133,11 @@ pub struct RunOutcome {
     pub report: crate::pipeline::TrainerReport,
 }
 
-/// Where the trainer of run `run` writes its report (a file of its own, not its stdout).
-fn report_path(run: &str) -> PathBuf {
-    std::env::temp_dir().join(format!("lmac-{run}-report.json"))
+/// Where the trainer writes its report (a file of its own, not its stdout): inside a private
+/// directory of this run, never at a name in the shared temp directory that another user could
+/// predict (the run id is in every child's argv) and plant a symlink at.
+fn report_path(scratch: &crate::safe_fs::PrivateDir) -> PathBuf {
+    scratch.path().join("report.json")
 }
 
 /// Ask the kernel to send the child SIGTERM when this process dies (even by SIGKILL), so a dead
@@ -164,6 +166,9 @@ fn stop_with_parent(c: &mut Command) {
 /// `interrupted` is set (Ctrl-C).
 pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunOutcome> {
     let exe = std::env::current_exe().context("locating the lmac executable")?;
+    // Removed (with the report) when this function returns, after every child has ended.
+    let scratch =
+        crate::safe_fs::PrivateDir::new(&format!("{}-run", plan.run)).context("creating the run's private temporary directory")?;
     let mut procs: Vec<Proc> = Vec::new();
     let spawn_all = |procs: &mut Vec<Proc>| -> Result<()> {
         let h = plan.sub_batches;
@@ -200,7 +205,7 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
         let mut t = Command::new(&exe);
         t.args(["child", "trainer"]);
         common(&mut t);
-        t.args(["--seed", &plan.seed.to_string()]).arg("--report").arg(report_path(&plan.run)).args(&plan.trainer_args);
+        t.args(["--seed", &plan.seed.to_string()]).arg("--report").arg(report_path(&scratch)).args(&plan.trainer_args);
         procs.push(Proc { name: TRAINER.into(), child: t.spawn().context("starting the trainer")?, status: None });
         Ok(())
     };
@@ -212,9 +217,8 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
     };
     stop_all(&mut procs);
     cleanup_run(&plan.run, plan.ring_members());
-    let path = report_path(&plan.run);
+    let path = report_path(&scratch);
     let report = std::fs::read(&path);
-    let _ = std::fs::remove_file(&path);
     result?;
     let report = report.with_context(|| format!("the trainer wrote no report ({})", path.display()))?;
     let report = serde_json::from_slice(&report).with_context(|| format!("the trainer's report {}", path.display()))?;

@@ -36,6 +36,8 @@ enum Reply {
     Status(u16, Option<&'static str>, String),
     /// Read the request, answer nothing for this long, then close.
     Hang(Duration),
+    /// 307 Temporary Redirect (method and body kept) to this URL.
+    Redirect(String),
 }
 
 #[derive(Debug, Clone)]
@@ -135,6 +137,7 @@ fn serve(stream: TcpStream, requests: Arc<Mutex<Vec<Captured>>>, script: Arc<Mut
             .to_string(),
         ),
         Some(Reply::Status(code, retry, body)) => (code, retry.map_or(String::new(), |r| format!("Retry-After: {r}\r\n")), body),
+        Some(Reply::Redirect(to)) => (307, format!("Location: {to}\r\n"), String::new()),
         Some(Reply::Hang(d)) => {
             std::thread::sleep(d);
             return;
@@ -598,6 +601,32 @@ fn a_key_over_plain_http_to_another_host_is_refused_before_connecting() {
     let keyless = LlmConfig::from_spec("openai:m", Some("http://192.0.2.1:8000/v1")).unwrap();
     assert!(matches!(HttpLlm::new(keyless), Err(LlmError::NoKeyVariable { .. })));
     std::env::remove_var("LMAC_TEST_REMOTE_KEY");
+}
+
+/// A server that answers with a redirect to another server: the client must not follow it (it
+/// would carry `x-api-key`, which reqwest does not strip, and the whole prompt), for every
+/// provider, and must say where the redirect pointed.
+#[test]
+fn a_redirect_is_never_followed_and_never_carries_the_key_or_the_prompt() {
+    const PROMPT: &str = "the secret prompt 4711";
+    for spec in ["openai:m", "anthropic:m", "gemini:m", "vllm:m", "ollama:m", "llamacpp:m"] {
+        // The second server would answer well, so a followed redirect would succeed.
+        let elsewhere = Server::start(vec![Reply::Chat("followed".into()), Reply::Anthropic("followed".into())]);
+        let target = format!("{}/stolen", elsewhere.url);
+        let first = Server::start(vec![Reply::Redirect(target.clone())]);
+        let mut c = HttpLlm::with_api_key(config(spec, &first.url), ApiKey::new(KEY)).unwrap();
+        let e = c.complete(&[ChatMessage::user(PROMPT)]).unwrap_err();
+        assert!(matches!(e, LlmError::Redirect { status: 307, .. }), "{spec}: {e}");
+        let text = e.to_string();
+        assert!(text.contains(&target) && text.contains("redirect") && !text.contains(KEY), "{spec}: {text}");
+        // The configured server got the key (it is the one configured) and was asked once.
+        let asked = first.requests();
+        assert_eq!(asked.len(), 1, "{spec}: a redirect is not retried");
+        assert!(asked[0].all_text().contains(PROMPT), "{spec}");
+        // The other server saw nothing: no connection carried the key or the prompt.
+        let seen = elsewhere.requests();
+        assert!(seen.is_empty(), "{spec}: the redirect was followed: {:?}", seen.iter().map(|r| &r.headers).collect::<Vec<_>>());
+    }
 }
 
 #[test]

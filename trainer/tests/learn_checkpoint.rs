@@ -207,3 +207,115 @@ fn parallel_target_gives_the_same_updates() {
     }
     assert_eq!(losses[0], losses[1]);
 }
+
+/// A learner whose `t_env` grows with every `step` call (one 3-step episode each), so each save
+/// is told apart by its counters.
+fn small_learner() -> (Learner, LearnRng) {
+    let cfg = LearnConfig { batch_size: 2, buffer_size: 8, seed: 5, ..LearnConfig::default() };
+    (Learner::new(DIMS, cfg, Device::default()).unwrap(), LearnRng::seed_from(17))
+}
+
+fn step(learner: &mut Learner, rng: &mut LearnRng) -> u64 {
+    learner.add_episode(random_episode(rng, 3, true)).unwrap();
+    learner.counters().t_env
+}
+
+/// Issue 30, item 3: the save is stopped (as a crash would stop it: nothing after the step is
+/// done, nothing cleaned up) at every step, then the run resumes from what it finds and its next
+/// save is stopped at every step again: all combinations. After both crashes a complete
+/// checkpoint loads, never older than the one the second segment resumed from, and a resume
+/// from it saves and loads again.
+#[test]
+fn two_crashes_at_any_steps_of_the_save_never_lose_the_checkpoint() {
+    use lmac_trainer::learn::checkpoint::{checkpoint_exists, fault, locate};
+    let base = std::env::temp_dir().join(format!("lmac-ckpt-crash-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&base);
+    let mut stopped = std::collections::BTreeSet::new();
+    for (i, &first) in fault::STEPS.iter().enumerate() {
+        for (j, &second) in fault::STEPS.iter().enumerate() {
+            let case = format!("crash at {first:?}, resume, crash at {second:?}");
+            let parent = base.join(format!("{i}-{j}"));
+            std::fs::create_dir_all(&parent).unwrap();
+            let dir = parent.join("checkpoint");
+            let (mut learner, mut rng) = small_learner();
+            let t0 = step(&mut learner, &mut rng);
+            learner.save_checkpoint(&dir, true).unwrap();
+            let t1 = step(&mut learner, &mut rng);
+            // A step that is not on this save's path (e.g. removing an `.old` there is none of)
+            // lets the save complete.
+            fault::stop_at(Some(first));
+            if learner.save_checkpoint(&dir, true).is_err() {
+                stopped.insert(first);
+            }
+            fault::stop_at(None);
+
+            // The first resume: a complete checkpoint, the old one or the new one.
+            assert!(
+                checkpoint_exists(&dir),
+                "{case}: {:?}",
+                std::fs::read_dir(&parent).unwrap().flatten().map(|e| e.file_name()).collect::<Vec<_>>()
+            );
+            let mut resumed = Learner::load_checkpoint(&dir, Device::default()).unwrap_or_else(|e| panic!("{case}: first resume: {e}"));
+            let r1 = resumed.counters().t_env;
+            assert!(r1 == t0 || r1 == t1, "{case}: resumed at {r1}, saved {t0} and {t1}");
+            let t2 = step(&mut resumed, &mut rng);
+            fault::stop_at(Some(second));
+            if resumed.save_checkpoint(&dir, true).is_err() {
+                stopped.insert(second);
+            }
+            fault::stop_at(None);
+
+            // The second resume.
+            let where_ = locate(&dir).unwrap_or_else(|| panic!("{case}: no checkpoint survived"));
+            let mut again = Learner::load_checkpoint(&dir, Device::default())
+                .unwrap_or_else(|e| panic!("{case}: second resume from {}: {e}", where_.display()));
+            let r2 = again.counters().t_env;
+            assert!(r2 == r1 || r2 == t2, "{case}: resumed at {r2}, expected {r1} (the first resume's) or {t2} (the save stopped)");
+            // And the run goes on: a save that completes is what the next resume reads.
+            let t3 = step(&mut again, &mut rng);
+            again.save_checkpoint(&dir, true).unwrap_or_else(|e| panic!("{case}: a full save after two crashes: {e}"));
+            assert_eq!(Learner::load_checkpoint(&dir, Device::default()).unwrap().counters().t_env, t3, "{case}");
+            let left: Vec<_> =
+                std::fs::read_dir(&parent).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+            assert_eq!(left, ["checkpoint"], "{case}: a completed save leaves only the checkpoint");
+            std::fs::remove_dir_all(&parent).unwrap();
+        }
+    }
+    let never: Vec<_> = fault::STEPS.iter().filter(|s| !stopped.contains(*s)).collect();
+    assert!(never.is_empty(), "every step of the save was crashed at in some case; never: {never:?}");
+    let _ = std::fs::remove_dir_all(&base);
+}
+
+/// A checkpoint moved to `<dir>.tmp` (the end state of two crashes in the old protocol) is used
+/// when its manifest verifies; one with a corrupt file is not, and loading a corrupt checkpoint
+/// names the file.
+#[test]
+fn a_complete_tmp_is_used_and_a_corrupt_file_is_named() {
+    use lmac_trainer::learn::checkpoint::{checkpoint_exists, locate};
+    let parent = std::env::temp_dir().join(format!("lmac-ckpt-tmp-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&parent);
+    std::fs::create_dir_all(&parent).unwrap();
+    let dir = parent.join("checkpoint");
+    let tmp = parent.join("checkpoint.tmp");
+    let (mut learner, mut rng) = small_learner();
+    let t = step(&mut learner, &mut rng);
+    learner.save_checkpoint(&dir, true).unwrap();
+    std::fs::rename(&dir, &tmp).unwrap();
+    assert_eq!(locate(&dir), Some(tmp.clone()));
+    assert_eq!(Learner::load_checkpoint(&dir, Device::default()).unwrap().counters().t_env, t);
+
+    // Flipped bytes in the network: the manifest no longer matches, so `.tmp` is not complete.
+    let net = tmp.join("net.bpk");
+    let mut bytes = std::fs::read(&net).unwrap();
+    let mid = bytes.len() / 2;
+    for b in &mut bytes[mid..mid + 16] {
+        *b ^= 0xff;
+    }
+    std::fs::write(&net, &bytes).unwrap();
+    assert!(!checkpoint_exists(&dir), "a .tmp that fails its manifest is not a checkpoint");
+    // As `<dir>` it is loaded, and the load names the corrupt file.
+    std::fs::rename(&tmp, &dir).unwrap();
+    let e = Learner::load_checkpoint(&dir, Device::default()).err().expect("a corrupt file is refused").to_string();
+    assert!(e.contains("net.bpk") && e.contains("CRC-32C"), "{e}");
+    std::fs::remove_dir_all(&parent).unwrap();
+}

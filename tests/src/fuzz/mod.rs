@@ -462,8 +462,13 @@ pub fn remove_scratch_dirs(pid: u32) {
 
 /// A scratch directory for one parser's per-case files (removed by the supervisor).
 pub fn scratch_dir(tag: &str) -> PathBuf {
+    use std::os::unix::fs::DirBuilderExt;
     let d = std::env::temp_dir().join(format!("lmac-fuzz-{tag}-{}", std::process::id()));
+    // A leftover of an earlier process with this pid goes (a symlink itself, not its target);
+    // then one mkdir, 0700, which fails rather than reuse a name another user planted meanwhile.
     let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("scratch dir");
+    if let Err(e) = std::fs::DirBuilder::new().mode(0o700).create(&d) {
+        panic!("creating the scratch directory {}: {e}", d.display());
+    }
     d
 }

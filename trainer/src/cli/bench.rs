@@ -192,7 +192,9 @@ pub(crate) fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Resu
 pub(crate) fn bench_interleaved(p: &PipelineOpts, repeat: usize, interrupted: Arc<AtomicBool>) -> Result<Alternations> {
     const WARMUP: u64 = 20; // batched steps each side takes before the first block
     let block = p.steps.div_ceil((p.envs * repeat) as u64).max(1);
-    let out = std::env::temp_dir().join(format!("lmac-bench-pipeline-{}.json", lmac_trainer::run_dir::run_id()));
+    // The env server writes its timings here: a private directory, not a guessable name in /tmp.
+    let scratch = lmac_trainer::safe_fs::PrivateDir::new("bench-pipeline").context("creating a private temporary directory")?;
+    let out = scratch.path().join("blocks.json");
     let env_extra = vec![
         "--compare-raw".to_string(),
         block.to_string(),
@@ -209,7 +211,6 @@ pub(crate) fn bench_interleaved(p: &PipelineOpts, repeat: usize, interrupted: Ar
     trainer_p.steps = (repeat as u64 * block + WARMUP) * p.envs as u64;
     let report = pipeline_report(&trainer_p, vec![], env_extra, interrupted);
     let blocks = std::fs::read_to_string(&out);
-    let _ = std::fs::remove_file(&out);
     let report = report?;
     let blocks: serde_json::Value =
         serde_json::from_str(&blocks.with_context(|| format!("the env server wrote no block timings ({})", out.display()))?)?;
@@ -308,7 +309,8 @@ pub(crate) fn bench_train(
     let backend = if cfg!(feature = "ndarray") && !cfg!(feature = "flex") { "ndarray" } else { "flex" };
     eprintln!("lmac: {env} {algo_name}: {ms_per_update:.1} ms per update ({} episodes x {len} steps, {backend} backend)", learn.batch_size);
     // 2. Training runs through the pipeline, and the same pipeline acting randomly.
-    let base = std::env::temp_dir().join(format!("lmac-bench-train-{}", lmac_trainer::run_dir::run_id()));
+    let scratch = lmac_trainer::safe_fs::PrivateDir::new("bench-train").context("creating a private temporary directory")?;
+    let base = scratch.path().to_path_buf();
     let mut rows = Vec::new();
     for &n in envs {
         let servers = if n >= 2 { 2 } else { 1 };
@@ -350,7 +352,7 @@ pub(crate) fn bench_train(
         rows.push(serde_json::json!({"envs": n, "servers": servers, "train_env_steps_per_s": train_rate, "updates": updates_done,
             "random_env_steps_per_s": rand_rate, "ratio": if rand_rate > 0.0 { train_rate / rand_rate } else { 0.0 }}));
     }
-    let _ = std::fs::remove_dir_all(&base);
+    drop(scratch);
     let v = serde_json::json!({"env": env, "algo": algo_name, "backend": backend, "ms_per_update": ms_per_update,
         "batch_episodes": learn.batch_size, "episode_len": len, "updates_per_episode": cfg.run.updates_per_episode, "runs": rows});
     if json {

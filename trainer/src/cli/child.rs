@@ -151,9 +151,9 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
     Ok(code)
 }
 
-/// Write the report atomically (the parent reads it once this process has exited).
+/// Write the report atomically (the parent reads it once this process has exited), never
+/// through a symlink planted at its temporary name.
 fn write_report(path: &std::path::Path, report: &TrainerReport) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, serde_json::to_vec(report)?).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+    lmac_trainer::safe_fs::write_replace(path, &serde_json::to_vec(report)?)
+        .with_context(|| format!("writing the report {}", path.display()))
 }

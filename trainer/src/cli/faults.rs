@@ -63,8 +63,12 @@ pub(crate) fn chaos(a: ChaosArgs) -> Result<i32> {
     if !(lo > 0.0 && hi >= lo) {
         bail!("--kill-after: need 0 < MIN <= MAX, got {lo},{hi}");
     }
-    let temp = a.out.is_none();
-    let out = a.out.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("lmac-chaos-{}", lmac_trainer::run_dir::run_id())));
+    // Without --out: a private directory (removed with `scratch`), not a guessable name in /tmp.
+    let scratch = match &a.out {
+        Some(_) => None,
+        None => Some(lmac_trainer::safe_fs::PrivateDir::new("chaos").context("creating a private temporary directory")?),
+    };
+    let out = a.out.clone().unwrap_or_else(|| scratch.as_ref().expect("made without --out").path().to_path_buf());
     let o = ChaosOptions {
         kills: a.kills,
         seed: a.seed,
@@ -87,9 +91,7 @@ pub(crate) fn chaos(a: ChaosArgs) -> Result<i32> {
         ));
     });
     bar.finish_and_clear();
-    if temp {
-        let _ = std::fs::remove_dir_all(&out);
-    }
+    drop(scratch);
     let r = r?;
     let text = serde_json::to_string_pretty(&r)?;
     if let Some(p) = &a.report {
@@ -120,8 +122,12 @@ pub(crate) fn chaos(a: ChaosArgs) -> Result<i32> {
 }
 
 pub(crate) fn soak(a: SoakArgs) -> Result<i32> {
-    let temp = a.out.is_none();
-    let out = a.out.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("lmac-soak-{}", lmac_trainer::run_dir::run_id())));
+    // Without --out: a private directory (removed with `scratch`), not a guessable name in /tmp.
+    let scratch = match &a.out {
+        Some(_) => None,
+        None => Some(lmac_trainer::safe_fs::PrivateDir::new("soak").context("creating a private temporary directory")?),
+    };
+    let out = a.out.clone().unwrap_or_else(|| scratch.as_ref().expect("made without --out").path().to_path_buf());
     let mut args: Vec<String> = ["--env", &a.env, "--algo", "qmix", "--steps", "1000000000000"].iter().map(|s| s.to_string()).collect();
     for kv in [format!("run.envs={}", a.envs), format!("run.servers={}", a.servers), format!("run.save_buffer={}", a.save_buffer)] {
         args.extend(["--set".to_string(), kv]);
@@ -135,9 +141,7 @@ pub(crate) fn soak(a: SoakArgs) -> Result<i32> {
         bar.set_message(format!("t_env {} RSS {:.0} MiB, {} fds, {} shm mappings", s.t_env, s.rss_mib, s.open_fds, s.shm_mappings));
     });
     bar.finish_and_clear();
-    if temp {
-        let _ = std::fs::remove_dir_all(&out);
-    }
+    drop(scratch);
     let r = r?;
     if let Some(p) = &a.report {
         std::fs::write(p, serde_json::to_string_pretty(&r)?).with_context(|| format!("writing {}", p.display()))?;

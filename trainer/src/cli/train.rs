@@ -63,6 +63,8 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
     use lmac_trainer::train::TrainConfig;
     let interrupted = interrupt_flag();
     // The seed directories to run, each with its resolved config.toml.
+    // The locks of seed directories this command made (taken before anything was written in them).
+    let mut held = Vec::new();
     let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
         seed_dirs(r)?
     } else {
@@ -94,21 +96,26 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
                 .collect();
             cfg.run.protocol = files?.join("+");
         }
-        let stamp = lmac_trainer::run_dir::stamp();
-        let group = a.out.join(cfg.run.env.replace(':', "_")).join(&cfg.run.algo).join(stamp);
+        // A group directory of this command's own (two launches in the same second get two),
+        // and each seed's lock taken before its config is written: no other lmac ever trains a
+        // directory with a config it did not write.
+        let parent = a.out.join(cfg.run.env.replace(':', "_")).join(&cfg.run.algo);
+        let group = lmac_trainer::run_dir::create_unique_dir(&parent, &lmac_trainer::run_dir::stamp())?;
         let mut dirs = Vec::new();
         for &seed in &a.seeds {
             let mut c = cfg.clone();
             c.learn.seed = seed;
             let d = group.join(format!("seed{seed}"));
-            std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
-            std::fs::write(d.join("config.toml"), toml::to_string_pretty(&c)?)?;
+            std::fs::create_dir(&d).with_context(|| format!("creating {}", d.display()))?;
+            held.push(Some(lmac_trainer::run_dir::lock(&d)?));
+            let p = d.join("config.toml");
+            std::fs::write(&p, toml::to_string_pretty(&c)?).with_context(|| format!("writing {}", p.display()))?;
             dirs.push(d);
         }
         (group, dirs)
     };
     eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
-    train_dirs(&dirs, interrupted)?;
+    train_dirs_holding(&dirs, held, interrupted)?;
     super::plot("plot_runs.py", &group);
     Ok(0)
 }
@@ -133,11 +140,24 @@ pub(crate) fn seed_dirs(r: &std::path::Path) -> Result<(std::path::PathBuf, Vec<
 }
 
 pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
+    train_dirs_holding(dirs, Vec::new(), interrupted)
+}
+
+/// [`train_dirs`] with the locks of some directories already taken (`held[i]` is that of
+/// `dirs[i]`; missing or None: taken here).
+fn train_dirs_holding(
+    dirs: &[std::path::PathBuf],
+    mut held: Vec<Option<lmac_trainer::run_dir::RunLock>>,
+    interrupted: Arc<AtomicBool>,
+) -> Result<()> {
     use lmac_trainer::train::TrainConfig;
-    for d in dirs {
+    for (i, d) in dirs.iter().enumerate() {
         // One lmac at a time per run directory: a second one would interleave checkpoints and
         // metrics. The lock goes with the process (also when it is killed).
-        let _lock = lmac_trainer::run_dir::lock(d)?;
+        let _lock = match held.get_mut(i).and_then(Option::take) {
+            Some(l) => l,
+            None => lmac_trainer::run_dir::lock(d)?,
+        };
         let cfg = TrainConfig::load(d)?;
         cfg.check()?;
         // Where the run stands: a checkpoint's step, or 0 for a fresh start.
@@ -146,6 +166,8 @@ pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBoo
         let done_t_env = if checkpoint_exists(&ck) {
             peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("{}: {e}", d.display()))?.counters.t_env
         } else {
+            // Said here, before any process starts (the trainer checks it again).
+            lmac_trainer::train::refuse_restart_over_metrics(d)?;
             0
         };
         let dataset_done = cfg.run.dataset_episodes == 0 || lmac_trainer::train::dataset_dir(d).exists();

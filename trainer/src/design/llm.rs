@@ -65,6 +65,8 @@ pub enum LlmError {
     InsecureKeyTransport { endpoint: String },
     #[error("{endpoint}: HTTP {status} after {attempts} attempt(s); response body begins: {body}")]
     Status { endpoint: String, status: u16, attempts: u32, body: String },
+    #[error("{endpoint}: HTTP {status} redirects to {location}; lmac does not follow redirects (they would carry the API key and the prompt to another server): set the base URL to the server that answers")]
+    Redirect { endpoint: String, status: u16, location: String },
     #[error("{endpoint}: {problem} (after {attempts} attempt(s))")]
     Transport { endpoint: String, problem: String, attempts: u32, timed_out: bool },
     #[error("{endpoint}: unusable response: {problem}; body begins: {body}")]
@@ -498,7 +500,12 @@ impl HttpLlm {
         let http = if cfg.mode == LlmMode::Replay {
             None
         } else {
-            let mut b = reqwest::blocking::Client::builder().timeout(cfg.timeout).connect_timeout(cfg.timeout.min(Duration::from_secs(30)));
+            // No redirects: reqwest strips `Authorization` on a cross-host hop but not
+            // `x-api-key`, and it would resend the whole prompt; a redirect is an error instead.
+            let mut b = reqwest::blocking::Client::builder()
+                .timeout(cfg.timeout)
+                .connect_timeout(cfg.timeout.min(Duration::from_secs(30)))
+                .redirect(reqwest::redirect::Policy::none());
             if cfg.is_local() {
                 // A local server is reached directly even when a proxy is configured.
                 b = b.no_proxy();
@@ -607,6 +614,17 @@ impl HttpLlm {
             let (retryable, retry_after, err) = match req.send() {
                 Ok(resp) => {
                     let status = resp.status();
+                    if status.is_redirection() {
+                        let location = resp.headers().get(reqwest::header::LOCATION).map_or_else(
+                            || "nowhere (no Location header)".to_string(),
+                            |l| String::from_utf8_lossy(l.as_bytes()).into_owned(),
+                        );
+                        return Err(LlmError::Redirect {
+                            endpoint,
+                            status: status.as_u16(),
+                            location: self.redact(&excerpt(&location, 300)),
+                        });
+                    }
                     let retry_after = retry_after(resp.headers());
                     match read_body(resp) {
                         Ok(text) if status.is_success() => return Ok(text),

@@ -140,9 +140,11 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
     }
     let schema = lmac_shm_schema::schema::load_env(&opts.env).map_err(anyhow::Error::msg)?;
     let penv = lmac_protocol_runner::protocol_env(&schema);
-    let dir =
-        opts.out.join(opts.env.replace(':', "_")).join(format!("{}-{}", crate::run_dir::stamp(), designer.name().replace([':', '/'], "_")));
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    // A directory of this design's own, even when another starts in the same second.
+    let dir = crate::run_dir::create_unique_dir(
+        &opts.out.join(opts.env.replace(':', "_")),
+        &format!("{}-{}", crate::run_dir::stamp(), designer.name().replace([':', '/'], "_")),
+    )?;
     write(&dir.join("options.json"), &serde_json::to_string_pretty(opts)?)?;
     eprintln!("lmac: design of {} with the {} designer in {}", opts.env, designer.name(), dir.display());
     let ctx0 = DesignContext { env_name: &opts.env, schema: &schema, env: &penv, dataset: None, seed: opts.seed };

@@ -57,6 +57,25 @@ pub fn read_metrics(dir: &Path) -> Result<Vec<MetricsRow>> {
     Ok(rows)
 }
 
+/// The largest `t_env` of any row in the run's `metrics.csv` or `metrics.jsonl` (0 for none).
+/// Unreadable lines are skipped: this only asks whether the run has trained before.
+pub fn logged_t_env(dir: &Path) -> u64 {
+    let read = |name: &str| {
+        let p = dir.join(name);
+        // Only regular files (a device would never end).
+        if std::fs::metadata(&p).is_ok_and(|m| m.is_file()) {
+            String::from_utf8_lossy(&std::fs::read(&p).unwrap_or_default()).into_owned()
+        } else {
+            String::new()
+        }
+    };
+    let csv = read("metrics.csv");
+    let from_csv = csv.lines().skip(1).filter_map(|l| l.split(',').next()?.parse::<u64>().ok());
+    let jsonl = read("metrics.jsonl");
+    let from_json = jsonl.lines().filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()?["t_env"].as_u64());
+    from_csv.chain(from_json).max().unwrap_or(0)
+}
+
 /// What [`Metrics::open`] found of an earlier segment of the run.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct MetricsResume {

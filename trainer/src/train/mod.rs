@@ -405,6 +405,26 @@ pub fn best_checkpoint_dir(run_dir: &Path) -> PathBuf {
     run_dir.join("checkpoint_best")
 }
 
+/// Refuse to start `run_dir` from t_env 0 when it has no usable checkpoint but its metrics
+/// show it trained before (its checkpoint was lost or moved): starting again would drop every
+/// row. Says what to do instead.
+pub fn refuse_restart_over_metrics(run_dir: &Path) -> Result<()> {
+    let logged = metrics::logged_t_env(run_dir);
+    if logged > 0 {
+        let ck = checkpoint_dir(run_dir);
+        bail!(
+            "{}: no usable checkpoint ({}, {}.old or a complete {}.tmp), but its metrics go up to t_env {logged}: \
+             refusing to train it again from t_env 0 over them. Restore the checkpoint, or move metrics.csv and \
+             metrics.jsonl away to start this run afresh",
+            run_dir.display(),
+            ck.display(),
+            ck.display(),
+            ck.display()
+        );
+    }
+    Ok(())
+}
+
 /// The trainer child's training entry point: build (or resume) the learner, start its thread,
 /// run the pipeline with the training actor, and finish with a checkpoint.
 pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progress: bool) -> Result<crate::pipeline::TrainerReport> {
@@ -438,6 +458,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         eprintln!("lmac: trainer: resuming from {} at t_env {} ({} updates), {buffer_note}", info.dir.display(), c.t_env, c.updates);
         l
     } else {
+        refuse_restart_over_metrics(run_dir)?;
         Learner::with_agent(dims, learn.clone(), agent_cfg, device)?
     };
     let counters = learner.counters();
