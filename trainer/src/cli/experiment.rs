@@ -50,7 +50,8 @@ pub(crate) struct ExperimentArgs {
     /// Discriminator updates per design phase (default: the designer's).
     #[arg(long)]
     disc_updates: Option<usize>,
-    /// Use this design directory instead of designing one.
+    /// Use this design directory instead of designing one; `paper`: the LMAC authors' design
+    /// for --env shipped in protocols/paper/ (an error naming the env when none is shipped).
     #[arg(long)]
     design: Option<PathBuf>,
     /// Settings for every training run: --set learn.lr=0.001 --set run.envs=8
@@ -149,6 +150,10 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     // 1. The protocol design, once.
     let needs_design = rows_to_train.iter().any(|(_, algo, _)| algo == "lmac");
     let design = match (&a.design, needs_design) {
+        (Some(d), _) if d.as_os_str() == "paper" => {
+            let dir = lmac_trainer::train::resolve_paper_spec("paper", &a.env).context("--design paper")?;
+            Some(std::fs::canonicalize(&dir).with_context(|| format!("--design paper: {dir}"))?)
+        }
         (Some(d), _) => Some(std::fs::canonicalize(d).with_context(|| format!("--design {}", d.display()))?),
         (None, false) => None,
         (None, true) => Some(shared_design(&a, &dir, interrupted.clone())?),

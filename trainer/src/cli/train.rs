@@ -31,7 +31,8 @@ pub(crate) struct TrainArgs {
     /// run.algo).
     #[arg(long)]
     algo: Option<String>,
-    /// Protocol: a design directory (from `lmac design`) or phase files a.json+b.json
+    /// Protocol: a design directory (from `lmac design`), phase files a.json+b.json, or the LMAC
+    /// authors' design shipped in protocols/paper/: `paper` (for --env) or `paper:<task>`
     /// (overrides run.protocol; lmac needs one).
     #[arg(long)]
     protocol: Option<String>,
@@ -86,8 +87,10 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
             overrides.push(format!("run.steps={st}"));
         }
         let mut cfg = TrainConfig::resolve(a.config.as_deref(), &overrides)?;
-        // Protocol files by absolute path, so a resumed run finds them from anywhere.
-        if !cfg.run.protocol.is_empty() {
+        // Protocol files by absolute path, so a resumed run finds them from anywhere. A paper
+        // design (`paper`, `paper:<task>`) stays as named: it is found in the repository each time.
+        let paper = lmac_trainer::train::resolve_paper_spec(&cfg.run.protocol, &cfg.run.env)? != cfg.run.protocol;
+        if !cfg.run.protocol.is_empty() && !paper {
             let files: Result<Vec<String>> = cfg
                 .run
                 .protocol

@@ -51,8 +51,9 @@ pub struct RunSection {
     /// qplex, qmix-state, cola (which sends none), ndq, maic, masia and t2mac, which make their
     /// messages inside the network;
     /// `fullcomm` for fullcomm); else a design directory (its
-    /// `phase<k>/protocol.json` files) or protocol files joined by '+'
-    /// (`phase0.json+phase1.json`). Required by lmac; not allowed with fullcomm.
+    /// `phase<k>/protocol.json` files), protocol files joined by '+'
+    /// (`phase0.json+phase1.json`), or a shipped design of the LMAC authors (`protocols/paper/`):
+    /// `paper` (the one for run.env) or `paper:<task>`. Required by lmac; not allowed with fullcomm.
     pub protocol: String,
     /// Use the design's phases 0..=k only (the paper's k: 0, 1 or 2); absent = all of them.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -124,6 +125,58 @@ fn design_env(dir: &Path) -> Option<String> {
         let v: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join(f)).ok()?).ok()?;
         v.get("env")?.as_str().map(str::to_string)
     })
+}
+
+/// Where the authors' own designs ship: `protocols/paper/<env with ':' as '_'>/`, each a design
+/// directory whose `options.json` names its env and the archive task it came from.
+pub fn paper_designs_dir() -> Result<std::path::PathBuf> {
+    Ok(crate::supervisor::repo_root()?.join("protocols").join("paper"))
+}
+
+/// The shipped paper designs: (design directory, env, archive task), sorted by directory.
+fn paper_designs() -> Result<Vec<(std::path::PathBuf, String, String)>> {
+    let root = paper_designs_dir()?;
+    let entries = std::fs::read_dir(&root).with_context(|| format!("reading the paper designs in {}", root.display()))?;
+    let mut out = Vec::new();
+    for e in entries.flatten() {
+        let dir = e.path();
+        let file = dir.join("options.json");
+        if !file.is_file() {
+            continue;
+        }
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?)
+            .with_context(|| format!("{}: not JSON", file.display()))?;
+        let text = |k: &str| v.get(k).and_then(|x| x.as_str()).map(str::to_string);
+        let (Some(env), Some(task)) = (text("env"), text("task")) else {
+            bail!("{}: needs \"env\" and \"task\" strings", file.display());
+        };
+        out.push((dir, env, task));
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// A protocol spec naming a shipped paper design, resolved to its design directory: `paper` is
+/// the design for `env`; `paper:<task>` the design of that archive task (`1o_10b_vs_1r`,
+/// `Foraging-8x8-2p-2f-s1True`, ...) or env (`smaclite:1o_10b_vs_1r`). Any other spec is
+/// returned unchanged (a design directory or protocol files). The caller's env check
+/// (`design_env`) refuses a task made for another env.
+pub fn resolve_paper_spec(spec: &str, env: &str) -> Result<String> {
+    let wanted = match spec.split_once(':') {
+        _ if spec == "paper" => env,
+        Some(("paper", t)) if !t.is_empty() => t,
+        Some(("paper", _)) => {
+            bail!("run.protocol: {spec:?}: name a task after 'paper:', e.g. paper:1o_10b_vs_1r, or use 'paper' for the run's env")
+        }
+        _ => return Ok(spec.to_string()),
+    };
+    let designs = paper_designs()?;
+    let known = || designs.iter().map(|(_, e, t)| format!("{t} ({e})")).collect::<Vec<_>>().join(", ");
+    match designs.iter().find(|(_, e, t)| t == wanted || e == wanted) {
+        Some((dir, _, _)) => Ok(dir.display().to_string()),
+        None if spec == "paper" => bail!("run.protocol: no paper design is shipped for {env}; shipped: {}", known()),
+        None => bail!("run.protocol: no paper design is shipped for {wanted:?}; shipped: {}", known()),
+    }
 }
 
 /// The protocol files of `spec`: a design directory gives its `phase<i>/protocol.json` for
@@ -268,11 +321,12 @@ impl TrainConfig {
                 Ok("none".into())
             }
             _ => {
-                let dir = Path::new(&self.run.protocol);
+                let spec = resolve_paper_spec(&self.run.protocol, &self.run.env)?;
+                let dir = Path::new(&spec);
                 if let Some(env) = design_env(dir).filter(|e| *e != self.run.env) {
                     bail!("run.protocol: the design in {} was made for {env}, this run is on {}", dir.display(), self.run.env);
                 }
-                Ok(protocol_files(&self.run.protocol, self.run.design_k)?.join("+"))
+                Ok(protocol_files(&spec, self.run.design_k)?.join("+"))
             }
         }
     }

@@ -9,7 +9,7 @@ pub mod evaluate;
 pub mod marl_eval;
 pub mod metrics;
 
-pub use config::{preset_overrides, protocol_files, RunSection, TrainConfig, PRESETS};
+pub use config::{paper_designs_dir, preset_overrides, protocol_files, resolve_paper_spec, RunSection, TrainConfig, PRESETS};
 pub use metrics::{read_metrics, CheckpointWritten, Metrics, MetricsResume, MetricsRow};
 
 use crate::dataset::{Dataset, DatasetHeader, Trajectory};
