@@ -12,8 +12,10 @@ Update ratio: by default the learner does run.updates_per_episode = 0.125 gradie
 learn.batch_size = 32 episodes) per collected episode, pymarl's parallel runner with 8
 environments. That is 8x fewer updates per episode than EPyMARL's episode runner (1 per
 episode), and the target network, copied every 200 episodes, is then copied every 25 updates.
---preset epymarl reproduces the episode runner's schedule: 1 update per episode from the 32nd
-episode on, a target copy every 200 updates. Each environment switches to new weights when its
+--preset paper reproduces the paper's schedule (EPyMARL's episode runner): 1 update per episode
+from the 32nd episode on, a target copy every 200 updates, the target network unrolled on the
+second core (acting waits for the learner at this ratio); --preset epymarl is the same on one
+core, --preset pymarl-parallel the default's 0.125. Each environment switches to new weights when its
 next episode starts.
 
 Resuming: --resume DIR continues every unfinished seed in DIR (a group or one seed) from its
@@ -48,8 +50,10 @@ pub(crate) struct TrainArgs {
     /// Override a config value: --set learn.lr=0.001 --set run.envs=8
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
-    /// A named bundle of settings, applied before --set: epymarl (EPyMARL's episode-runner
-    /// learning schedule: 1 update per collected episode, target copy every 200 updates).
+    /// A named bundle of settings, applied before --set: paper (the LMAC paper's schedule: 1
+    /// update per collected episode, target copy every 200 updates, target unrolled on the
+    /// second core), epymarl (the same schedule on one core), pymarl-parallel (0.125 updates
+    /// per episode).
     #[arg(long)]
     preset: Option<String>,
     /// Where run directories go.

@@ -115,6 +115,25 @@ pub(crate) fn tanh_approx(x: f32) -> f32 {
 /// Run `body` compiled for AVX2 + FMA when the CPU has them (the crate is built for the
 /// baseline x86-64, whose vectors are 4 wide), else as built.
 macro_rules! with_simd {
+    ($body:ident::<$d:literal>($($arg:expr),* $(,)?)) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn wide<F: FnOnce()>(f: F) {
+                f()
+            }
+            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                // SAFETY: both features were detected on this CPU at run time.
+                unsafe { wide(|| $body::<$d>($($arg),*)) };
+            } else {
+                $body::<$d>($($arg),*);
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            $body::<$d>($($arg),*);
+        }
+    }};
     ($body:ident($($arg:expr),* $(,)?)) => {{
         #[cfg(target_arch = "x86_64")]
         {

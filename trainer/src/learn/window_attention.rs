@@ -159,17 +159,33 @@ pub struct AttentionGrads {
     pub v: Vec<f32>,
 }
 
+/// x . y over one head's D values (D known at compile time, so the loop unrolls into vectors).
 #[inline(always)]
-fn dot(x: &[f32], y: &[f32]) -> f32 {
-    x.iter().zip(y).map(|(a, b)| a * b).sum()
+fn dot<const D: usize>(x: &[f32; D], y: &[f32; D]) -> f32 {
+    let mut acc = 0.0;
+    for i in 0..D {
+        acc += x[i] * y[i];
+    }
+    acc
 }
 
-/// dst += s * x
+/// dst += s * x over one head's D values.
 #[inline(always)]
-fn axpy(dst: &mut [f32], s: f32, x: &[f32]) {
-    for (d, v) in dst.iter_mut().zip(x) {
-        *d += s * v;
+fn axpy<const D: usize>(dst: &mut [f32; D], s: f32, x: &[f32; D]) {
+    for i in 0..D {
+        dst[i] += s * x[i];
     }
+}
+
+/// Head `h`'s D values of the row starting at `row`.
+#[inline(always)]
+fn head<const D: usize>(m: &[f32], row: usize, h: usize) -> &[f32; D] {
+    m[row + h * D..row + (h + 1) * D].try_into().expect("a head's values")
+}
+
+#[inline(always)]
+fn head_mut<const D: usize>(m: &mut [f32], row: usize, h: usize) -> &mut [f32; D] {
+    (&mut m[row + h * D..row + (h + 1) * D]).try_into().expect("a head's values")
 }
 
 impl Saved {
@@ -182,8 +198,9 @@ impl Saved {
         let w = window.min(t);
         let mut out = vec![0.0f32; t * n * a];
         let mut att = vec![0.0f32; if keep { t * n * heads * w } else { 0 }];
-        let mut scratch = vec![0.0f32; w];
-        with_simd!(forward_kernel(&q, &k, &v, (t, n, heads, d, w), &mut out, keep.then_some(&mut att[..]), &mut scratch));
+        let mut scratch = vec![0.0f32; heads * w];
+        let dims = Dims { t, n, a, heads, w, scale: 1.0 / (d as f32).sqrt() };
+        by_head_dim!(d, forward_kernel(&q, &k, &v, dims, &mut out, keep.then_some(&mut att[..]), &mut scratch));
         let (q, k, v) = if keep { (q, k, v) } else { (Vec::new(), Vec::new(), Vec::new()) };
         Saved { steps: t, rows: n, heads, head_dim: d, window: w, q, k, v, out, att }
     }
@@ -195,92 +212,139 @@ impl Saved {
         assert_eq!(d_out.len(), len, "window_attention: gradient length");
         assert_eq!(self.att.len(), t * n * heads * w, "window_attention: backward needs a forward run with keep");
         let mut g = AttentionGrads { q: vec![0.0; len], k: vec![0.0; len], v: vec![0.0; len] };
-        let mut scratch = vec![0.0f32; w];
-        with_simd!(backward_kernel(self, d_out, &mut g, &mut scratch));
+        let mut scratch = vec![0.0f32; heads * w];
+        let dims = Dims { t, n, a: heads * d, heads, w, scale: 1.0 / (d as f32).sqrt() };
+        by_head_dim!(d, backward_kernel(self, dims, d_out, &mut g, &mut scratch));
         g
     }
 }
 
-/// Row offset of step `ti`, row `ni`, head `h` in a [T, N, heads x d] tensor.
-#[inline(always)]
-fn at(ti: usize, ni: usize, h: usize, (n, heads, d): (usize, usize, usize)) -> usize {
-    ((ti * n + ni) * heads + h) * d
+/// The kernels for the head widths in use (the default 64 / 4 heads = 16) are compiled with the
+/// width as a constant; any other width goes through the 1-wide form (same loops, scalar).
+macro_rules! by_head_dim {
+    ($d:expr, $f:ident($($arg:expr),* $(,)?)) => {
+        match $d {
+            4 => with_simd!($f::<4>($($arg),*)),
+            8 => with_simd!($f::<8>($($arg),*)),
+            16 => with_simd!($f::<16>($($arg),*)),
+            32 => with_simd!($f::<32>($($arg),*)),
+            64 => with_simd!($f::<64>($($arg),*)),
+            _ => with_simd!($f::<1>($($arg),*)),
+        }
+    };
+}
+use by_head_dim;
+
+/// Layout of the kernels' loops: [T, N, A] tensors seen as [T, N, heads', D] with
+/// heads' = A / D (for the 1-wide fallback every value is its own "head" and a true head spans
+/// d of them, so scores are summed over `group` = d / D consecutive chunks).
+#[derive(Clone, Copy)]
+struct Dims {
+    t: usize,
+    n: usize,
+    a: usize,
+    heads: usize,
+    w: usize,
+    scale: f32,
 }
 
 #[inline(always)]
-fn forward_kernel(
+fn forward_kernel<const D: usize>(
     q: &[f32],
     k: &[f32],
     v: &[f32],
-    (t, n, heads, d, w): (usize, usize, usize, usize, usize),
+    dims: Dims,
     out: &mut [f32],
     mut att: Option<&mut [f32]>,
     scores: &mut [f32],
 ) {
-    let scale = 1.0 / (d as f32).sqrt();
-    let shape = (n, heads, d);
+    let Dims { t, n, a, heads, w, scale } = dims;
+    let group = a / heads / D; // chunks of D per head
     for ti in 0..t {
         let valid = w.min(ti + 1);
         for ni in 0..n {
-            for h in 0..heads {
-                let row = at(ti, ni, h, shape);
-                let qh = &q[row..row + d];
-                let mut max = f32::NEG_INFINITY;
-                for o in 0..valid {
-                    let kr = at(ti - o, ni, h, shape);
-                    let s = dot(qh, &k[kr..kr + d]) * scale;
-                    scores[o] = s;
-                    max = max.max(s);
+            let row = (ti * n + ni) * a;
+            // scores[h * w + o]
+            for o in 0..valid {
+                let kr = ((ti - o) * n + ni) * a;
+                for h in 0..heads {
+                    let mut s = 0.0;
+                    for c in 0..group {
+                        s += dot::<D>(head::<D>(q, row, h * group + c), head::<D>(k, kr, h * group + c));
+                    }
+                    scores[h * w + o] = s * scale;
                 }
+            }
+            for h in 0..heads {
+                let sc = &mut scores[h * w..h * w + valid];
+                let max = sc.iter().fold(f32::NEG_INFINITY, |m, &x| m.max(x));
                 let mut sum = 0.0;
-                for s in &mut scores[..valid] {
-                    *s = exp_approx(*s - max);
-                    sum += *s;
+                for x in sc.iter_mut() {
+                    *x = exp_approx(*x - max);
+                    sum += *x;
                 }
                 let inv = 1.0 / sum;
-                let out_h = &mut out[row..row + d];
-                for o in 0..valid {
-                    let p = scores[o] * inv;
-                    scores[o] = p;
-                    let vr = at(ti - o, ni, h, shape);
-                    axpy(out_h, p, &v[vr..vr + d]);
+                for x in sc.iter_mut() {
+                    *x *= inv;
                 }
-                if let Some(att) = att.as_deref_mut() {
-                    let base = ((ti * n + ni) * heads + h) * w;
-                    att[base..base + valid].copy_from_slice(&scores[..valid]);
+            }
+            for o in 0..valid {
+                let vr = ((ti - o) * n + ni) * a;
+                for h in 0..heads {
+                    let p = scores[h * w + o];
+                    for c in 0..group {
+                        axpy::<D>(head_mut::<D>(out, row, h * group + c), p, head::<D>(v, vr, h * group + c));
+                    }
                 }
+            }
+            if let Some(att) = att.as_deref_mut() {
+                let base = (ti * n + ni) * heads * w;
+                att[base..base + heads * w].copy_from_slice(&scores[..heads * w]);
             }
         }
     }
 }
 
 #[inline(always)]
-fn backward_kernel(s: &Saved, d_out: &[f32], g: &mut AttentionGrads, d_att: &mut [f32]) {
-    let (t, n, heads, d, w) = (s.steps, s.rows, s.heads, s.head_dim, s.window);
-    let scale = 1.0 / (d as f32).sqrt();
-    let shape = (n, heads, d);
+fn backward_kernel<const D: usize>(s: &Saved, dims: Dims, d_out: &[f32], g: &mut AttentionGrads, d_att: &mut [f32]) {
+    let Dims { t, n, a, heads, w, scale } = dims;
+    let group = a / heads / D;
     for ti in 0..t {
         let valid = w.min(ti + 1);
         for ni in 0..n {
-            for h in 0..heads {
-                let row = at(ti, ni, h, shape);
-                let base = ((ti * n + ni) * heads + h) * w;
-                let p = &s.att[base..base + valid];
-                let dy = &d_out[row..row + d];
-                // d(att_o) = dy . v_{t-o}; d(v_{t-o}) += att_o dy
-                let mut weighted = 0.0;
-                for o in 0..valid {
-                    let vr = at(ti - o, ni, h, shape);
-                    d_att[o] = dot(dy, &s.v[vr..vr + d]);
-                    weighted += p[o] * d_att[o];
-                    axpy(&mut g.v[vr..vr + d], p[o], dy);
+            let row = (ti * n + ni) * a;
+            let base = (ti * n + ni) * heads * w;
+            let p = &s.att[base..base + heads * w];
+            // d(att) = dy . v_{t-o} per head; d(v_{t-o}) += att dy
+            for o in 0..valid {
+                let vr = ((ti - o) * n + ni) * a;
+                for h in 0..heads {
+                    let ph = p[h * w + o];
+                    let mut acc = 0.0;
+                    for c in 0..group {
+                        let j = h * group + c;
+                        acc += dot::<D>(head::<D>(d_out, row, j), head::<D>(&s.v, vr, j));
+                        axpy::<D>(head_mut::<D>(&mut g.v, vr, j), ph, head::<D>(d_out, row, j));
+                    }
+                    d_att[h * w + o] = acc;
                 }
-                // softmax backward: d(score_o) = att_o (d(att_o) - sum_o' att_o' d(att_o'))
+            }
+            // softmax backward: d(score_o) = att_o (d(att_o) - sum_o' att_o' d(att_o'))
+            for h in 0..heads {
+                let weighted: f32 = (0..valid).map(|o| p[h * w + o] * d_att[h * w + o]).sum();
                 for o in 0..valid {
-                    let ds = p[o] * (d_att[o] - weighted) * scale;
-                    let kr = at(ti - o, ni, h, shape);
-                    axpy(&mut g.q[row..row + d], ds, &s.k[kr..kr + d]);
-                    axpy(&mut g.k[kr..kr + d], ds, &s.q[row..row + d]);
+                    d_att[h * w + o] = p[h * w + o] * (d_att[h * w + o] - weighted) * scale;
+                }
+            }
+            for o in 0..valid {
+                let kr = ((ti - o) * n + ni) * a;
+                for h in 0..heads {
+                    let ds = d_att[h * w + o];
+                    for c in 0..group {
+                        let j = h * group + c;
+                        axpy::<D>(head_mut::<D>(&mut g.q, row, j), ds, head::<D>(&s.k, kr, j));
+                        axpy::<D>(head_mut::<D>(&mut g.k, kr, j), ds, head::<D>(&s.q, row, j));
+                    }
                 }
             }
         }
@@ -333,8 +397,9 @@ mod tests {
     /// window shorter than, equal to and longer than the unroll, on both devices.
     #[test]
     fn matches_the_burn_computation() {
-        for (t, window) in [(7, 3), (5, 5), (3, 6), (1, 4)] {
-            let (n, heads, dh) = (4, 2, 3);
+        // head widths 3 (the generic loop) and 16, 8 (compiled with the width as a constant)
+        for (t, window, heads, dh) in [(7, 3, 2, 3), (5, 5, 2, 3), (3, 6, 2, 3), (1, 4, 2, 3), (7, 3, 4, 16), (6, 4, 2, 8)] {
+            let n = 4;
             let dev = Device::default().autodiff();
             let mut rng = LearnRng::seed_from(t as u64 * 31 + window as u64);
             let [q, k, v] = [0, 1, 2].map(|_| random(&mut rng, [t, n, heads * dh], &dev).require_grad());

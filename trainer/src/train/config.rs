@@ -103,17 +103,41 @@ pub struct TrainConfig {
 }
 
 /// Named bundles of settings (`lmac train --preset NAME`), applied before `--set` overrides.
-pub const PRESETS: &[(&str, &str)] = &[(
-    "epymarl",
-    "EPyMARL's episode-runner learning schedule: one update of 32 episodes per collected episode \
-     (updates start once the buffer holds 32), target copy every 200 episodes = 200 updates",
-)];
+pub const PRESETS: &[(&str, &str)] = &[
+    (
+        "paper",
+        "the LMAC paper's schedule (the authors' EPyMARL episode runner, Table C.3): one update of 32 \
+         episodes per collected episode once the buffer holds 32, target copy every 200 episodes \
+         (= 200 updates), and the target network unrolled on the second core (acting waits for the \
+         learner at this ratio, so the core is free)",
+    ),
+    (
+        "epymarl",
+        "EPyMARL's episode-runner learning schedule: one update of 32 episodes per collected episode \
+         (updates start once the buffer holds 32), target copy every 200 episodes = 200 updates",
+    ),
+    (
+        "pymarl-parallel",
+        "pymarl's parallel runner with 8 environments: 0.125 updates per collected episode (one per 8), \
+         target copy every 200 episodes = 25 updates; lmac's default before the paper schedule was \
+         affordable, and the schedule of every figure trained before it",
+    ),
+];
 
 /// The `key=value` overrides of a preset.
 pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
+    let episode_runner = || {
+        vec!["run.updates_per_episode=1.0".to_string(), "learn.batch_size=32".into(), "learn.target_update_interval_episodes=200".into()]
+    };
     Ok(match name {
-        "epymarl" => {
-            vec!["run.updates_per_episode=1.0".into(), "learn.batch_size=32".into(), "learn.target_update_interval_episodes=200".into()]
+        "paper" => {
+            let mut o = episode_runner();
+            o.push("learn.parallel_target=true".into());
+            o
+        }
+        "epymarl" => episode_runner(),
+        "pymarl-parallel" => {
+            vec!["run.updates_per_episode=0.125".into(), "learn.batch_size=32".into(), "learn.target_update_interval_episodes=200".into()]
         }
         other => bail!("--preset: unknown preset {other:?}; known: {}", PRESETS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")),
     })
@@ -373,6 +397,11 @@ mod tests {
         assert_eq!(c.learn.target_update_interval_episodes, 200);
         o.push("run.updates_per_episode=0.5".into());
         assert_eq!(TrainConfig::resolve(None, &o).unwrap().run.updates_per_episode, 0.5, "--set comes after the preset");
-        assert!(preset_overrides("pymarl2").unwrap_err().to_string().contains("known: epymarl"));
+        assert!(preset_overrides("pymarl2").unwrap_err().to_string().contains("known: paper, epymarl, pymarl-parallel"));
+        let paper = TrainConfig::resolve(None, &preset_overrides("paper").unwrap()).unwrap();
+        assert_eq!((paper.run.updates_per_episode, paper.learn.target_update_interval_episodes), (1.0, 200));
+        assert!(paper.learn.parallel_target, "the paper schedule unrolls the target on the second core");
+        let old = TrainConfig::resolve(None, &preset_overrides("pymarl-parallel").unwrap()).unwrap();
+        assert_eq!(old.run.updates_per_episode, 0.125);
     }
 }
