@@ -79,5 +79,24 @@ fn bench_gru_sequence(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_update, bench_act, bench_gru_sequence);
+/// The LMAC window encoder's attention alone (forward keeping the weights, and backward) at
+/// 1o_10b_vs_1r's agent rows (32 x 11 agents, 50 steps) with the default width 64 in 4 heads
+/// and a window of 10.
+fn bench_window_attention(c: &mut Criterion) {
+    lmac_trainer::tune_allocator();
+    use lmac_trainer::learn::window_attention::Saved;
+    let mut g = c.benchmark_group("window_attention");
+    g.sample_size(10);
+    let (t, n, heads, d, w) = (50, 352, 4, 16, 10);
+    let mut rng = LearnRng::seed_from(2);
+    let mut random = |len: usize| -> Vec<f32> { (0..len).map(|_| rng.uniform() * 2.0 - 1.0).collect() };
+    let len = t * n * heads * d;
+    let (q, k, v, d_out) = (random(len), random(len), random(len), random(len));
+    g.bench_function("1o10b_forward", |b| b.iter(|| Saved::forward(q.clone(), k.clone(), v.clone(), t, n, heads, d, w, true)));
+    let saved = Saved::forward(q.clone(), k.clone(), v.clone(), t, n, heads, d, w, true);
+    g.bench_function("1o10b_backward", |b| b.iter(|| saved.backward(&d_out)));
+    g.finish();
+}
+
+criterion_group!(benches, bench_update, bench_act, bench_gru_sequence, bench_window_attention);
 criterion_main!(benches);

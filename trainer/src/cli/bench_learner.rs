@@ -80,6 +80,53 @@ impl Shape {
         // forward + backward (2x forward, minus the first layers' input gradients) + target
         fwd + (2.0 * fwd - bwd_no_input_grad) + fwd
     }
+
+    /// [`update_flops`](Self::update_flops) of an LMAC update (`cfg`: its resolved settings): the
+    /// plain agent's count with the agent's first layer reading [own row | z] instead of the
+    /// row, plus per agent-row the module: embedding, encoder (window: q, k, v, attention over W
+    /// entries, output; gru-gate: the GRU and the gate), and in the online network only the
+    /// decoder and the cycle encoder. The window's attention (scores and weighted values) is
+    /// counted though it is not a matmul. The target network runs embedding, encoder and agent.
+    pub(crate) fn lmac_update_flops(
+        &self,
+        mixer: MixerKind,
+        cfg: &LearnConfig,
+        lmac: &lmac_trainer::learn::methods::lmac::LmacConfig,
+    ) -> f64 {
+        use lmac_trainer::learn::methods::lmac::{AuxLayout, EncoderKind};
+        let s = &lmac.settings;
+        let rows = (self.batch * self.steps * self.agents) as f64;
+        let (e, l, att, hd, dc) =
+            (s.embed_dim as f64, s.latent_dim as f64, s.attention_dim as f64, s.decoder_hidden as f64, lmac.critical_dims.len() as f64);
+        let input = self.input as f64;
+        let agent_in = input - if s.raw_messages { 0.0 } else { lmac.msg_cols as f64 } + l;
+        // the plain agent's count, with its first layer's width changed
+        let plain = Shape { input: agent_in as usize, ..*self }.update_flops(mixer, cfg);
+        let embed_first = 2.0 * input * e;
+        let embed_rest = 2.0 * e * e;
+        let encoder = match s.encoder {
+            EncoderKind::Window => 3.0 * 2.0 * e * att + 2.0 * 2.0 * (s.window.min(self.steps) as f64) * att + 2.0 * att * l,
+            EncoderKind::GruGate => 2.0 * e * 3.0 * e * 2.0 + 2.0 * 2.0 * e * att + 2.0 * e * l,
+        };
+        let cycle_mid = if s.aux_layout == AuxLayout::Released { 2.0 * hd * hd } else { 0.0 };
+        let heads = 2.0 * l * hd + 2.0 * hd * hd + 2.0 * 2.0 * hd * dc + 2.0 * 2.0 * dc * hd + cycle_mid + 2.0 * hd * l;
+        let module_fwd = rows * (embed_first + embed_rest + encoder);
+        // online forward + backward (no input gradient for the embedding's first layer) + target
+        plain + module_fwd + rows * heads + (2.0 * (module_fwd + rows * heads) - rows * embed_first) + module_fwd
+    }
+}
+
+/// The FLOPs one update of `method` (None: the plain agent) counts, where a count is written
+/// (the plain agent, qmix-state and LMAC; the other methods' extra networks are not counted yet).
+fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Option<&MethodUnderTest>) -> Option<f64> {
+    match method.map(|m| (&m.agent, m.name.as_str())) {
+        None | Some((AgentConfig::Rnn, _)) => {
+            let state_in = if method.is_some_and(|m| m.agent_sees_state) { shape.state } else { 0 };
+            Some(Shape { input: shape.input + state_in, ..*shape }.update_flops(mixer, cfg))
+        }
+        Some((AgentConfig::Lmac(l), _)) => Some(shape.lmac_update_flops(mixer, cfg, l)),
+        Some(_) => None,
+    }
 }
 
 /// A method's agent network in place of the plain RNN agent (`--algo`): its configured agent
@@ -120,8 +167,8 @@ impl MethodUnderTest {
     }
 }
 
-/// What one implementation measured: per-update milliseconds of every round (GFLOP/s only for
-/// the plain RNN agent, the network the FLOP count describes).
+/// What one implementation measured: per-update milliseconds of every round (GFLOP/s where the
+/// method's FLOPs are counted: see `update_flops`).
 #[derive(Debug, Serialize)]
 pub(crate) struct Figure {
     pub name: String,
@@ -350,7 +397,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     };
     for &mixer in &mixers {
         let cfg = LearnConfig { mixer, ..LearnConfig::default() };
-        let flops = if method.is_none() { Some(o.shape.update_flops(mixer, &cfg)) } else { None };
+        let flops = update_flops(&o.shape, mixer, &cfg, method);
         let mut fused = filled_learner(&o.shape, mixer, true, method)?;
         let mut stepwise = if o.stepwise { Some(filled_learner(&o.shape, mixer, false, method)?) } else { None };
         let mut torch = if o.against_torch { Some(Torch::start(&python, &script, &o.shape, mixer, threads)?) } else { None };
@@ -410,8 +457,10 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     eprintln!("lmac: single-thread sgemm through burn (512^3): {peak:.1} GFLOP/s");
     let flops: Vec<_> = mixers
         .iter()
-        .filter(|_| method.is_none())
-        .map(|&m| serde_json::json!({"mixer": mixer_name(m), "gflop_per_update": o.shape.update_flops(m, &LearnConfig { mixer: m, ..LearnConfig::default() }) / 1e9}))
+        .filter_map(|&m| {
+            let f = update_flops(&o.shape, m, &LearnConfig { mixer: m, ..LearnConfig::default() }, method)?;
+            Some(serde_json::json!({"mixer": mixer_name(m), "gflop_per_update": f / 1e9}))
+        })
         .collect();
     let report = serde_json::json!({
         "shape": o.shape, "threads": threads, "rounds": o.rounds, "updates_per_round": o.updates,
