@@ -280,3 +280,21 @@ fn paper_specs_find_the_shipped_design_or_name_the_env() {
     assert_eq!(lmac_trainer::train::resolve_paper_spec("a.json+b.json", "x:y").unwrap(), "a.json+b.json");
     assert_eq!(lmac_trainer::train::resolve_paper_spec("papers/x", "x:y").unwrap(), "papers/x");
 }
+
+/// The authors' placeholders are reported without a dataset: `lmac protocol check` on their
+/// 1o_10b design names phase 2's anchor (constant zeros in their code) and nothing else.
+#[test]
+fn protocol_check_reports_the_authors_placeholders_as_constant() {
+    let dir = paper_designs_dir().expect("protocols/paper").join("smaclite_1o_10b_vs_1r");
+    let files: Vec<String> = (0..3).map(|k| dir.join(format!("phase{k}/protocol.json")).display().to_string()).collect();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_lmac"))
+        .args(["protocol", "check", "--env", "smaclite:1o_10b_vs_1r"])
+        .args(&files)
+        .output()
+        .expect("running lmac protocol check");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    let warnings: Vec<&str> = text.lines().filter(|l| l.contains("constant by construction")).collect();
+    assert_eq!(warnings.len(), 1, "{text}");
+    assert!(warnings[0].contains("phase 2") && warnings[0].contains("`overseer_anchor`") && warnings[0].contains("value 0"), "{text}");
+}

@@ -35,6 +35,7 @@
 
 pub mod ast;
 pub mod compile;
+pub mod constant;
 pub mod explain;
 pub mod reference;
 pub mod schema;
@@ -42,6 +43,7 @@ pub mod validate;
 
 pub use ast::*;
 pub use compile::{compile, compile_plan, Column, ProtocolPlan};
+pub use constant::{constant_fields, constant_fields_report, ConstantField};
 pub use explain::{explain, explain_expr, explain_phases};
 pub use reference::language_reference;
 pub use schema::{schema_json, schema_value};

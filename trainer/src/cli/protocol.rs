@@ -78,6 +78,10 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
                     }
                     let total = protocol::check_phases(&phases, &penv).map_err(|e| anyhow::anyhow!(protocol::errors_to_text(&e)))?;
                     println!("all phases: {total} message columns per agent (budget {})", schema.message_columns);
+                    let plain: Vec<protocol::Protocol> = phases.iter().map(|v| v.protocol.clone()).collect();
+                    for line in protocol::constant_fields_report(&plain, &penv) {
+                        println!("{line}");
+                    }
                     if let Some(d) = dataset {
                         let dead = dead_fields_on(&d, &env, &phases, &penv)?;
                         if !dead.is_empty() {
@@ -106,6 +110,12 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
                 None => None,
             };
             println!("{}", protocol::explain_phases(&ps, penv.as_ref()));
+            if let Some(penv) = &penv {
+                let constant = protocol::constant_fields_report(&ps, penv);
+                if !constant.is_empty() {
+                    println!("Constant by construction (found without a dataset):\n{}", constant.join("\n"));
+                }
+            }
             if let (Some(d), Some(e), Some(penv)) = (dataset, env, penv) {
                 let refs: Vec<&str> = files.iter().map(|s| s.as_str()).collect();
                 let phases = lmac_protocol_runner::load_phases(&refs, &penv).map_err(anyhow::Error::msg)?;
