@@ -194,7 +194,48 @@ pub struct SetTrend {
     pub without_zeroed: SideTrend,
 }
 
+/// Whether a phase's messages help on a set of dims, said plainly (issue 28): they help when the
+/// recovery with messages beats both the no-message baseline (a discriminator retrained without
+/// them) and a constant guess of each dim's median.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Verdict {
+    pub messages_help: bool,
+    /// Skill of the recovery with messages over the no-message baseline:
+    /// (with - without) / (1 - without); 0 = no better than without messages.
+    pub skill_over_no_messages: f64,
+    /// Skill over a constant guess ([`SideTrend::skill`] of the with-messages side).
+    pub skill_over_constant_guess: f64,
+    /// The sentence the log, `summary.json` and the next phase's designer read.
+    pub text: String,
+}
+
 impl SetTrend {
+    /// The verdict on these dims (`what`: how the set is named in the sentence).
+    pub fn verdict(&self, what: &str) -> Verdict {
+        let (w, o) = (&self.with_messages, &self.without_retrained);
+        let over_none = super::meta::skill(w.mean_recovery, o.mean_recovery);
+        let r4 = |x: f64| (x * 1e4).round() / 1e4;
+        let helps = w.mean_recovery > o.mean_recovery && w.skill > 0.0;
+        let numbers = format!(
+            "recovery {:.3} with messages, {:.3} without, constant guess {:.3}: skill {:.3} over no messages, {:.3} over the guess",
+            w.mean_recovery, o.mean_recovery, self.constant_guess_rate, over_none, w.skill
+        );
+        let text = if helps {
+            format!("the messages help on {what} ({numbers})")
+        } else {
+            let worst = if w.skill <= 0.0 && w.mean_recovery <= o.mean_recovery {
+                "they beat neither the no-message baseline nor a constant guess"
+            } else if w.skill <= 0.0 {
+                "a constant guess of each dim does as well"
+            } else {
+                "agents recover these dims as well without them"
+            };
+            format!("the messages do NOT help on {what}: {worst} ({numbers}); the next phase should send something else for these dims")
+        };
+        Verdict { messages_help: helps, skill_over_no_messages: r4(over_none), skill_over_constant_guess: r4(w.skill), text }
+    }
+
     /// One line for logs and the CLI.
     pub fn summary_line(&self) -> String {
         let (w, r, z) = (&self.with_messages, &self.without_retrained, &self.without_zeroed);
@@ -303,5 +344,41 @@ pub(crate) fn example(dims: &[(usize, String)], with: &[f64], without: &[f64]) -
             without_communication: mean_side(without),
         },
         dead_fields: Vec::new(),
+    }
+}
+
+#[cfg(test)]
+mod verdict_tests {
+    use super::*;
+
+    fn rates(dim: usize, guess: f64, with: f64, without: f64) -> DimRates {
+        DimRates {
+            dim,
+            constant_guess_rate: guess,
+            with_messages: vec![with, with],
+            without_retrained: vec![without, without],
+            without_zeroed: vec![without, without],
+        }
+    }
+
+    /// The main job's LBF phase 0 as the issue quotes it: recovery 0.944 with messages, 0.949
+    /// without, constant guess 0.958. The verdict says the messages do not help; a phase whose
+    /// messages beat both is said to help, with its skill over no messages.
+    #[test]
+    fn the_verdict_says_when_messages_do_not_help() {
+        let bad = SetTrend::over(&[rates(0, 0.958, 0.944, 0.949)], &[]).verdict("the 1 fixed dims");
+        assert!(!bad.messages_help);
+        assert!(
+            bad.text.contains("do NOT help") && bad.text.contains("neither the no-message baseline nor a constant guess"),
+            "{}",
+            bad.text
+        );
+        assert!(bad.skill_over_no_messages < 0.0 && bad.skill_over_constant_guess < 0.0, "{bad:?}");
+        let good = SetTrend::over(&[rates(0, 0.5, 0.9, 0.6)], &[]).verdict("the 1 fixed dims");
+        assert!(good.messages_help, "{good:?}");
+        assert!((good.skill_over_no_messages - 0.75).abs() < 1e-9, "(0.9 - 0.6) / (1 - 0.6): {good:?}");
+        // better than without messages but not than a constant guess: still not helping
+        let guess = SetTrend::over(&[rates(0, 0.95, 0.9, 0.6)], &[]).verdict("x");
+        assert!(!guess.messages_help && guess.text.contains("a constant guess of each dim does as well"), "{}", guess.text);
     }
 }

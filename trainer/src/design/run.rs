@@ -21,7 +21,7 @@
 //! ```
 
 use super::meta::Evaluation;
-use super::meta_info::{RecoverySummary, SetTrend};
+use super::meta_info::{RecoverySummary, SetTrend, Verdict};
 use super::{DesignContext, Designer, PhaseProtocol};
 use crate::dataset::Dataset;
 use anyhow::{bail, Context, Result};
@@ -74,6 +74,9 @@ pub struct PhaseEvaluation {
     pub with_messages: RecoverySummary,
     pub without_messages: RecoverySummary,
     pub target_dims: Vec<usize>,
+    /// Do the messages of phases 0..=k help on the fixed dims (against the no-message baseline
+    /// and a constant guess)?
+    pub verdict: Verdict,
 }
 
 /// The dims the trend is read on, fixed at phase 0: its task-critical dims (all dims when it
@@ -102,20 +105,24 @@ pub fn evaluate_phase(
     write(&phase_dir.join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
     let recovery = serde_json::json!({ "alpha": ctx.schema.alpha, "dims": dims });
     write(&phase_dir.join("recovery.json"), &serde_json::to_string_pretty(&recovery)?)?;
+    let fixed_trend = SetTrend::over(&dims, fixed);
+    let verdict = fixed_trend.verdict(&format!("the {} fixed dims", fixed_trend.dims));
     let ev = PhaseEvaluation {
         phase: k,
         message_columns: lmac_protocol_runner::protocol::combined_width(phases),
-        fixed_dims: SetTrend::over(&dims, fixed),
+        fixed_dims: fixed_trend,
         all_dims: SetTrend::over(&dims, &[]),
         with_messages: meta.summary.with_communication.clone(),
         without_messages: meta.summary.without_communication.clone(),
         target_dims: meta.summary.target_dims.clone(),
+        verdict,
     };
     eprintln!("lmac: phase {k}: {}", meta.summary_line());
     for d in &meta.dead_fields {
         eprintln!("lmac: phase {k}: warning: {d}");
     }
     eprintln!("lmac: phase {k}: fixed dims {}", ev.fixed_dims.summary_line());
+    eprintln!("lmac: phase {k}: {}", ev.verdict.text);
     Ok((meta, ev))
 }
 
