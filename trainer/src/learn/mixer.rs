@@ -131,6 +131,12 @@ impl KernelMlp {
     }
 }
 
+/// Checked against the QPLEX reference (wjh720/QPLEX `dmaq_general.py`, `dmaq_si_weight.py`,
+/// `qplex.yaml`: `weighted_head` and `is_minus_one` on, 10 kernels of 3 layers; see
+/// `docs/fidelity.md`). One difference: the reference's w(s) and v(s) are always 2-layer
+/// networks of width `hypernet_embed` (`dmaq_general.py:22-27`), here they follow
+/// `learn.hypernet_layers` (2 by default, the same networks; 1 only if set).
+///
 /// QPLEX (DMAQ general): Q_tot = sum_i (w_i(s) Q_i + v_i(s))
 ///   + sum_i [(w_i Q_i + v_i) - (w_i max Q_i + v_i)]_detached * (lambda_i(s, a) - 1),
 /// lambda_i = sum_k |key_k(s)| * sigmoid(agents_k(s))_i * sigmoid(action_k(s, a))_i.

@@ -33,6 +33,10 @@
 //! With a single agent there are no pairs: the loss is 0 and the student keeps its initial
 //! weights.
 //!
+//! Loss reduction, checked against the released learner (`docs/fidelity.md`): the cross-entropy
+//! of a pair is summed over the K classes (`cola_learner.py:114`, a batched matrix product) and
+//! averaged over the ordered pairs i != j of alive agents (`:116-121`). The same here.
+//!
 //! Differences from the released code:
 //! - Optimizer: the released code trains the student with an RMSprop of its own (its own
 //!   gradient-norm clip of 10), before and apart from the TD step. Here the consensus loss,

@@ -44,11 +44,23 @@
 //!   in test mode: latent means and pruned attention. The released code samples latents and
 //!   does not prune in its training episodes and in the target network. Not an option: the
 //!   seam's acting step is deterministic.
-//! - The losses are masked over padded steps and averaged over the trained steps; the released
-//!   code averages over every (padded) step. The MI loss leaves out the pairs i = i (the
-//!   released code includes z_ii, which nothing else reads). The entropy is that of the
-//!   attention actually used (scaled by 1/sqrt(att), self excluded); the released code
-//!   recomputes it unscaled with the agent itself among the candidates.
+//! - The losses are masked over padded steps and averaged over the trained steps
+//!   (`mask_losses = true`); the released code averages the per-step losses over every step of
+//!   the padded batch (`maic_learner.py:140-151` divides by `max_seq_length`, the row after the
+//!   longest episode included; lmac's batch holds that row only when the episode was
+//!   truncated): `mask_losses = false`. Either way the batch norms' training statistics are
+//!   those of the trained rows (see `batch_norm`).
+//! - The MI loss leaves out the pairs i = i (`mi_pairs = "teammates"`, the paper's teammate
+//!   models); the released code averages over all n^2 pairs, z_ii included, which no message
+//!   reads (`maic_agent.py:101-113`): `mi_pairs = "all"`.
+//! - The entropy is that of the attention actually used (scaled by 1/sqrt(att), self excluded;
+//!   `entropy_attention = "used"`); the released code recomputes it unscaled with the agent
+//!   itself among the candidates (`maic_agent.py:93-96`): `entropy_attention = "released"`.
+//!   With n agents a uniform attention is log2(n - 1) bits in the first and log2(n) in the
+//!   second.
+//! - Loss reductions otherwise as released (`docs/fidelity.md`): the MI is the KL summed over
+//!   the latent dims and averaged over pairs, the entropy summed over the candidates and
+//!   averaged over agents (`maic_agent.py:113,118`), each times its weight.
 //! - The optimizer and the mixer are the run's `[learn]` settings. lmac's default QMIX (2-layer
 //!   hypernetworks of width 64, mixing width 32) is the released config's; its optimizer is
 //!   RMSprop (`learn.optimizer = "rmsprop"`).
@@ -111,6 +123,29 @@ pub enum MiAction {
     Greedy,
 }
 
+/// Which teammate models the MI loss averages over.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MiPairs {
+    /// The pairs i != j: agent i's models of its teammates (the paper).
+    Teammates,
+    /// Every pair, i = i included (the released code: z_ii, which no message reads, is
+    /// regularised too, and the mean is over n^2 pairs).
+    All,
+}
+
+/// Which attention weights the entropy loss reads (both from detached h and z).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EntropyAttention {
+    /// The attention the messages are weighted with: scores scaled by 1/sqrt(att), softmax over
+    /// the teammates j != i.
+    Used,
+    /// The released code's recomputation: unscaled scores, softmax over all n agents, the agent
+    /// itself included.
+    Released,
+}
+
 /// The `[method]` settings of `--algo maic` (defaults: the released `maic.yaml`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -132,6 +167,12 @@ pub struct MaicSettings {
     pub message_input: MessageInput,
     pub batch_norm: BatchNormMode,
     pub mi_action: MiAction,
+    pub mi_pairs: MiPairs,
+    pub entropy_attention: EntropyAttention,
+    /// Average the losses over the trained steps (default). `false` is the released reduction:
+    /// the mean over every step of the padded batch (the learner divides the per-step sums by
+    /// `max_seq_length`), padded steps and the row after the last step included.
+    pub mask_losses: bool,
 }
 
 impl Default for MaicSettings {
@@ -147,6 +188,9 @@ impl Default for MaicSettings {
             message_input: MessageInput::Sender,
             batch_norm: BatchNormMode::Running,
             mi_action: MiAction::Taken,
+            mi_pairs: MiPairs::Teammates,
+            entropy_attention: EntropyAttention::Used,
+            mask_losses: true,
         }
     }
 }
@@ -206,6 +250,9 @@ mod tests {
         let c = parse("message_input = \"receiver\"\nbatch_norm = \"batch\"\nmi_action = \"greedy\"").unwrap();
         assert!(matches!(c, AgentConfig::Maic(c) if c.settings.message_input == MessageInput::Receiver
             && c.settings.batch_norm == BatchNormMode::Batch && c.settings.mi_action == MiAction::Greedy));
+        let c = parse("mi_pairs = \"all\"\nentropy_attention = \"released\"\nmask_losses = false").unwrap();
+        assert!(matches!(c, AgentConfig::Maic(c) if c.settings.mi_pairs == MiPairs::All
+            && c.settings.entropy_attention == EntropyAttention::Released && !c.settings.mask_losses));
         assert_eq!(parse("prune = 2.0").unwrap_err().field, "method.prune");
         assert_eq!(parse("latent_dim = 0").unwrap_err().field, "method.latent_dim");
         assert_eq!(parse("var_floor = 0.0").unwrap_err().field, "method.var_floor");

@@ -13,7 +13,7 @@ use burn::nn::Linear;
 use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 
-use super::{BatchNormMode, MaicConfig, MessageInput, MiAction};
+use super::{BatchNormMode, EntropyAttention, MaicConfig, MessageInput, MiAction, MiPairs};
 use crate::learn::agent::RnnAgent;
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
@@ -240,12 +240,18 @@ impl MaicAgent {
         (q, internals)
     }
 
-    /// [T, B, n, n]: alpha_ij = softmax over j != i of W_q h_i . W_k z_ij / sqrt(att); 0 for j = i.
-    fn attention(&self, h: Tensor<3>, z: Tensor<5>, [t, b, n]: [usize; 3]) -> Tensor<4> {
+    /// [T, B, n, n]: the unscaled scores W_q h_i . W_k z_ij.
+    fn scores(&self, h: Tensor<3>, z: Tensor<5>, [t, b, n]: [usize; 3]) -> Tensor<4> {
         let att = self.cfg.settings.attention_dim;
         let query = self.query.forward(h).reshape([t, b, n, 1, att]);
         let key = self.key.forward(z);
-        let score = (query * key).sum_dim(4).reshape([t, b, n, n]).div_scalar((att as f32).sqrt());
+        (query * key).sum_dim(4).reshape([t, b, n, n])
+    }
+
+    /// [T, B, n, n]: alpha_ij = softmax over j != i of W_q h_i . W_k z_ij / sqrt(att); 0 for j = i.
+    fn attention(&self, h: Tensor<3>, z: Tensor<5>, [t, b, n]: [usize; 3]) -> Tensor<4> {
+        let att = self.cfg.settings.attention_dim;
+        let score = self.scores(h, z, [t, b, n]).div_scalar((att as f32).sqrt());
         let eye = eye_mask(n, &score.device()).reshape([1, 1, n, n]).expand([t, b, n, n]);
         // The explicit zero on the diagonal also covers n = 1 (no teammate: no message).
         let off: Tensor<4> = eye.clone().bool_not().float();
@@ -284,13 +290,27 @@ impl MaicAgent {
         let var2 = x.narrow(4, l, l).exp().clamp_min(s.var_floor);
         let kl =
             (var2.clone().log() - int.var.clone().log()).mul_scalar(0.5) + (int.var + (int.mu - mu2).square()) / var2.mul_scalar(2.0) - 0.5;
+        // The steps the losses average over: the trained ones, or (the released reduction)
+        // every step of the batch.
+        let (loss_steps, steps) =
+            if s.mask_losses { (step_mask.clone(), ctx.mask_sum) } else { (Tensor::ones([t, b, 1, 1], &device), (t * b) as f32) };
         let kl = kl.sum_dim(4).reshape([t, b, n, n]);
-        let mi = (kl * off.clone() * step_mask.clone()).sum().div_scalar(ctx.mask_sum * pairs);
+        let (mi_pairs, mi_count) = match s.mi_pairs {
+            MiPairs::Teammates => (off.clone(), pairs),
+            MiPairs::All => (Tensor::ones([1, 1, n, n], &device), (n * n) as f32),
+        };
+        let mi = (kl * mi_pairs * loss_steps.clone()).sum().div_scalar(steps * mi_count);
 
-        // Entropy (bits) of each agent's attention over its teammates, from detached h and z.
-        let alpha_d = self.attention(h.detach(), int.z.detach(), [t, b, n]).clamp_min(1e-4);
-        let ent = (alpha_d.clone() * alpha_d.log()).mul_scalar(-1.0 / std::f32::consts::LN_2) * off.clone();
-        let ent = (ent.sum_dim(3) * step_mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32);
+        // Entropy (bits) of each agent's attention, from detached h and z (weights clamped at
+        // 1e-4 before the log, as the released code).
+        let (h_d, z_d) = (h.detach(), int.z.detach());
+        let (alpha_d, over) = match s.entropy_attention {
+            EntropyAttention::Used => (self.attention(h_d, z_d, [t, b, n]), off.clone()),
+            EntropyAttention::Released => (softmax(self.scores(h_d, z_d, [t, b, n]), 3), Tensor::ones([1, 1, n, n], &device)),
+        };
+        let alpha_d = alpha_d.clamp_min(1e-4);
+        let ent = (alpha_d.clone() * alpha_d.log()).mul_scalar(-1.0 / std::f32::consts::LN_2) * over;
+        let ent = (ent.sum_dim(3) * loss_steps).sum().div_scalar(steps * n as f32);
 
         // Diagnostics: the share of teammate weights the test-time pruning would cut, and the
         // size of the incoming messages.

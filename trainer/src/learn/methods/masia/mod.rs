@@ -67,6 +67,12 @@
 //!   code (its VAE encoders, observation noise, the decoder copy inside the target encoder) are
 //!   left out.
 //!
+//! Loss reductions, checked against the released code (`docs/fidelity.md`): reconstruction is
+//! the squared error averaged over the state dims (`ob_attn_ae.py:128`), latent prediction the
+//! squared error summed over the projection's dims (`masia_learner.py:138`), reward prediction
+//! the squared error of the one reward (`:130`); each is a masked mean over steps, and the
+//! latent and reward terms are summed over k (`:95-107`). The same here.
+//!
 //! Measured so far only on the speaker/listener game of `tests/comm_game.rs` (one-step episodes,
 //! so only the k = 0 terms train; 4 episodes of random play per round, seeds 1-4): 4 of 4 seeds
 //! reach the greedy return 1 within 500 rounds with RMSprop and with Adam (seeds 1-3 within
@@ -118,11 +124,15 @@ pub struct MasiaSettings {
     pub projection_hidden: usize,
     /// Steps the transition model predicts ahead (`pred_len`: 2; 0 = none, only k = 0).
     pub pred_len: usize,
-    /// Weight of the state reconstruction loss (`repr_coef`: 1).
+    /// Weight of the state reconstruction loss (1). The released learner weighs all three
+    /// losses by `repr_coef` and the latter two by `spr_coef` / `rew_pred_coef` on top
+    /// (`masia_learner.py:110,218`): its weights are `recon_weight = repr_coef`,
+    /// `latent_weight = repr_coef * spr_coef`, `reward_weight = repr_coef * rew_pred_coef`
+    /// (all 1 in `masia.yaml`).
     pub recon_weight: f32,
-    /// Weight of the latent prediction loss (`spr_coef`: 1).
+    /// Weight of the latent prediction loss (1; `repr_coef * spr_coef`).
     pub latent_weight: f32,
-    /// Weight of the reward prediction loss (`rew_pred_coef`: 1).
+    /// Weight of the reward prediction loss (1; `repr_coef * rew_pred_coef`).
     pub reward_weight: f32,
     /// Share of the online weights in each refresh of the momentum target (`momentum_tau`: 1, a
     /// copy; 0 keeps the initial copy).

@@ -37,8 +37,10 @@
 //!   in every episode of a run with `cut > 0`; the updates and the target network use the full
 //!   messages. The released code cuts only in its test episodes; to report returns at several
 //!   cuts, evaluate a trained network with `NdqAgent::set_cut`.
-//! - The inference, KL and entropy losses are masked over padded steps; the released code sums
-//!   them over every step of the padded batch (then divides by the count of trained steps).
+//! - The inference, KL and entropy losses are masked over padded steps (`mask_losses = true`);
+//!   the released code sums them over every step of the padded batch up to the longest episode
+//!   (then divides by the count of trained steps, `categorical_q_learner.py:161-168`), so their
+//!   weight grows with the batch's padding: `mask_losses = false` reproduces that.
 //! - The message width and encoder width are settings (`msg_dim`, `encoder_hidden`); the released
 //!   code ties the encoder width to `rnn_hidden_dim` (64 by default, as here).
 //! - The optimizer and the mixer are the run's `[learn]` settings (lmac's defaults: Adam, QMIX
@@ -46,6 +48,12 @@
 //!   hypernetworks: `learn.optimizer = "rmsprop"`, `learn.hypernet_layers = 1` reproduce them.
 //!   The released code's distributional ("categorical") Q head is not used by its QMIX config
 //!   and is not implemented.
+//!
+//! Loss reductions, checked against the released learner (`categorical_q_learner.py`, see
+//! `docs/fidelity.md`): each term is summed over its feature dims (a message's n*d dims, the
+//! one label) and over the agents, then divided by the count of trained steps (not by steps x
+//! agents), as the TD loss; c_beta multiplies all three terms, comm_beta the KL and
+//! entropy_beta the entropy on top (`:176-177`). Only the padding differs (above).
 //!
 //! Measured on the speaker/listener game of `tests/comm_game.rs` (RMSprop, 2000 rounds of random
 //! play, seeds 1-4): with the default weights (1, 1e-3, 1e-6) the KL term wins over the weak early
@@ -93,11 +101,17 @@ pub struct NdqSettings {
     /// Acting cuts the message dims whose |mean| is in the bottom `cut` percent (0 = none; the
     /// paper reports 90, 95 and 98).
     pub cut: f32,
+    /// Count only the trained steps in the communication losses (default: the mean over real
+    /// data that the released learner's division by the count of trained steps intends).
+    /// `false` is the released reduction: the terms summed over every step of the padded batch
+    /// up to the longest episode's length, divided by the count of trained steps, so the losses
+    /// weigh more the more padding a batch holds.
+    pub mask_losses: bool,
 }
 
 impl Default for NdqSettings {
     fn default() -> Self {
-        NdqSettings { msg_dim: 3, encoder_hidden: 64, c_beta: 1.0, comm_beta: 1e-3, entropy_beta: 1e-6, cut: 0.0 }
+        NdqSettings { msg_dim: 3, encoder_hidden: 64, c_beta: 1.0, comm_beta: 1e-3, entropy_beta: 1e-6, cut: 0.0, mask_losses: true }
     }
 }
 
@@ -190,6 +204,7 @@ mod tests {
         let parse = |s: &str| configure(&toml::from_str(s).unwrap(), &ctx);
         assert!(matches!(parse("").unwrap(), AgentConfig::Ndq(c) if c.settings == NdqSettings::default()));
         assert!(matches!(parse("cut = 95.0\nc_beta = 0.1").unwrap(), AgentConfig::Ndq(c) if c.settings.cut == 95.0));
+        assert!(matches!(parse("mask_losses = false").unwrap(), AgentConfig::Ndq(c) if !c.settings.mask_losses));
         assert_eq!(parse("cut = 120.0").unwrap_err().field, "method.cut");
         assert_eq!(parse("msg_dim = 0").unwrap_err().field, "method.msg_dim");
         assert_eq!(parse("comm_beta = -1.0").unwrap_err().field, "method.comm_beta");

@@ -139,18 +139,22 @@ impl NdqAgent {
         let s = &self.cfg.settings;
         let actions = ctx.actions.as_ref().expect("NDQ's inference loss reads the target network's greedy actions (TrainContext::actions)");
         let label = actions.target_greedy().reshape([rows, 1]);
-        let mask = ctx.mask.clone().reshape([t * b, 1, 1]).expand([t * b, n, 1]).reshape([rows, 1]);
+        let per_row = |steps: Tensor<1>| steps.reshape([t * b, 1, 1]).expand([t * b, n, 1]).reshape([rows, 1]);
+        let mask = per_row(ctx.mask.clone());
+        // Which rows the losses sum over; either way they divide by the count of trained steps,
+        // as the released learner does (`/ mask.sum()`).
+        let loss_rows = if s.mask_losses { mask.clone() } else { per_row(released_rows(&ctx.mask, t, b)) };
         let denom = ctx.mask_sum;
 
         // Cross-entropy with the released code's floor: -log(p + 1e-6), summed over agents.
         let logits = self.infer(x);
         let p = softmax(logits.clone(), 1).gather(1, label.clone());
-        let ce = (p.add_scalar(1e-6).log().neg() * mask.clone()).sum().div_scalar(denom);
+        let ce = (p.add_scalar(1e-6).log().neg() * loss_rows.clone()).sum().div_scalar(denom);
         // KL(N(mu, 1) || N(0, 1)) = mu^2 / 2 per dim.
-        let kl = (mu.clone().square().sum_dim(1).mul_scalar(0.5) * mask.clone()).sum().div_scalar(denom);
+        let kl = (mu.clone().square().sum_dim(1).mul_scalar(0.5) * loss_rows.clone()).sum().div_scalar(denom);
         // -log N(m; 0, 1) = m^2 / 2 + log(2 pi) / 2 per dim.
         let half_log_2pi = 0.5 * (2.0 * std::f32::consts::PI).ln();
-        let ent = (m.square().mul_scalar(0.5).add_scalar(half_log_2pi).sum_dim(1) * mask.clone()).sum().div_scalar(denom);
+        let ent = (m.square().mul_scalar(0.5).add_scalar(half_log_2pi).sum_dim(1) * loss_rows).sum().div_scalar(denom);
 
         let scalar = |x: &Tensor<1>| x.clone().detach().into_scalar::<f32>();
         let hit = logits.detach().argmax(1).equal(label).float();
@@ -165,6 +169,18 @@ impl NdqAgent {
             AuxTerm { name: "ndq_mu_abs", value: mu_abs, loss: None },
         ]
     }
+}
+
+/// The steps the released learner's communication losses sum over, as 0/1 [T * B] (time-major
+/// like `mask`): every (t, b) with t below the longest episode's count of trained steps, the
+/// padded steps of shorter episodes included. Its batch is cut to the longest episode and the
+/// losses read `[:, :-1]`, which drops only the row after that episode's last step.
+pub fn released_rows(mask: &Tensor<1>, t: usize, b: usize) -> Tensor<1> {
+    let host: Vec<f32> = mask.clone().detach().into_data().iter::<f32>().collect();
+    assert_eq!(host.len(), t * b, "the mask is [T * B]");
+    let longest = (0..t).rev().find(|&ti| host[ti * b..(ti + 1) * b].iter().any(|&m| m > 0.0)).map_or(0, |ti| ti + 1);
+    let rows: Vec<f32> = (0..t * b).map(|r| if r / b < longest { 1.0 } else { 0.0 }).collect();
+    Tensor::from_data(TensorData::new(rows, [t * b]), &mask.device())
 }
 
 #[cfg(test)]

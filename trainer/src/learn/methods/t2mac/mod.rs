@@ -25,6 +25,13 @@
 //! update (`selector_weight`). The selector reads only the input row, so the TD loss does not
 //! reach it.
 //!
+//! Loss reduction (`docs/fidelity.md`): the selector's cross-entropy is summed over the classes
+//! (the n candidate receivers) of a sender's row and averaged over the senders of the trained
+//! steps, as torch's `CrossEntropyLoss` averages over rows (`tmac_p2p_comm_controller.py:22`).
+//! The released call passes a [batch, n, n] tensor, so torch takes dim 1 (the senders) as the
+//! class dim, while the selector's softmax runs over the receivers: one more reason its loss
+//! carries no gradient (below).
+//!
 //! Differences from the released code:
 //! - The released selector cannot learn: its label is `(u_combined - u_own) > min_uncer`, and
 //!   adding evidence never raises the uncertainty, so the label is always 0; the loss is also
