@@ -62,6 +62,11 @@ def schema_path(env_name: str) -> pathlib.Path:
     return schema_dir() / family / f"{variant}.toml"
 
 
+class EnvUnavailable(RuntimeError):
+    """The environment cannot run on this machine (a game or package is missing); the message
+    says what. `lmac envs --check` reports such an env as not checked instead of failing."""
+
+
 @dataclasses.dataclass
 class Batch:
     """Where one batched step is written. In the pipeline every field is a numpy view of the

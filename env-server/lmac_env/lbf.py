@@ -39,6 +39,7 @@ import numpy as np
 from lbforaging.foraging.environment import Action, ForagingEnv
 
 from .core import Batch, Schema, VecEnv, schema_path
+from .sizes import SizeMismatch
 
 SIGHT = 1
 VARIANTS = {
@@ -114,7 +115,7 @@ class LbfVecEnv(VecEnv):
         for field, want in expected.items():
             got = getattr(s, field)
             if got != want:
-                raise ValueError(f"{s.path}: {field} = {got}, but lbf:{variant} ({self.state_kind} "
+                raise SizeMismatch(f"{s.path}: {field} = {got}, but lbf:{variant} ({self.state_kind} "
                                  f"state) writes {want}; fix the schema file")
 
     # -- observation and state building from the environment's fields --------------------------
