@@ -97,6 +97,26 @@ class Batch:
             truncated=np.zeros(num_envs, np.uint8))
 
 
+def split_done(done, steps, limit, terminal=None):
+    """(terminated, truncated) from a gym-style ``done`` that also fires at the env's own step
+    limit (rware, old gym envs): an end at the limit is a truncation, the learner bootstraps
+    from the observation after it; an end before it is a termination. Works on scalars and on
+    arrays (one entry per env).
+
+    steps     steps taken in the episode, this one included
+    limit     the env's own step limit
+    terminal  optional: what the env says about a real end (won, lost, all goals reached) where
+              it knows; then a ``done`` with it is a termination even on the limit's step, and
+              one without it a truncation even before (a time limit of another kind).
+    """
+    done = np.asarray(done, bool)
+    real = np.asarray(steps) < limit if terminal is None else np.asarray(terminal, bool)
+    terminated, truncated = done & real, done & ~real
+    if terminated.ndim == 0:
+        return bool(terminated), bool(truncated)
+    return terminated, truncated
+
+
 class VecEnv(abc.ABC):
     """B environments of one kind, stepped together.
 

@@ -10,7 +10,7 @@ compares what it writes with the schema. The numbered rules are the ``VecEnv`` c
 """
 import numpy as np
 
-from lmac_env.core import Batch, Schema, VecEnv, schema_path
+from lmac_env.core import Batch, Schema, VecEnv, schema_path, split_done
 
 VARIANTS = {"line5-2ag": (5, 2, 20)}  # variant: cells, agents, the game's own step limit
 LEFT, STAY, RIGHT = 0, 1, 2
@@ -87,10 +87,10 @@ class MeetVecEnv(VecEnv):
             obs, reward, done, info = game.step(actions[e])
             # Rule 6: reward, terminated and truncated for every env stepped (the slot would keep
             # the previous step's values). A `done` at the game's own step limit is a truncation,
-            # not a termination: the learner bootstraps from the observation written below.
+            # not a termination: the learner bootstraps from the observation written below
+            # (split_done; `terminal` is the game's own word for a real end, where it has one).
             out.reward[e] = reward
-            out.terminated[e] = done and info["met"]
-            out.truncated[e] = done and not info["met"]
+            out.terminated[e], out.truncated[e] = split_done(done, game.t, game.max_steps, terminal=info["met"])
             self.won[e] = info["met"]
             self.write(e, obs, out)
 
