@@ -65,5 +65,16 @@ class RwareVecEnv(VecEnv):
             self._write(e, obs, out)
 
 
+def sizes(variant: str) -> dict:
+    """What one rware env of ``variant`` writes (`lmac envs --generate rware:<variant>`)."""
+    import gymnasium as gym
+    import rware  # noqa: F401
+
+    env = gym.make(f"rware-{variant}-v2").unwrapped
+    n, obs = env.n_agents, int(gym.spaces.flatdim(env.observation_space[0]))
+    return {"n_agents": n, "obs_dim": obs, "state_dim": n * obs, "n_actions": int(env.action_space[0].n),
+            "episode_limit": int(env.max_steps)}
+
+
 def make(variant: str, num_envs: int, seed: int) -> VecEnv:
     return RwareVecEnv(variant, num_envs, seed)

@@ -40,3 +40,26 @@ def test_an_env_server_refuses_a_wrong_size_in_one_line(tmp_path):
     assert r.returncode != 0
     assert f"{path}: obs_dim = 6 but the env's observation has 5 values (seen in reset)" in r.stderr, r.stderr[-3000:]
     assert "Traceback" not in r.stderr, r.stderr[-3000:]
+
+
+def test_generate_for_a_family_whose_module_gives_its_sizes(tmp_path):
+    """Not only pz: any family module with sizes(variant) (here the worked example); the schema
+    is then refused by --check until its EDIT texts are written, and fits the env after."""
+    name = "lmac_env.examples.meet:line5-2ag"
+    r = run(["envs", "--generate", name], tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert f"{name}: 2 agents, obs 6, state 2, actions 3, episode limit 20, message columns 8" in r.stdout
+    path = tmp_path / "lmac_env.examples.meet" / "line5-2ag.toml"
+    r = run(["envs", "--check"], tmp_path)
+    assert r.returncode != 0 and f"{path}: task, reward, actions[0], actions[1] and 3 more" in r.stderr, r.stderr
+    path.write_text(path.read_text().replace("EDIT: ", ""))
+    r = run(["envs", "--check"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    r = run(["envs", "--generate", name], tmp_path)
+    assert r.returncode != 0 and "--force" in r.stderr, "an existing schema is not overwritten"
+
+
+def test_generate_names_what_is_missing_when_a_module_cannot_say_its_sizes(tmp_path):
+    r = run(["envs", "--generate", NAME], tmp_path)
+    assert r.returncode != 0
+    assert "module sized_toy has no sizes(variant)" in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -39,3 +39,9 @@ def test_through_the_pipeline():
     r = run(["run", "--env", "rware:tiny-2ag", "--envs", "4", "--steps", "4000", "--verify"])
     assert r.returncode == 0, r.stderr[-3000:]
     assert "0 invariant violations" in r.stdout, r.stdout
+
+
+def test_generate_measures_the_shipped_sizes(tmp_path):
+    r = run(["envs", "--generate", "rware:tiny-2ag"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "rware:tiny-2ag: 2 agents, obs 71, state 142, actions 5, episode limit 500, message columns 73" in r.stdout

@@ -95,5 +95,13 @@ class MeetVecEnv(VecEnv):
             self.write(e, obs, out)
 
 
+def sizes(variant: str) -> dict:
+    """Optional: what an env of ``variant`` writes, so `lmac envs --generate` can write the
+    schema's numbers (you then describe its texts)."""
+    cells, agents, max_steps = VARIANTS[variant]
+    return {"n_agents": agents, "obs_dim": cells + 1, "state_dim": agents, "n_actions": 3,
+            "episode_limit": max_steps}
+
+
 def make(variant: str, num_envs: int, seed: int) -> VecEnv:
     return MeetVecEnv(variant, num_envs, seed)
