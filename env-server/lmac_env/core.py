@@ -62,6 +62,11 @@ def schema_path(env_name: str) -> pathlib.Path:
     return schema_dir() / family / f"{variant}.toml"
 
 
+class EnvUnavailable(RuntimeError):
+    """The environment cannot run on this machine (a game or package is missing); the message
+    says what. `lmac envs --check` reports such an env as not checked instead of failing."""
+
+
 @dataclasses.dataclass
 class Batch:
     """Where one batched step is written. In the pipeline every field is a numpy view of the
@@ -90,6 +95,26 @@ class Batch:
             reward=np.zeros(num_envs, np.float32),
             terminated=np.zeros(num_envs, np.uint8),
             truncated=np.zeros(num_envs, np.uint8))
+
+
+def split_done(done, steps, limit, terminal=None):
+    """(terminated, truncated) from a gym-style ``done`` that also fires at the env's own step
+    limit (rware, old gym envs): an end at the limit is a truncation, the learner bootstraps
+    from the observation after it; an end before it is a termination. Works on scalars and on
+    arrays (one entry per env).
+
+    steps     steps taken in the episode, this one included
+    limit     the env's own step limit
+    terminal  optional: what the env says about a real end (won, lost, all goals reached) where
+              it knows; then a ``done`` with it is a termination even on the limit's step, and
+              one without it a truncation even before (a time limit of another kind).
+    """
+    done = np.asarray(done, bool)
+    real = np.asarray(steps) < limit if terminal is None else np.asarray(terminal, bool)
+    terminated, truncated = done & real, done & ~real
+    if terminated.ndim == 0:
+        return bool(terminated), bool(truncated)
+    return terminated, truncated
 
 
 class VecEnv(abc.ABC):

@@ -39,6 +39,7 @@ import numpy as np
 from lbforaging.foraging.environment import Action, ForagingEnv
 
 from .core import Batch, Schema, VecEnv, schema_path
+from .sizes import SizeMismatch
 
 SIGHT = 1
 VARIANTS = {
@@ -70,6 +71,14 @@ def state_dim(size: int, players: int, foods: int, kind: str) -> int:
     return AGENT_FIELDS * players + FOOD_FIELDS * foods
 
 
+def sizes(variant: str) -> dict:
+    """What an env of ``variant`` writes (the schema must say the same; `lmac envs --generate`)."""
+    base, kind = split_variant(variant)
+    size, players, foods = VARIANTS[base]
+    return {"n_agents": players, "obs_dim": OBS_DIM, "state_dim": state_dim(size, players, foods, kind),
+            "n_actions": len(Action)}
+
+
 class _Foraging(ForagingEnv):
     """lbforaging's env without its own observation building (we build ours from its fields)."""
 
@@ -85,7 +94,7 @@ class LbfVecEnv(VecEnv):
         base, self.state_kind = split_variant(variant)
         size, players, foods = VARIANTS[base]
         self.schema = Schema.load(schema_path(f"lbf:{variant}"))
-        self._check_schema(variant, players, state_dim(size, players, foods, self.state_kind))
+        self._check_schema(variant)
         self.num_envs = num_envs
         self.size = size
         self.n_foods = foods
@@ -105,16 +114,14 @@ class LbfVecEnv(VecEnv):
         self._food_cells = [np.zeros((0, 2), np.int64)] * num_envs
         self._actions = list(Action)
 
-    def _check_schema(self, variant: str, players: int, sdim: int) -> None:
+    def _check_schema(self, variant: str) -> None:
         """The schema file must describe what this env writes (the shared-memory layout is
         computed from it): a mismatch would misplace every row, so it fails here, by name."""
         s = self.schema
-        expected = {"n_agents": players, "obs_dim": OBS_DIM, "state_dim": sdim,
-                    "n_actions": len(Action)}
-        for field, want in expected.items():
+        for field, want in sizes(variant).items():
             got = getattr(s, field)
             if got != want:
-                raise ValueError(f"{s.path}: {field} = {got}, but lbf:{variant} ({self.state_kind} "
+                raise SizeMismatch(f"{s.path}: {field} = {got}, but lbf:{variant} ({self.state_kind} "
                                  f"state) writes {want}; fix the schema file")
 
     # -- observation and state building from the environment's fields --------------------------

@@ -54,6 +54,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .core import Batch, Schema, VecEnv, schema_path
+from .sizes import SizeMismatch
 
 FAMILY = "pz"
 OPTIONS = {"team_reward": ("sum", "mean")}
@@ -280,7 +281,7 @@ class Layout:
             if ours is not None and got != ours:
                 problems.append(f"{field} = {got} but {why}")
         if problems:
-            raise ValueError(f"{schema.path}: the schema does not fit {self.name}: " + "; ".join(problems)
+            raise SizeMismatch(f"{schema.path}: the schema does not fit {self.name}: " + "; ".join(problems)
                              + f". Regenerate it (lmac envs --generate {self.name} --force) or fix the file.")
 
 

@@ -29,6 +29,7 @@ FAMILIES = {
     "smac": "lmac_env.smac",
     "grf": "lmac_env.grf",
     "pz": "lmac_env.pz",
+    "rware": "lmac_env.rware",
 }
 
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from .core import Batch, Schema, VecEnv, schema_path
 from .registry import make
+from .sizes import SizeChecked, SizeMismatch
 
 FLAG_FIRST = 1     # shm-schema layout.rs FLAG_FIRST: this row starts an episode
 FLAG_PREV_WON = 2  # FLAG_PREV_WON: the episode that ended at this row was won
@@ -146,7 +147,9 @@ class _SubBatch:
     def __init__(self, args, member: int, num_envs: int, lmac_shm):
         self.member = member
         self.env = make(args.env, num_envs, seed=args.seed + 1_000_003 * member)
-        self.driver = Driver(self.env, member)
+        # The first reset and step go through probes checked against the schema, so a size
+        # mistake stops this server naming the schema file and field, not inside numpy.
+        self.driver = Driver(SizeChecked(self.env), member)
         self.slab = lmac_shm.Slab.create(f"lmac-{args.run}-s{member}", str(schema_path(args.env)), num_envs,
                                          args.msg_dim, args.slots)
         self.port = lmac_shm.Port(args.run, "env", member, args.members, args.slots,
@@ -253,6 +256,9 @@ def serve(args) -> int:
         return 0
     except lmac_shm.StoppedError:
         return 0
+    except SizeMismatch as e:
+        print(f"lmac: {who}: {e}", file=sys.stderr, flush=True)
+        return 2
     except lmac_shm.PeerError as e:
         print(f"lmac: {who}: {e}", file=sys.stderr, flush=True)
         return 3

@@ -27,7 +27,7 @@ import pathlib
 
 import numpy as np
 
-from .core import Batch, Schema, VecEnv, schema_path
+from .core import Batch, EnvUnavailable, Schema, VecEnv, schema_path
 from .smaclite.maps import MAPS, MapSpec, obs_layout
 
 # SMAC-Comm's map registry (the fork's smac_plus/starcraft2/maps) and its env arguments
@@ -64,7 +64,7 @@ INSTALL = (
     "Without the game, use the re-implementation: smaclite:<map> (same layouts).")
 
 
-class SmacUnavailable(RuntimeError):
+class SmacUnavailable(EnvUnavailable):
     """The real game or the SMAC API is missing; the message says what and how to install."""
 
 

@@ -110,6 +110,9 @@ pub const MAX_EPISODE_LIMIT: usize = 1 << 20;
 /// Largest message_columns accepted (reserved after every observation row).
 pub const MAX_MESSAGE_COLUMNS: usize = 1 << 20;
 
+/// How a generated schema marks a text a person must still write (`lmac envs --generate`).
+pub const PLACEHOLDER: &str = "EDIT:";
+
 impl EnvSchema {
     /// Read and validate a schema file.
     pub fn load(path: &Path) -> Result<EnvSchema, SchemaErrors> {
@@ -240,6 +243,32 @@ impl EnvSchema {
         } else {
             Err(SchemaErrors(errs))
         }
+    }
+
+    /// The fields still holding a placeholder text that starts with [`PLACEHOLDER`] (what
+    /// `lmac envs --generate` writes for a person to replace), by their path in the file. `lmac
+    /// envs --check` refuses them; a run does not (the texts only reach the LLM prompts).
+    pub fn placeholders(&self) -> Vec<String> {
+        let mut at = Vec::new();
+        let mut see = |field: String, text: &str| {
+            if text.trim_start().starts_with(PLACEHOLDER) {
+                at.push(field);
+            }
+        };
+        see("task".into(), &self.task);
+        see("reward".into(), &self.reward);
+        for (i, a) in self.actions.iter().enumerate() {
+            see(format!("actions[{i}]"), a);
+        }
+        for (kind, groups) in [("obs_dims", &self.obs_dims), ("state_dims", &self.state_dims)] {
+            for (i, g) in groups.iter().enumerate() {
+                see(format!("{kind}[{i}].meaning"), &g.meaning);
+                for (j, l) in g.labels.iter().flatten().enumerate() {
+                    see(format!("{kind}[{i}].labels[{j}]"), l);
+                }
+            }
+        }
+        at
     }
 
     /// The meaning of every observation dimension, in order.

@@ -36,6 +36,9 @@ def test_generate_then_check_then_refuse_a_wrong_schema(tmp_path):
     r = run(["envs", "--generate", "pz:pz_toy,max_cycles=7"], tmp_path)
     assert r.returncode != 0 and "--force" in r.stderr, "an existing schema is not overwritten"
     r = run(["envs", "--check"], tmp_path)
+    assert r.returncode != 0 and f"{path}: task, reward, actions[0]" in r.stderr, "placeholders left"
+    path.write_text(path.read_text().replace("EDIT: ", ""))
+    r = run(["envs", "--check"], tmp_path)
     assert r.returncode == 0, r.stderr
     assert "pz:pz_toy,max_cycles=7" in r.stdout
     path.write_text(path.read_text().replace("n_actions = 6", "n_actions = 7")
@@ -44,7 +47,7 @@ def test_generate_then_check_then_refuse_a_wrong_schema(tmp_path):
     assert r.returncode != 0
     assert "n_actions = 7 but the largest action space has 6 actions" in r.stderr, r.stderr
     r = run(["envs", "--generate", "lbf:whatever"], tmp_path)
-    assert r.returncode != 0 and "PettingZoo" in r.stderr
+    assert r.returncode != 0 and "unknown LBF variant 'whatever'" in r.stderr, r.stderr
 
 
 def test_a_pipeline_run_on_a_generated_schema_outside_the_repository(tmp_path):

@@ -63,14 +63,15 @@ enum Cmd {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
-        /// Write the schema of a PettingZoo parallel environment, pz:<module>[,key=value]...
-        /// (e.g. pz:mpe2.simple_spread_v3), from its spaces, with placeholder descriptions to edit.
+        /// Write the schema of an environment with the sizes it gives and placeholder descriptions
+        /// to edit: pz:<module>[,key=value]... from a PettingZoo env's spaces, any other family
+        /// from its module's sizes(variant) (e.g. rware:tiny-2ag).
         #[arg(long, value_name = "ENV", conflicts_with_all = ["check", "json"])]
         generate: Option<String>,
         /// With --generate: overwrite an existing schema file.
         #[arg(long, requires = "generate")]
         force: bool,
-        /// With --generate: the episode limit, when the environment has no max_cycles.
+        /// With --generate: the episode limit, when the environment gives none (no max_cycles).
         #[arg(long, requires = "generate", value_name = "STEPS")]
         episode_limit: Option<usize>,
     },

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core import Batch, Schema, VecEnv, schema_path
+from ..sizes import SizeMismatch
 from . import units as U
 from .maps import (BANE_ENEMY_POINT, BANE_REGIONS, CLIFF_CORNERS, CLIFF_REGIONS, MAPS,
                    Z5_ATTACK_POINT, Z5_REGION, mask_from_rows, obs_layout)
@@ -41,7 +42,7 @@ class SmacliteVecEnv(VecEnv):
         lay = self.layout = obs_layout(spec)
         for k in ("obs_dim", "state_dim", "n_actions"):
             if getattr(self.schema, k) != lay[k]:
-                raise ValueError(f"{self.schema.path}: {k} = {getattr(self.schema, k)} but the "
+                raise SizeMismatch(f"{self.schema.path}: {k} = {getattr(self.schema, k)} but the "
                                  f"simulation produces {lay[k]}")
         self.num_envs = B = num_envs
         self.N = N = len(spec.agents)

@@ -1,13 +1,13 @@
-//! `lmac envs`: the environments and their dimensions; `--check` validates every schema file,
-//! `--generate pz:...` writes the schema of a PettingZoo environment.
+//! `lmac envs`: the environments and their dimensions; `--check` validates every schema file
+//! (bounds, its place, no `EDIT:` placeholders left) and compares it with what its environment
+//! writes; `--generate FAMILY:VARIANT` writes a schema with the sizes the env gives.
 
 use anyhow::{anyhow, bail, Context, Result};
-use lmac_shm_schema::schema::{all_envs, schema_dir, EnvSchema};
+use lmac_shm_schema::schema::{all_envs, schema_dir, EnvSchema, PLACEHOLDER};
 use lmac_trainer::supervisor;
 use std::path::Path;
 
-/// The family whose schemas `--generate` writes and `--check` compares with the environment
-/// itself (env-server/lmac_env/pz.py).
+/// The PettingZoo family: `--generate` reads its sizes from the env's spaces (env-server/lmac_env/pz.py).
 const PZ: &str = "pz";
 
 /// The name a schema file's place gives it: `<dir>/<family>/<variant>.toml` -> `family:variant`.
@@ -15,6 +15,25 @@ fn place_name(path: &Path) -> Option<String> {
     let variant = path.file_stem()?.to_str()?;
     let family = path.parent()?.file_name()?.to_str()?;
     Some(format!("{family}:{variant}"))
+}
+
+/// Build every schema's environment and compare what it writes with the schema
+/// (`python -m lmac_env.sizes check`, one Python for all; the env servers run the same check on
+/// their first reset and step). An env whose package or game is missing here is only noted.
+fn check_sizes(rows: &[EnvSchema]) -> Result<()> {
+    let mut c = supervisor::python_command()?;
+    c.args(["-m", "lmac_env.sizes", "check"]).args(rows.iter().map(|s| s.name.as_str()));
+    let out = c.output().context("starting Python (LMAC_PYTHON, else the repository's .venv)")?;
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        if let Some(rest) = line.strip_prefix("skip ") {
+            eprintln!("note: sizes not checked against the environment: {rest}");
+        }
+    }
+    if !out.status.success() {
+        eprint!("{}", String::from_utf8_lossy(&out.stderr));
+        bail!("a schema does not fit its environment (see above)");
+    }
+    Ok(())
 }
 
 /// `python -m lmac_env.pz <args>` with the project's Python (as env servers are started).
@@ -39,12 +58,17 @@ pub(crate) fn envs(check: bool, json: bool) -> Result<i32> {
                     );
                     bail!("invalid schema {}", path.display());
                 }
-                if check && s.name.starts_with("pz:") {
-                    // The dims must also fit the environment (the env server refuses it otherwise).
-                    let out = pz_command(&["check", s.name.as_str(), "--schema"])?.arg(&path).output().context("starting Python")?;
-                    if !out.status.success() {
-                        eprint!("{}", String::from_utf8_lossy(&out.stderr));
-                        bail!("schema {} does not fit its environment", path.display());
+                if check {
+                    let left = s.placeholders();
+                    if !left.is_empty() {
+                        let more = if left.len() > 4 { format!(" and {} more", left.len() - 4) } else { String::new() };
+                        eprintln!(
+                            "{}: {}{more}: still the generated {PLACEHOLDER:?} placeholder; write what it means \
+                             (the LLM that designs protocols reads these texts)",
+                            path.display(),
+                            left[..left.len().min(4)].join(", ")
+                        );
+                        bail!("schema {} is not finished", path.display());
                     }
                 }
                 rows.push(s)
@@ -57,6 +81,9 @@ pub(crate) fn envs(check: bool, json: bool) -> Result<i32> {
                 }
             }
         }
+    }
+    if check && !rows.is_empty() {
+        check_sizes(&rows)?;
     }
     if json {
         let v: Vec<_> = rows
@@ -93,23 +120,24 @@ pub(crate) fn envs(check: bool, json: bool) -> Result<i32> {
     Ok(if bad > 0 && check { 1 } else { 0 })
 }
 
-/// `lmac envs --generate pz:<module>[,key=value]...`: the Python side (`lmac_env.pz generate`)
-/// reads the environment's spaces and writes `<schema dir>/pz/<variant>.toml` with placeholder
-/// descriptions; the file is then validated here like any schema.
+/// `lmac envs --generate FAMILY:VARIANT`: the Python side writes `<schema dir>/<family>/<variant>.toml`
+/// with every size it can measure and `EDIT:` placeholders for the texts (`lmac_env.pz generate`
+/// from a PettingZoo env's spaces; `lmac_env.sizes generate` from the family module's
+/// `sizes(variant)` for any other family); the file is then validated here like any schema.
 pub(crate) fn generate(name: &str, force: bool, episode_limit: Option<usize>) -> Result<i32> {
     let (family, variant) = name
         .split_once(':')
-        .filter(|(f, v)| !f.is_empty() && !v.is_empty() && !v.contains('/'))
-        .ok_or_else(|| anyhow!("{name:?} must look like pz:<module>[,key=value]... (e.g. pz:mpe2.simple_spread_v3)"))?;
-    if family != PZ {
-        bail!(
-            "--generate writes schemas of PettingZoo environments (pz:<module>[,key=value]...), not {name:?}; \
-             for another family write env-server/schemas/{family}/{variant}.toml by hand (shm-schema/SCHEMA.md)"
-        );
-    }
+        .filter(|(f, v)| !f.is_empty() && !v.is_empty() && !v.contains('/') && !f.contains('/'))
+        .ok_or_else(|| anyhow!("{name:?} must look like FAMILY:VARIANT (e.g. pz:mpe2.simple_spread_v3 or rware:tiny-2ag)"))?;
     let dir = schema_dir().ok_or_else(|| anyhow!("cannot find env-server/schemas (set LMAC_SCHEMA_DIR)"))?;
     let path = dir.join(family).join(format!("{variant}.toml"));
-    let mut c = pz_command(&["generate", name, "--out"])?;
+    let mut c = if family == PZ {
+        pz_command(&["generate", name, "--out"])?
+    } else {
+        let mut c = supervisor::python_command()?;
+        c.args(["-m", "lmac_env.sizes", "generate", name, "--out"]);
+        c
+    };
     c.arg(&path);
     if force {
         c.arg("--force");

@@ -4,6 +4,7 @@
 //! here; the run's configuration is `config.rs`, its metrics `metrics.rs`, the learning itself
 //! `learn/`.
 
+pub mod budget;
 pub mod config;
 pub mod evaluate;
 pub mod marl_eval;
@@ -121,6 +122,9 @@ pub struct TrainActor {
     final_test: bool,
     next_test: u64,
     next_log: u64,
+    /// A metrics row fell due during a test phase: the test phase's row carries it, so no t_env
+    /// gets two rows (a training row and a test row at the same step).
+    log_due: bool,
     next_checkpoint: u64,
     t_env: u64,
     episodes: u64,
@@ -219,7 +223,7 @@ impl TrainActor {
             wall_s: self.wall_offset + secs,
             env_steps_per_s: (self.t_env - self.t_env_at_start) as f64 / secs.max(1e-9),
             epsilon: self.epsilon(),
-            train_return_mean: (test.is_none() && !self.train_returns.is_empty())
+            train_return_mean: ((test.is_none() || self.log_due) && !self.train_returns.is_empty())
                 .then(|| self.train_returns.iter().map(|&r| r as f64).sum::<f64>() / self.train_returns.len() as f64),
             test_return_mean: test.map(|t| t.0),
             test_win_rate: test.map(|t| t.1),
@@ -229,9 +233,10 @@ impl TrainActor {
             method: s.method.iter().map(|&(k, v)| (k.to_string(), v)).collect(),
         };
         drop(s);
-        if test.is_none() {
+        if test.is_none() || self.log_due {
             self.train_returns.clear();
         }
+        self.log_due = false;
         if let Err(e) = self.metrics.write(&row) {
             self.fail(e);
         }
@@ -324,7 +329,7 @@ impl Actor for TrainActor {
             self.episodes_sent += 1;
         }
         if self.t_env >= self.next_test {
-            self.next_test += self.cfg.run.test_interval;
+            self.next_test = budget::next_multiple(self.t_env, self.cfg.run.test_interval);
             self.test_pending = self.cfg.run.test_episodes;
         }
         if self.t_env >= self.cfg.run.steps && !self.final_test {
@@ -334,11 +339,15 @@ impl Actor for TrainActor {
             }
         }
         if self.t_env >= self.next_log {
-            self.next_log += self.cfg.run.log_interval;
-            self.log(None);
+            self.next_log = budget::next_multiple(self.t_env, self.cfg.run.log_interval);
+            if self.test_in_progress() && self.cfg.run.test_episodes > 0 {
+                self.log_due = true; // written with the test phase's row, at its t_env
+            } else {
+                self.log(None);
+            }
         }
         if self.t_env >= self.next_checkpoint {
-            self.next_checkpoint += self.cfg.run.checkpoint_interval;
+            self.next_checkpoint = budget::next_multiple(self.t_env, self.cfg.run.checkpoint_interval);
             if self.tx.send(ToLearner::Checkpoint).is_ok() {
                 self.checkpoints_pending += 1;
             }
@@ -469,6 +478,11 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
             earlier.dropped_rows, counters.t_env
         );
     }
+    if counters.t_env == 0 {
+        for w in budget::warnings(&cfg, schema.episode_limit) {
+            eprintln!("lmac: trainer: warning: {w}");
+        }
+    }
     let schedule =
         UpdateSchedule::new(cfg.run.updates_per_episode, learn.batch_size, counters.episodes, counters.updates, learner.buffer().len());
     // One controller per ring member (a sub-batch of an env server), each driving its environments.
@@ -501,9 +515,10 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         test_pending: if counters.t_env == 0 { cfg.run.test_episodes } else { 0 },
         test_returns: Vec::new(),
         final_test: false,
-        next_test: (counters.t_env / cfg.run.test_interval + 1) * cfg.run.test_interval,
-        next_log: (counters.t_env / cfg.run.log_interval + 1) * cfg.run.log_interval,
-        next_checkpoint: (counters.t_env / cfg.run.checkpoint_interval + 1) * cfg.run.checkpoint_interval,
+        next_test: budget::next_multiple(counters.t_env, cfg.run.test_interval),
+        next_log: budget::next_multiple(counters.t_env, cfg.run.log_interval),
+        log_due: false,
+        next_checkpoint: budget::next_multiple(counters.t_env, cfg.run.checkpoint_interval),
         t_env: counters.t_env,
         episodes: counters.episodes,
         train_returns: Vec::new(),

@@ -1,0 +1,1 @@
+"""Worked examples of plugging an environment into lmac (see meet.py)."""
