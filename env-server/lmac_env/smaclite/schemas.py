@@ -13,6 +13,10 @@ import sys
 from ..core import SCHEMA_DIR
 from .maps import MAPS, MapSpec, obs_layout
 
+# Message columns per receiver of the LMAC authors' design for a map (protocols/paper/), where it
+# is wider than FullComm's: the smaclite schema's budget is raised to fit it.
+PAPER_DESIGN_COLUMNS = {"5z_vs_1ul": 280}
+
 UNIT_NAMES = {"baneling": "Baneling", "overseer": "Overseer", "zealot": "Zealot",
               "hydralisk": "Hydralisk", "medivac": "Medivac", "roach": "Roach",
               "ultralisk": "Ultralisk"}
@@ -136,8 +140,15 @@ def render(spec: MapSpec, family: str) -> str:
     kinds = spec.agents
     L = [f"name = {_q(name)}", f"task = {_q(task)}", f"n_agents = {n}",
          f"obs_dim = {lay['obs_dim']}", f"state_dim = {lay['state_dim']}",
-         f"n_actions = {lay['n_actions']}", f"episode_limit = {spec.episode_limit}",
-         f"message_columns = {(n - 1) * (lay['obs_dim'] + n)}"]
+         f"n_actions = {lay['n_actions']}", f"episode_limit = {spec.episode_limit}"]
+    fullcomm = (n - 1) * (lay['obs_dim'] + n)
+    wider = PAPER_DESIGN_COLUMNS.get(spec.name, 0)
+    if family == "smaclite" and wider > fullcomm:
+        L += [f"# The LMAC authors' own protocol for this task (protocols/paper/) needs {wider} columns, more than",
+              f"# FullComm's {fullcomm}: the budget is raised to it so their design runs as they made it.",
+              f"message_columns = {wider}"]
+    else:
+        L += [f"message_columns = {fullcomm}"]
     if family == "smaclite" and spec.name in UNSPLIT:
         L += ["# One vectorized numpy step for all environments costs about as much for half the batch as for",
               "# all of it, so the env server does not split its batch (lmac bench pipeline: 0.73-0.80 of raw",
