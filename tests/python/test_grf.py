@@ -35,12 +35,17 @@ def pipeline_batch(schema: Schema, num_envs: int, msg_cols: int):
     return out, rows
 
 
+# Message columns per receiver of the authors' designs (protocols/paper/README.md).
+PAPER_DESIGN_COLUMNS = {S3: 110, RPS: 90}
+
+
 @pytest.mark.parametrize("name", [S3, RPS])
 def test_schema_and_dims(name):
     n, od, sd = EXPECTED[name]
     schema = Schema.load(schema_path(name))
     assert (schema.n_agents, schema.obs_dim, schema.state_dim, schema.n_actions) == (n, od, sd, 19)
-    assert schema.message_columns == (n - 1) * (od + n)
+    # FullComm always fits; the budget is the LMAC authors' wider design's (protocols/paper/)
+    assert schema.message_columns == max((n - 1) * (od + n), PAPER_DESIGN_COLUMNS[name])
     assert schema.alpha == pytest.approx(0.002)
     assert len(schema.raw["actions"]) == 19
     for key, dim in (("obs_dims", od), ("state_dims", sd)):
