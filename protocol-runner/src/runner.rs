@@ -32,10 +32,7 @@ pub enum RunnerError {
     Slots { slab: String, found: usize, ring: usize },
 }
 
-/// Name of ring member `s`'s slab in run `run` (its env server process creates it).
-pub fn slab_name(run: &str, member: usize) -> String {
-    format!("lmac-{run}-s{member}")
-}
+pub use lmac_shm_schema::slab::slab_name;
 
 /// Apply `plan` to one slot this process owns.
 pub fn apply_to_slot(plan: &mut dyn MessagePlan, slab: &Slab, slot: usize) -> Result<(), RunnerError> {

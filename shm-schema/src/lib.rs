@@ -2,8 +2,10 @@
 //! - [`schema`]: environment schema files (dims, meanings, episode limit, alpha) and validation;
 //! - [`layout`]: the byte layout of one batched step (a slot) computed from a schema;
 //! - [`slab`]: K slots in POSIX shared memory, mapped read-write by every process;
-//! - [`ring`]: the iceoryx2 control plane passing slot ownership around the ring.
+//! - [`ring`]: the iceoryx2 control plane passing slot ownership around the ring;
+//! - [`leftovers`]: what dead runs leave in shared memory, found and removed (`lmac clean`).
 pub mod layout;
+pub mod leftovers;
 pub mod ring;
 pub mod schema;
 pub mod slab;

@@ -108,12 +108,20 @@ pub fn is_run_node(run: &str, name: &str) -> bool {
     }
 }
 
+/// The run of an lmac node name (as [`node_name`] spells it), or None for any other name.
+pub fn run_of_node(name: &str) -> Option<&str> {
+    let rest = name.strip_prefix("lmac-")?;
+    // The role is the last dash-separated part; run ids may hold dashes themselves.
+    let (run, _) = rest.rsplit_once('-')?;
+    is_run_node(run, name).then_some(run)
+}
+
 /// The iceoryx2 configuration of lmac's nodes: the global one, except that creating or dropping a
 /// node does not clean up every dead node on the machine (iceoryx2's default), which would remove
 /// other applications' stale resources too. This run's dead nodes are cleaned by
 /// [`Port::check_peers`] and [`cleanup_dead_nodes`]; opening a service still cleans the dead
 /// nodes attached to that service, which are all participants of this run's services.
-fn ring_config() -> Config {
+pub(crate) fn ring_config() -> Config {
     let mut config = Config::global_config().clone();
     config.global.node.cleanup_dead_nodes_on_creation = false;
     config.global.node.cleanup_dead_nodes_on_destruction = false;

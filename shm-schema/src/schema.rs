@@ -109,6 +109,11 @@ pub const MAX_DIM: usize = 1 << 16;
 pub const MAX_EPISODE_LIMIT: usize = 1 << 20;
 /// Largest message_columns accepted (reserved after every observation row).
 pub const MAX_MESSAGE_COLUMNS: usize = 1 << 20;
+/// Most bytes the descriptions of one schema's observation or state dimensions may expand to
+/// (every dimension gets its group's meaning, labels and indices filled in; the prompts and
+/// the meta-information read them). The real schemas need tens of KiB; a group of 65536
+/// dimensions with a 1 MB meaning would need 64 GiB.
+pub const MAX_MEANING_BYTES: usize = 64 << 20;
 
 /// How a generated schema marks a text a person must still write (`lmac envs --generate`).
 pub const PLACEHOLDER: &str = "EDIT:";
@@ -197,6 +202,8 @@ impl EnvSchema {
         }
         for (field, groups, dim) in [("obs_dims", &self.obs_dims, self.obs_dim), ("state_dims", &self.state_dims, self.state_dim)] {
             let mut total = 0usize;
+            // What `expand` will allocate, bounded before anything expands it.
+            let mut text_bytes = 0usize;
             for (i, g) in groups.iter().enumerate() {
                 let at = format!("{field}[{i}]");
                 if g.count == 0 {
@@ -232,6 +239,25 @@ impl EnvSchema {
                     bad(&at, "meaning uses {label} but the group has no labels".into());
                 }
                 total = total.saturating_add(g.dims().unwrap_or(usize::MAX));
+                // Each dimension's text: the meaning with {k}, {r} and {iN} as numbers (at most 20
+                // digits each) and {label} as the longest label.
+                let label = g.labels.as_ref().and_then(|l| l.iter().map(String::len).max()).unwrap_or(0);
+                let per_dim = g.meaning.len().saturating_add(g.meaning.matches('{').count().saturating_mul(20 + label));
+                let group_bytes = per_dim.saturating_mul(g.dims().unwrap_or(usize::MAX));
+                let before = text_bytes;
+                text_bytes = text_bytes.saturating_add(group_bytes);
+                // Named once: at the group that crosses the bound.
+                if before <= MAX_MEANING_BYTES && text_bytes > MAX_MEANING_BYTES {
+                    bad(
+                        &format!("{at}.meaning"),
+                        format!(
+                            "the descriptions of {field} expand to more than {} MiB ({} dimensions x {per_dim} bytes in this group); \
+                             shorten the meaning or describe fewer dimensions",
+                            MAX_MEANING_BYTES >> 20,
+                            g.dims().unwrap_or(usize::MAX)
+                        ),
+                    );
+                }
             }
             let dim_field = if field == "obs_dims" { "obs_dim" } else { "state_dim" };
             if total != dim {

@@ -135,6 +135,10 @@ pub enum SlabError {
     Corrupt { name: String, field: &'static str, problem: String },
     #[error("slot {slot} of {name} is out of range: the slab has {n_slots} slots")]
     SlotRange { name: String, slot: usize, n_slots: usize },
+    /// A stop was requested ([`crate::ring::request_stop`], SIGTERM or Ctrl-C) while waiting for
+    /// a peer's slab: the wait ends at once instead of running out its start-up timeout.
+    #[error("stopped by request while waiting for shared memory {name}")]
+    Stopped { name: String },
 }
 
 /// A mapped slab. The creator (`Slab::create`) unlinks the name when dropped.
@@ -159,6 +163,34 @@ fn shm_name(name: &str) -> Result<CString, SlabError> {
         return Err(SlabError::BadName(name.into()));
     }
     Ok(CString::new(format!("/{name}")).expect("no NUL"))
+}
+
+/// Name of ring member `member`'s slab in run `run` (its env server process creates it).
+pub fn slab_name(run: &str, member: usize) -> String {
+    format!("lmac-{run}-s{member}")
+}
+
+/// The run and ring member of a slab name as [`slab_name`] spells it, or None for any other name.
+pub fn parse_slab_name(name: &str) -> Option<(&str, usize)> {
+    let (run, member) = name.strip_prefix("lmac-")?.rsplit_once("-s")?;
+    let m: usize = member.parse().ok()?;
+    // Exactly as spelt: "-s01" or "-s+1" is not a name lmac makes.
+    (!run.is_empty() && m.to_string() == member).then_some((run, m))
+}
+
+/// The pid recorded in an initialised slab's header (the env server that created it), read
+/// without mapping it or following a link; None when `name` is not a complete lmac slab (too
+/// short, another magic number, or its creator never finished the header).
+pub fn owner_pid(name: &str) -> Option<u32> {
+    use std::io::Read;
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut f = std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NOFOLLOW).open(shm_file_path(name)).ok()?;
+    let mut h = [0u8; header_offsets::OWNER_PID + 4];
+    f.read_exact(&mut h).ok()?;
+    // The header is the creator's in-memory struct: native byte order.
+    let word = |at: usize| u32::from_ne_bytes(h[at..at + 4].try_into().expect("4 bytes"));
+    let complete = h[..8] == MAGIC.to_ne_bytes() && word(header_offsets::STATE) == STATE_READY;
+    complete.then(|| word(header_offsets::OWNER_PID))
 }
 
 /// Path of a slab's file on Linux (for tests and cleanup).
@@ -240,6 +272,11 @@ impl Slab {
             if err.raw_os_error() != Some(libc::ENOENT) || t0.elapsed() >= wait {
                 return Err(SlabError::Os { name: name.into(), op: "shm_open", err });
             }
+            // A parent that dies before its env servers made their slabs sends its children
+            // SIGTERM (PR_SET_PDEATHSIG): they must not wait out the start-up timeout.
+            if crate::ring::stop_requested() {
+                return Err(SlabError::Stopped { name: name.into() });
+            }
             std::thread::sleep(Duration::from_millis(5));
         };
         let res = unsafe { Self::open_fd(fd, name, schema, wait.saturating_sub(t0.elapsed())) };
@@ -283,6 +320,9 @@ impl Slab {
             }
             if t0.elapsed() >= wait {
                 return Err(SlabError::NotReady { name: name.into(), waited: wait });
+            }
+            if crate::ring::stop_requested() {
+                return Err(SlabError::Stopped { name: name.into() });
             }
             std::thread::sleep(Duration::from_millis(5));
         }

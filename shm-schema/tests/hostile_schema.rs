@@ -130,3 +130,19 @@ fn one_agent_is_a_valid_schema_without_message_columns() {
     assert_eq!(zero.fullcomm_columns(), 0);
     assert!(zero.validate(Path::new(FILE)).unwrap_err().to_string().contains("n_agents: must be at least 1"));
 }
+
+/// Issue 30: a group of 65536 dimensions with a 1 MB meaning fits every per-field bound, but its
+/// descriptions would need 64 GiB (the process aborted). Refused at parse time, naming the group.
+#[test]
+fn descriptions_that_would_expand_past_memory_are_refused_naming_the_group() {
+    let meaning = "x".repeat(1 << 20);
+    let text = TOY
+        .replace("obs_dim = 3", "obs_dim = 65538")
+        .replace("count = 1\nmeaning = \"speed\"", &format!("count = 65536\nmeaning = \"{meaning} {{k}}\""));
+    let e = refused(&text);
+    assert!(e.contains("obs_dims[1].meaning") && e.contains("expand to more than"), "{e}");
+    assert!(!e.contains("groups describe"), "one error, not a follow-on one: {e}");
+    // The real schemas stay far below the bound.
+    let lbf = EnvSchema::load(&lbf_path()).unwrap();
+    assert!(lbf.obs_meanings().iter().map(String::len).sum::<usize>() < 1 << 20);
+}

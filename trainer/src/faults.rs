@@ -48,7 +48,8 @@ fn ppid_of(pid: i32) -> Option<i32> {
     stat.rsplit_once(')')?.1.split_whitespace().nth(1)?.parse().ok()
 }
 
-fn alive(pid: i32) -> bool {
+/// Whether process `pid` lives (a zombie does not).
+pub fn alive(pid: i32) -> bool {
     // A zombie is dead for our purposes: it only waits to be reaped.
     std::fs::read_to_string(format!("/proc/{pid}/stat"))
         .ok()

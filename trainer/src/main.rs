@@ -86,6 +86,9 @@ enum Cmd {
     /// Endurance: train for a long time and sample the run's memory, open files and shared-memory
     /// mappings; report their slopes once the replay buffer is full.
     Soak(SoakArgs),
+    /// Remove what dead lmac runs left in shared memory (slabs in /dev/shm, iceoryx2 nodes and
+    /// services): this user's only, never a live run's. Every start does it too.
+    Clean(cli::clean::CleanArgs),
     /// Internal: the child processes started by `lmac run`.
     #[command(subcommand, hide = true)]
     Child(ChildCmd),
@@ -184,6 +187,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
                 out,
             })
         })(),
+        Cmd::Clean(a) => cli::clean::clean(a),
         Cmd::Chaos(a) => cli::faults::chaos(a),
         Cmd::Soak(a) => cli::faults::soak(a),
         Cmd::Child(c) => cli::child::child(c),

@@ -169,6 +169,17 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
     // Removed (with the report) when this function returns, after every child has ended.
     let scratch =
         crate::safe_fs::PrivateDir::new(&format!("{}-run", plan.run)).context("creating the run's private temporary directory")?;
+    // Runs killed whole (kill -9 of the process group, the OOM killer) could not clean up after
+    // themselves: remove this user's dead leftovers before adding to shared memory.
+    let reclaimed = lmac_shm_schema::leftovers::reclaim();
+    if !reclaimed.removed.is_empty() {
+        let runs: std::collections::BTreeSet<&str> = reclaimed.removed.iter().map(|f| f.run.as_str()).collect();
+        eprintln!(
+            "lmac: removed {} shared-memory leftovers of dead runs ({})",
+            reclaimed.removed.len(),
+            runs.into_iter().collect::<Vec<_>>().join(", ")
+        );
+    }
     let mut procs: Vec<Proc> = Vec::new();
     let spawn_all = |procs: &mut Vec<Proc>| -> Result<()> {
         let h = plan.sub_batches;

@@ -319,3 +319,33 @@ fn a_complete_tmp_is_used_and_a_corrupt_file_is_named() {
     assert!(e.contains("net.bpk") && e.contains("CRC-32C"), "{e}");
     std::fs::remove_dir_all(&parent).unwrap();
 }
+
+/// Issue 30: a checkpoint's `state.json` is bytes from outside. A checkpoint without a manifest
+/// (written before manifests, so nothing checks its sums) whose counters say t_env = 2^64-1
+/// would mark the run finished, and a 60000-wide GRU in its config would abort the process
+/// building it: both are refused, naming the file and the field.
+#[test]
+fn state_json_out_of_range_is_refused_naming_the_field() {
+    let parent = std::env::temp_dir().join(format!("lmac-ckpt-range-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&parent);
+    std::fs::create_dir_all(&parent).unwrap();
+    let dir = parent.join("checkpoint");
+    let (mut learner, mut rng) = small_learner();
+    step(&mut learner, &mut rng);
+    learner.save_checkpoint(&dir, false).unwrap();
+    std::fs::remove_file(dir.join("manifest.json")).unwrap();
+    let state = dir.join("state.json");
+    let original: serde_json::Value = serde_json::from_slice(&std::fs::read(&state).unwrap()).unwrap();
+    for (section, field, value) in
+        [("counters", "t_env", serde_json::json!(u64::MAX)), ("config", "rnn_hidden_dim", serde_json::json!(60000))]
+    {
+        let mut v = original.clone();
+        v[section][field] = value;
+        std::fs::write(&state, serde_json::to_vec(&v).unwrap()).unwrap();
+        let e = Learner::load_checkpoint(&dir, Device::default()).err().expect("refused").to_string();
+        assert!(e.contains("state.json") && e.contains(field), "{field}: {e}");
+    }
+    std::fs::write(&state, serde_json::to_vec(&original).unwrap()).unwrap();
+    assert!(Learner::load_checkpoint(&dir, Device::default()).is_ok(), "the untouched state loads");
+    std::fs::remove_dir_all(&parent).unwrap();
+}

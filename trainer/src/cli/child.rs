@@ -73,7 +73,8 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
             };
             match prunner::run(&args, &mut plans) {
                 Ok(_) => 0,
-                Err(prunner::RunnerError::Ring(lmac_shm_schema::RingError::Stopped)) => 0,
+                Err(prunner::RunnerError::Ring(lmac_shm_schema::RingError::Stopped))
+                | Err(prunner::RunnerError::Slab(lmac_shm_schema::SlabError::Stopped { .. })) => 0,
                 Err(e) => {
                     eprintln!("lmac: {e}");
                     3
@@ -140,7 +141,8 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                     write_report(&report_to, &report)?;
                     0
                 }
-                Err(pipeline::PipelineError::Ring(lmac_shm_schema::RingError::Stopped)) => 0,
+                Err(pipeline::PipelineError::Ring(lmac_shm_schema::RingError::Stopped))
+                | Err(pipeline::PipelineError::Slab(lmac_shm_schema::SlabError::Stopped { .. })) => 0,
                 Err(e) => {
                     eprintln!("lmac: {e}");
                     3

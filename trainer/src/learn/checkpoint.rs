@@ -308,6 +308,20 @@ fn read_state(dir: &Path) -> Result<(PathBuf, StateJson), LearnError> {
         }
     }
     st.config.validate().map_err(|e| ck(format!("config: {e}"), "load", &p))?;
+    // Counters decide where a resumed run stands and whether it is finished: a corrupt t_env of
+    // 2^64-1 would mark any run done. Bounded as the config bounds a run's steps.
+    let c = &st.counters;
+    for (field, v) in
+        [("t_env", c.t_env), ("episodes", c.episodes), ("updates", c.updates), ("last_target_update_episode", c.last_target_update_episode)]
+    {
+        if v > crate::train::config::MAX_ENV_STEPS {
+            return Err(ck(
+                format!("counters.{field} is {v}, more than the {} env steps a run may take", crate::train::config::MAX_ENV_STEPS),
+                "load",
+                &p,
+            ));
+        }
+    }
     st.agent.validate().map_err(|e| ck(format!("agent: {e}"), "load", &p))?;
     Ok((dir, st))
 }

@@ -156,8 +156,14 @@ impl LearnConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         // Upper bounds far above any sensible run, low enough that a corrupt config or checkpoint
         // cannot make building the networks or the buffer exhaust memory.
+        // Network widths: a GRU of width w holds 3 w^2 weights (and Adam twice as many again), so
+        // 4096 is about 600 MB; 60000 would need over 100 GB and abort the process.
         let pos = |field: &'static str, v: usize| {
-            let max = if field == "buffer_size" || field == "batch_size" { 1 << 24 } else { 1 << 16 };
+            let max = match field {
+                "buffer_size" | "batch_size" => 1 << 24,
+                "qplex_num_kernel" => 1 << 10,
+                _ => 1 << 12,
+            };
             if v == 0 {
                 Err(err(field, "must be at least 1"))
             } else if v > max {
@@ -185,14 +191,14 @@ impl LearnConfig {
         if !(self.gamma.is_finite() && (0.0..=1.0).contains(&self.gamma)) {
             return Err(err("gamma", format!("must be in [0, 1], got {}", self.gamma)));
         }
-        if !(self.lr.is_finite() && self.lr > 0.0) {
-            return Err(err("lr", format!("must be positive, got {}", self.lr)));
+        if !(self.lr.is_finite() && self.lr > 0.0 && self.lr <= 10.0) {
+            return Err(err("lr", format!("must be positive and at most 10, got {}", self.lr)));
         }
-        if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
-            return Err(err("adam_eps", format!("must be positive, got {}", self.adam_eps)));
+        if !(self.adam_eps.is_finite() && self.adam_eps > 0.0 && self.adam_eps <= 1.0) {
+            return Err(err("adam_eps", format!("must be in (0, 1], got {}", self.adam_eps)));
         }
-        if !(self.rmsprop_eps.is_finite() && self.rmsprop_eps > 0.0) {
-            return Err(err("rmsprop_eps", format!("must be positive, got {}", self.rmsprop_eps)));
+        if !(self.rmsprop_eps.is_finite() && self.rmsprop_eps > 0.0 && self.rmsprop_eps <= 1.0) {
+            return Err(err("rmsprop_eps", format!("must be in (0, 1], got {}", self.rmsprop_eps)));
         }
         if !(self.rmsprop_alpha.is_finite() && self.rmsprop_alpha > 0.0 && self.rmsprop_alpha < 1.0) {
             return Err(err("rmsprop_alpha", format!("must be in (0, 1), got {}", self.rmsprop_alpha)));
@@ -200,8 +206,14 @@ impl LearnConfig {
         if !(self.grad_norm_clip.is_finite() && self.grad_norm_clip > 0.0) {
             return Err(err("grad_norm_clip", format!("must be positive, got {}", self.grad_norm_clip)));
         }
-        if self.target_update_interval_episodes == 0 {
-            return Err(err("target_update_interval_episodes", "must be at least 1"));
+        if !(1..=1 << 40).contains(&self.target_update_interval_episodes) {
+            return Err(err(
+                "target_update_interval_episodes",
+                format!("must be between 1 and 2^40, got {}", self.target_update_interval_episodes),
+            ));
+        }
+        if self.epsilon_anneal_steps > 1 << 48 {
+            return Err(err("epsilon_anneal_steps", format!("must be at most 2^48, got {}", self.epsilon_anneal_steps)));
         }
         for (field, v) in [("epsilon_start", self.epsilon_start), ("epsilon_finish", self.epsilon_finish)] {
             if !(v.is_finite() && (0.0..=1.0).contains(&v)) {

@@ -90,6 +90,19 @@ impl Default for RunSection {
     }
 }
 
+/// Most env steps a run, or an interval of one, may ask for (2^48, about 2.8e14).
+pub const MAX_ENV_STEPS: u64 = 1 << 48;
+/// Most environments per env server process.
+const MAX_ENVS: usize = 1 << 16;
+/// Most env server processes of one run.
+const MAX_SERVERS: usize = 1 << 10;
+/// Most episodes of a test phase, a final evaluation or a dataset.
+const MAX_EPISODES: usize = 1 << 24;
+/// Highest design phase index (designs have three phases, 0..=2).
+const MAX_DESIGN_K: usize = 1 << 10;
+/// Most gradient updates per collected episode.
+const MAX_UPDATES_PER_EPISODE: f64 = 1024.0;
+
 /// The resolved configuration of one run, saved as `config.toml` in its directory.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -267,19 +280,24 @@ impl TrainConfig {
                 cur = table.entry(part.to_string()).or_insert(toml::Value::Table(Default::default()));
             }
         }
-        let text = toml::to_string(&v).map_err(|e| anyhow::anyhow!("config: cannot re-serialize after the overrides: {e}"))?;
-        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| {
-            // toml's message does not name the key of a mistyped value; its span does: the key
-            // is on the span's line, under the last [section] above it.
-            let before = e.span().and_then(|s| text.get(..s.start)).unwrap_or("");
-            let key = before.lines().last().and_then(|l| l.split_once('=')).map(|(k, _)| k.trim().trim_matches('"'));
-            let section = before.lines().rev().find_map(|l| l.trim().strip_prefix('[').and_then(|l| l.strip_suffix(']')));
-            match (section, key) {
-                (Some(s), Some(k)) => anyhow::anyhow!("config: {s}.{k}: {}", e.message()),
-                _ => anyhow::anyhow!("config: {}", e.message()),
+        // Errors name the file (and say when --set took part) and the field by its path, whatever
+        // the value's type: `run = 5` names `run`, a table where a number belongs names its key.
+        let origin = match (file, overrides.is_empty()) {
+            (Some(p), true) => format!("config {}", p.display()),
+            (Some(p), false) => format!("config {} with --set overrides", p.display()),
+            (None, _) => "config".to_string(),
+        };
+        let cfg: TrainConfig = serde_path_to_error::deserialize(v).map_err(|e| {
+            let path = e.path().to_string();
+            // toml's own message, without the key it appends itself (the path here names it).
+            let e = e.into_inner().message().trim().to_string();
+            if path.is_empty() || path == "." {
+                anyhow::anyhow!("{origin}: {e}")
+            } else {
+                anyhow::anyhow!("{origin}: {path}: {e}")
             }
         })?;
-        cfg.check()?;
+        cfg.check().map_err(|e| anyhow::anyhow!("{origin}: {e:#}"))?;
         Ok(cfg)
     }
 
@@ -289,25 +307,37 @@ impl TrainConfig {
         methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
         self.learn.validate()?;
         let r = &self.run;
+        // Every number is range-checked: bounds far above any real run, low enough that a typo or
+        // a hostile file cannot ask for an allocation the machine cannot hold, a schedule that
+        // never arrives (1e300 updates per episode) or an overflow.
         for (field, v) in [
             ("run.steps", r.steps),
             ("run.test_interval", r.test_interval),
             ("run.log_interval", r.log_interval),
             ("run.checkpoint_interval", r.checkpoint_interval),
         ] {
-            if v == 0 {
-                bail!("{field}: must be at least 1");
+            if !(1..=MAX_ENV_STEPS).contains(&v) {
+                bail!("{field}: must be between 1 and {MAX_ENV_STEPS}, got {v}");
             }
         }
-        if r.envs == 0 || r.servers == 0 {
-            bail!("run.envs and run.servers: must be at least 1");
+        for (field, v, lo, hi) in [
+            ("run.envs", r.envs, 1, MAX_ENVS),
+            ("run.servers", r.servers, 1, MAX_SERVERS),
+            ("run.test_episodes", r.test_episodes, 0, MAX_EPISODES),
+            ("run.final_eval_episodes", r.final_eval_episodes.unwrap_or(0), 0, MAX_EPISODES),
+            ("run.dataset_episodes", r.dataset_episodes, 0, MAX_EPISODES),
+            ("run.design_k", r.design_k.unwrap_or(0), 0, MAX_DESIGN_K),
+        ] {
+            if !(lo..=hi).contains(&v) {
+                bail!("{field}: must be between {lo} and {hi}, got {v}");
+            }
         }
         // 0 takes the default, which always divides (supervisor::default_sub_batches).
         if r.sub_batches != 0 && r.envs % r.sub_batches != 0 {
             bail!("run.sub_batches: {} does not divide run.envs {}", r.sub_batches, r.envs);
         }
-        if !(r.updates_per_episode.is_finite() && r.updates_per_episode > 0.0) {
-            bail!("run.updates_per_episode: must be positive, got {}", r.updates_per_episode);
+        if !(r.updates_per_episode.is_finite() && r.updates_per_episode > 0.0 && r.updates_per_episode <= MAX_UPDATES_PER_EPISODE) {
+            bail!("run.updates_per_episode: must be positive and at most {MAX_UPDATES_PER_EPISODE}, got {}", r.updates_per_episode);
         }
         if let Some(e) = r.dataset_epsilon {
             if !(0.0..=1.0).contains(&e) {
@@ -403,5 +433,45 @@ mod tests {
         assert!(paper.learn.parallel_target, "the paper schedule unrolls the target on the second core");
         let old = TrainConfig::resolve(None, &preset_overrides("pymarl-parallel").unwrap()).unwrap();
         assert_eq!(old.run.updates_per_episode, 0.125);
+    }
+
+    /// Issue 30: every number is range-checked (1e300 updates per episode hung the run at t_env
+    /// 800, a 60000-wide GRU aborted the process), and errors name the file and the field by its
+    /// path whatever the value's type.
+    #[test]
+    fn out_of_range_settings_are_refused_naming_the_file_and_the_field() {
+        let refused = |file: Option<&Path>, o: &[&str]| {
+            let o: Vec<String> = o.iter().map(|s| s.to_string()).collect();
+            format!("{:#}", TrainConfig::resolve(file, &o).expect_err("refused"))
+        };
+        let e = refused(None, &["run.updates_per_episode=1e300"]);
+        assert!(e.contains("run.updates_per_episode") && e.contains("at most"), "{e}");
+        let e = refused(None, &["learn.rnn_hidden_dim=60000"]);
+        assert!(e.contains("rnn_hidden_dim") && e.contains("at most 4096"), "{e}");
+        for (o, field) in [
+            ("run.steps=1152921504606846976", "run.steps"),
+            ("run.envs=100000000", "run.envs"),
+            ("run.design_k=1152921504606846976", "run.design_k"),
+        ] {
+            let e = refused(None, &[o]);
+            assert!(e.contains(field) && e.contains("between"), "{o}: {e}");
+        }
+        let dir = std::env::temp_dir().join(format!("lmac-config-range-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let write = |name: &str, text: &str| {
+            let p = dir.join(name);
+            std::fs::write(&p, text).unwrap();
+            p
+        };
+        let f = write("run5.toml", "run = 5\n");
+        let e = refused(Some(&f), &[]);
+        assert!(e.contains(&f.display().to_string()) && e.contains(": run: ") && !e.contains("steps"), "{e}");
+        let f = write("table.toml", "[learn]\nlr = { a = 1 }\n");
+        let e = refused(Some(&f), &[]);
+        assert!(e.contains(&f.display().to_string()) && e.contains("learn.lr"), "{e}");
+        let f = write("zero.toml", "[run]\nsteps = 0\n");
+        let e = refused(Some(&f), &["learn.lr=0.001"]);
+        assert!(e.contains(&f.display().to_string()) && e.contains("--set") && e.contains("run.steps"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
