@@ -2,13 +2,6 @@
 //! command is a module of `cli/`, and the work of each process lives in its crate.
 mod cli;
 
-/// The learner allocates and frees tensors of megabytes many times per update; glibc's malloc
-/// maps and unmaps each one and page-faults it in again, mimalloc keeps and reuses them (issue 26:
-/// measured in `lmac bench learner`).
-#[cfg(feature = "mimalloc")]
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 use cli::bench::BenchCmd;
