@@ -67,8 +67,9 @@ fn the_learner_bench_reports_each_mixer_and_refuses_what_it_cannot_run() {
 }
 
 /// `--algo` times a method's agent network on the same shape: LMAC's module (more work than
-/// the plain agent it wraps), an algorithm that names its backbone runs on that one only, no FLOP
-/// figure (the count describes the plain agent), and inputs that do not fit are refused.
+/// the plain agent it wraps, FLOPs counted), an algorithm that names its backbone runs on that
+/// one only, no FLOP figure where the method's networks are not counted, and inputs that do
+/// not fit are refused.
 #[test]
 fn the_learner_bench_times_a_methods_agent_network() {
     let run = |extra: &[&str]| {
@@ -87,10 +88,15 @@ fn the_learner_bench_times_a_methods_agent_network() {
     let lmac_v = ok(&run(&["--algo", "lmac", "--messages", "10", "--critical", "8", "--method", "encoder=\"gru-gate\""]));
     assert_eq!(lmac_v["method"]["algo"], "lmac");
     assert_eq!(lmac_v["method"]["critical_dims"], 8);
+    // LMAC's FLOPs are counted (its module on top of the agent it wraps): more than the plain
+    // agent's on the same shape; a method whose extra networks are not counted has no figure.
     let fig = &lmac_v["figures"][0];
-    assert!(fig["gflops"].is_null() && fig["median_ms"].as_f64().unwrap() > 0.0, "{fig}");
-    assert!(lmac_v["flops"].as_array().unwrap().is_empty(), "{}", lmac_v["flops"]);
+    assert!(fig["gflops"].as_f64().unwrap() > 0.0 && fig["median_ms"].as_f64().unwrap() > 0.0, "{fig}");
+    let gflop = |v: &serde_json::Value| v["flops"][0]["gflop_per_update"].as_f64().unwrap();
+    assert!(gflop(&lmac_v) > gflop(&plain), "{} vs {}", lmac_v["flops"], plain["flops"]);
     assert!(plain["figures"][0]["gflops"].as_f64().unwrap() > 0.0);
+    let ndq = ok(&run(&["--algo", "ndq"]));
+    assert!(ndq["figures"][0]["gflops"].is_null() && ndq["flops"].as_array().unwrap().is_empty(), "{}", ndq["flops"]);
 
     let fixed = ok(&run(&["--algo", "qplex"]));
     let mixers: Vec<&str> = fixed["figures"].as_array().unwrap().iter().map(|f| f["mixer"].as_str().unwrap()).collect();
