@@ -69,10 +69,11 @@ impl RewardStats {
         if k == 0 {
             return;
         }
-        let mean = values.iter().map(|&v| v as f64).sum::<f64>() / k as f64;
+        let values: Vec<f64> = values.iter().map(|&v| v as f64).collect();
+        let mean = crate::stats::mean(&values);
         // torch.var's default: the unbiased estimate (0 for a single value would be NaN there;
         // a one-value batch adds no spread here).
-        let var = if k > 1 { values.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / (k - 1) as f64 } else { 0.0 };
+        let var = if k > 1 { crate::stats::variance(&values) * k as f64 / (k - 1) as f64 } else { 0.0 };
         let (n, m) = (self.count, k as f64);
         let delta = mean - self.mean;
         let total = n + m;
