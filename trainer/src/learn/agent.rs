@@ -49,13 +49,20 @@ impl FusedGru {
     /// time-major [T * N, in] -> [T, N, H]. The input projection runs once over all steps and
     /// the recurrence is one fused operation (`gru_sequence`), equal to stepping `forward`.
     pub fn sequence(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
+        let (gi, bias) = self.input_projection(x, steps);
+        gru_sequence(gi, self.hidden.weight.val(), bias)
+    }
+
+    /// What both sequence forms feed the recurrence: every step's input projection [T, N, 3H]
+    /// and the hidden projection's bias (zeros when it has none).
+    fn input_projection(&self, x: Tensor<2>, steps: usize) -> (Tensor<3>, Tensor<1>) {
         let rows = x.dims()[0] / steps.max(1);
         let gi = self.input.forward(x).reshape([steps, rows, 3 * self.hidden_dim]);
         let bias = match &self.hidden.bias {
             Some(b) => b.val(),
             None => Tensor::zeros([3 * self.hidden_dim], &gi.device()),
         };
-        gru_sequence(gi, self.hidden.weight.val(), bias)
+        (gi, bias)
     }
 }
 
@@ -65,11 +72,7 @@ impl FusedGru {
     pub fn sequence_carry(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
         let rows = x.dims()[0] / steps.max(1);
         let res = x.clone().reshape([steps, rows, self.hidden_dim]);
-        let gi = self.input.forward(x).reshape([steps, rows, 3 * self.hidden_dim]);
-        let bias = match &self.hidden.bias {
-            Some(b) => b.val(),
-            None => Tensor::zeros([3 * self.hidden_dim], &gi.device()),
-        };
+        let (gi, bias) = self.input_projection(x, steps);
         gru_sequence_carry(gi, self.hidden.weight.val(), bias, res)
     }
 }
