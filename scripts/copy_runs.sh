@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Flat copies of finished runs into docs/figures (the README's figures read these):
+# Flat copies of finished runs into docs/figures (the guide's figures in docs/ read these):
 # metrics.csv -> <label>_seed<k>.csv, config.toml -> .config.toml, marl_eval.json -> .marl_eval.json.
 #   bash scripts/copy_runs.sh DEST RUN_DIR=LABEL...   (RUN_DIR: a seed directory, seed<k>)
 set -euo pipefail

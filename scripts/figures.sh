@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Measure the figures the README and docs/ quote, on this machine, and keep them as JSON in
+# Measure the figures the guide (docs/) quotes, on this machine, and keep them as JSON in
 # docs/figures/ (one file per measurement, raw output of the lmac commands). Run on a quiet
 # machine: every figure is a ratio against a baseline measured in the same run, but absolute
 # rates move with the load. Takes about 20 minutes (plus the ndarray build).

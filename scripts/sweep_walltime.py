@@ -1,6 +1,6 @@
 """Wall time of one sweep through Ray Tune against the same trials run one after another.
 
-The README's figure for `lmac-sweep`: 4 trials (seeds 0, 1 x learn.lr 0.0005, 0.001; QMIX on LBF
+The guide's figure for `lmac-sweep` (docs/guide/sweeps.md): 4 trials (seeds 0, 1 x learn.lr 0.0005, 0.001; QMIX on LBF
 8x8) run (a) with plain `lmac train`, one after another, (b) through `lmac-sweep` with
 cpus_per_trial = 2 (the default: one trial at a time on 2 cores) and (c) with cpus_per_trial = 1
 (two at a time). Ray runs in a network namespace with only loopback, as in the tests. Run it on a

@@ -39,7 +39,7 @@ limit used by the paper's reference code.
 
 Backends: ``LMAC_GRF_WORKERS`` = number of worker processes (0 = all environments stepped in
 this process). The default (see ``_default_workers``) comes from the measurements in
-docs/grf.md. Each environment's episodes are seeded from ``SeedSequence([seed, env_index])``,
+docs/guide/grf.md. Each environment's episodes are seeded from ``SeedSequence([seed, env_index])``,
 so results do not depend on the number of workers.
 """
 from __future__ import annotations
@@ -277,7 +277,7 @@ class _RemoteGroup:
 
 
 def _default_workers(num_envs: int) -> int:
-    """In-process by default. Measured (docs/grf.md) on the shared 2-core machine: worker
+    """In-process by default. Measured (docs/guide/grf.md) on the shared 2-core machine: worker
     processes cost 10-15% more CPU per env-step (pipes, pickling, idle lockstep) and, with the
     cores busy, were slower than stepping all B engines in the server process; the pipeline
     already runs one process per env server, which is the place to add parallelism

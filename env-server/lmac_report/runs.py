@@ -28,7 +28,7 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
-FINAL_TESTS = 5  # test phases averaged into a run's final score without absolute_metrics
+from .final import FINAL_TEST_PHASES as FINAL_TESTS, final_of  # noqa: E402  (the one rule)
 FLAT = re.compile(r"^(?P<label>.+)_seed(?P<seed>\d+)\.csv$")
 STEP = re.compile(r"^step_(\d+)$")
 
@@ -74,8 +74,7 @@ class Run:
         _, ys = self.curve(metric)
         if not ys:
             raise ReportError(f"{self.source}: no {metric!r} in any test phase or absolute_metrics")
-        last = ys[-FINAL_TESTS:]
-        return sum(last) / len(last), "last5"
+        return final_of(ys), "last5"
 
     def unfinished(self) -> bool:
         """Its last test phase is more than 2% short of its config's run.steps."""

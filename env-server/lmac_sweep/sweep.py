@@ -25,7 +25,7 @@ A sweep file (TOML):
     learn.gamma = { uniform = [0.95, 0.995] }
 
 Every trial is `lmac train ... --set key=value ... --seeds k --out <runs>/<trial id>/attempt<n>`;
-see README "Sweeps on Ray".
+see docs/guide/sweeps.md.
 """
 
 from __future__ import annotations

@@ -27,6 +27,27 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
+enum ConfigCmd {
+    /// Print the configuration reference (Markdown): every key of [run], [learn] and each
+    /// method's [method] with its default and meaning, generated from the code (the guide's
+    /// docs/reference/configuration.md is this output).
+    Reference,
+    /// Print the resolved configuration (TOML) that a file, a preset and `--set` overrides give,
+    /// as `lmac train` would save it, without training.
+    Show {
+        /// A config file (TOML) to start from.
+        #[arg(long)]
+        config: Option<std::path::PathBuf>,
+        /// A preset, applied before the overrides (`lmac train --help` lists them).
+        #[arg(long)]
+        preset: Option<String>,
+        /// Overrides: --set learn.lr=0.001 --set run.envs=8.
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+}
+
+#[derive(Subcommand)]
 enum Cmd {
     /// Run the pipeline with a random policy: env servers -> protocol runner -> trainer (throughput, checks).
     Run(RunArgs),
@@ -82,6 +103,10 @@ enum Cmd {
     /// Remove what dead lmac runs left in shared memory (slabs in /dev/shm, iceoryx2 nodes and
     /// services): this user's only, never a live run's. Every start does it too.
     Clean(cli::clean::CleanArgs),
+    /// The configuration: every key with its default and meaning, or the resolved config of a
+    /// preset and overrides.
+    #[command(subcommand)]
+    Config(ConfigCmd),
     /// Internal: the child processes started by `lmac run`.
     #[command(subcommand, hide = true)]
     Child(ChildCmd),
@@ -105,6 +130,20 @@ fn dispatch(cli: Cli) -> Result<i32> {
         Cmd::Envs { generate: Some(name), force, episode_limit, .. } => cli::envs::generate(&name, force, episode_limit),
         Cmd::Envs { check, json, .. } => cli::envs::envs(check, json),
         Cmd::Run(a) => cli::run::run(a),
+        Cmd::Config(ConfigCmd::Reference) => {
+            print!("{}", lmac_trainer::train::reference::markdown());
+            Ok(0)
+        }
+        Cmd::Config(ConfigCmd::Show { config, preset, set }) => {
+            let mut overrides = match &preset {
+                Some(p) => lmac_trainer::train::preset_overrides(p)?,
+                None => Vec::new(),
+            };
+            overrides.extend(set);
+            let cfg = lmac_trainer::train::TrainConfig::resolve(config.as_deref(), &overrides)?;
+            print!("{}", toml::to_string_pretty(&cfg)?);
+            Ok(0)
+        }
         Cmd::Train(a) => cli::train::train(a),
         Cmd::Evaluate(a) => cli::evaluate::evaluate(a),
         Cmd::Protocol(p) => cli::protocol::protocol_cmd(p),

@@ -1,4 +1,4 @@
-//! The communication baselines' extra losses reduce as `docs/fidelity.md` says: each test
+//! The communication baselines' extra losses reduce as `docs/reference/fidelity.md` says: each test
 //! recomputes a term from the network's public pieces (or from weights set so the term has a
 //! closed form) and checks the default (the papers' losses over the trained steps) and the
 //! setting that gives the released code's reduction.

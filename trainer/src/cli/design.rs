@@ -143,6 +143,6 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
         meta::evaluate_all(ctx, phases, &meta_cfg)
     };
     let dir = run_design(&opts, designer.as_mut(), &train, &evaluate)?;
-    super::plot("plot_design.py", &dir);
+    super::plot("plot_design", &dir);
     Ok(dir)
 }

@@ -261,7 +261,8 @@ fn shared_design(a: &ExperimentArgs, dir: &Path, interrupted: std::sync::Arc<std
 }
 
 /// The last few test phases of a run average into its final figure (one phase is only
-/// run.test_episodes episodes), as plot_runs.py does.
+/// run.test_episodes episodes): the rule of `env-server/lmac_report/final.py`, which every report
+/// and plot uses.
 const FINAL_TESTS: usize = 5;
 
 /// Mean and population standard deviation over seeds.

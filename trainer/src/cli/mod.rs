@@ -145,20 +145,20 @@ pub(crate) fn pipeline_report(
     Ok(supervisor::run_pipeline(&rp, interrupted)?.report)
 }
 
-/// Draw a run's or a design's figures with one of the project's matplotlib scripts
-/// (`trainer/<script>`, run by the project's Python on `dir`); a failure is reported, not fatal.
-pub(crate) fn plot(script: &str, dir: &std::path::Path) {
-    let path = supervisor::repo_root().map(|r| r.join("trainer").join(script));
-    let out = path.and_then(|s| Ok(supervisor::python_command()?.arg(s).arg(dir).output()?));
+/// Draw a run's or a design's figures with one of the reporting package's matplotlib modules
+/// (`python -m lmac_report.<module> DIR`, the project's Python); a failure is reported, not fatal.
+pub(crate) fn plot(module: &str, dir: &std::path::Path) {
+    let out = supervisor::python_command()
+        .and_then(|mut c| Ok(c.arg("-m").arg(format!("lmac_report.{module}")).arg(dir).output()?));
     match out {
         Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
-        Ok(o) => eprintln!("lmac: {script} failed: {}", String::from_utf8_lossy(&o.stderr)),
-        Err(e) => eprintln!("lmac: {script} failed: {e}"),
+        Ok(o) => eprintln!("lmac: lmac_report.{module} failed: {}", String::from_utf8_lossy(&o.stderr)),
+        Err(e) => eprintln!("lmac: lmac_report.{module} failed: {e}"),
     }
 }
 
 /// The curves of an experiment and, with the k ablations, its phase plot
-/// (`trainer/plot_experiment.py`).
+/// (`lmac_report.plot_experiment`).
 pub(crate) fn plot_experiment(dir: &std::path::Path) {
-    plot("plot_experiment.py", dir);
+    plot("plot_experiment", dir);
 }

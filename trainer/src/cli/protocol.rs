@@ -200,7 +200,7 @@ fn measure(
     for e in &evaluations {
         println!("phases 0..={} ({} message columns), fixed dims {}", e.phase, e.message_columns, e.fixed_dims.summary_line());
     }
-    super::plot("plot_design.py", out);
+    super::plot("plot_design", out);
     println!("written: {}/summary.json, recovery.png, phase<k>/{{meta,recovery}}.json", out.display());
     Ok(0)
 }

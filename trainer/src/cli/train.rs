@@ -123,7 +123,7 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
     };
     eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
     train_dirs_holding(&dirs, held, interrupted)?;
-    super::plot("plot_runs.py", &group);
+    super::plot("plot_runs", &group);
     Ok(0)
 }
 

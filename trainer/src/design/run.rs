@@ -60,7 +60,7 @@ pub type TrainRun<'a> = &'a dyn Fn(&Path) -> Result<()>;
 /// How a phase's protocol is evaluated on B: the meta-information and every dim (see `meta`).
 pub type Evaluate<'a> = &'a dyn Fn(&DesignContext, &[ValidatedProtocol]) -> Result<Evaluation>;
 
-/// One phase's line of `summary.json` (read by `plot_design.py`). The target dims change from
+/// One phase's line of `summary.json` (read by `lmac_report.plot_design`). The target dims change from
 /// phase to phase (they steer the designer); the trend is read on `fixed_dims` and `all_dims`.
 #[derive(Clone, Debug, Serialize)]
 pub struct PhaseEvaluation {

@@ -5,7 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 /// Value-decomposition backbone (the mixer).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum MixerKind {
     /// Q_tot = sum_i Q_i.
@@ -16,7 +16,7 @@ pub enum MixerKind {
     Qplex,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum OptimizerKind {
     Adam,
@@ -24,7 +24,7 @@ pub enum OptimizerKind {
 }
 
 /// Whether TD targets read standardised rewards ((r - mean) / std with running statistics).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum RewardStandardisation {
     /// The method's own choice: LMAC standardises (the released LMAC config sets
@@ -40,7 +40,7 @@ pub enum RewardStandardisation {
 }
 
 /// All learner hyperparameters.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct LearnConfig {
     pub mixer: MixerKind,
@@ -80,7 +80,9 @@ pub struct LearnConfig {
     pub double_q: bool,
     /// Target networks are copied every this many collected episodes (Table C.3: 200).
     pub target_update_interval_episodes: u64,
+    /// Epsilon-greedy exploration at the first env step (Table C.3: 1.0).
     pub epsilon_start: f32,
+    /// Epsilon after `epsilon_anneal_steps`, kept to the end (Table C.3: 0.05).
     pub epsilon_finish: f32,
     /// Env steps over which epsilon is annealed linearly (Table C.3: 50k).
     pub epsilon_anneal_steps: u64,

@@ -133,7 +133,7 @@ impl KernelMlp {
 
 /// Checked against the QPLEX reference (wjh720/QPLEX `dmaq_general.py`, `dmaq_si_weight.py`,
 /// `qplex.yaml`: `weighted_head` and `is_minus_one` on, 10 kernels of 3 layers; see
-/// `docs/fidelity.md`). One difference: the reference's w(s) and v(s) are always 2-layer
+/// `docs/reference/fidelity.md`). One difference: the reference's w(s) and v(s) are always 2-layer
 /// networks of width `hypernet_embed` (`dmaq_general.py:22-27`), here they follow
 /// `learn.hypernet_layers` (2 by default, the same networks; 1 only if set).
 ///

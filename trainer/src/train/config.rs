@@ -10,9 +10,11 @@ use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// Everything about a run that is not a learner hyperparameter.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct RunSection {
+    /// The environment, `family:variant` (`lmac envs` lists them; e.g. `smaclite:1o_10b_vs_1r`,
+    /// `pz:mpe2.simple_spread_v3`): its schema file is `env-server/schemas/<family>/<variant>.toml`.
     pub env: String,
     /// A method of `learn::methods::REGISTRY`: qmix, vdn, qplex, fullcomm, qmix-state, lmac, ndq,
     /// maic, masia, t2mac, cola.

@@ -9,6 +9,7 @@ pub mod config;
 pub mod evaluate;
 pub mod marl_eval;
 pub mod metrics;
+pub mod reference;
 
 pub use config::{paper_designs_dir, preset_overrides, protocol_files, resolve_paper_spec, RunSection, TrainConfig, PRESETS};
 pub use metrics::{read_metrics, CheckpointWritten, Metrics, MetricsResume, MetricsRow};

@@ -11,4 +11,5 @@ pub const FULLCOMM: MethodSpec = MethodSpec {
     mixer: None,
     agent_sees_state: false,
     configure: no_settings,
+    settings: None,
 };

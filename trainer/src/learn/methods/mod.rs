@@ -70,6 +70,9 @@ pub struct MethodSpec {
     pub agent_sees_state: bool,
     /// Parse and check the `[method]` table (unknown keys are errors naming the field).
     pub configure: fn(&toml::Table, &MethodContext) -> Result<AgentConfig, ConfigError>,
+    /// The JSON Schema of its `[method]` settings (their doc comments and defaults), for the
+    /// configuration reference; `None`: the method has no settings.
+    pub settings: Option<fn() -> schemars::Schema>,
 }
 
 /// Every method, by `--algo` name (pymarl's registry: one line each).

@@ -10,4 +10,5 @@ pub const QMIX_STATE: MethodSpec = MethodSpec {
     mixer: None,
     agent_sees_state: true,
     configure: no_settings,
+    settings: None,
 };

@@ -13,6 +13,7 @@ pub const QMIX: MethodSpec = MethodSpec {
     mixer: Some(MixerKind::Qmix),
     agent_sees_state: false,
     configure: no_settings,
+    settings: None,
 };
 
 pub const VDN: MethodSpec = MethodSpec {
@@ -22,6 +23,7 @@ pub const VDN: MethodSpec = MethodSpec {
     mixer: Some(MixerKind::Vdn),
     agent_sees_state: false,
     configure: no_settings,
+    settings: None,
 };
 
 pub const QPLEX: MethodSpec = MethodSpec {
@@ -31,4 +33,5 @@ pub const QPLEX: MethodSpec = MethodSpec {
     mixer: Some(MixerKind::Qplex),
     agent_sees_state: false,
     configure: no_settings,
+    settings: None,
 };

@@ -33,7 +33,7 @@
 //! With a single agent there are no pairs: the loss is 0 and the student keeps its initial
 //! weights.
 //!
-//! Loss reduction, checked against the released learner (`docs/fidelity.md`): the cross-entropy
+//! Loss reduction, checked against the released learner (`docs/reference/fidelity.md`): the cross-entropy
 //! of a pair is summed over the K classes (`cola_learner.py:114`, a batched matrix product) and
 //! averaged over the ordered pairs i != j of alive agents (`:116-121`). The same here.
 //!
@@ -81,6 +81,7 @@ pub const COLA: MethodSpec = MethodSpec {
     mixer: None,
     agent_sees_state: false,
     configure,
+    settings: Some(|| schemars::schema_for!(ColaSettings)),
 };
 
 /// The numbers a COLA update logs, in order: the consensus loss (unweighted), the share of the
@@ -90,7 +91,7 @@ pub const COLA: MethodSpec = MethodSpec {
 pub const STAT_NAMES: &[&str] = &["cola_consensus", "cola_agreement", "cola_class_entropy"];
 
 /// What the student and the teacher read.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum ConsensusInput {
     /// The agent's input row (the released `input: "obs"`: observation, last action, agent id).
@@ -100,7 +101,7 @@ pub enum ConsensusInput {
 }
 
 /// The `[method]` settings of `--algo cola` (defaults: the released `cola.yaml`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct ColaSettings {
     /// Consensus classes K (`consensus_builder_dim`: 4).

@@ -36,13 +36,14 @@ pub const LMAC: MethodSpec = MethodSpec {
     mixer: None,
     agent_sees_state: false,
     configure,
+    settings: Some(|| schemars::schema_for!(LmacSettings)),
 };
 
 /// The numbers an LMAC update logs, in order (see `module.rs`).
 pub const STAT_NAMES: &[&str] = &["lmac_recon_mse", "lmac_meta_bce", "lmac_cons", "lmac_recovered", "lmac_reliability", "lmac_z_sq"];
 
 /// How the encoder attends to the agent's trajectory.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum EncoderKind {
     /// The authors' code: a GRU over the step embeddings gives the keys and values; z is the
@@ -54,7 +55,7 @@ pub enum EncoderKind {
 }
 
 /// How the consistency loss reduces over the latent's dims.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum LatentReduction {
     /// Mean over the latent dims (the released code's `F.mse_loss`; the paper's ||z_hat - z||^2
@@ -65,7 +66,7 @@ pub enum LatentReduction {
 }
 
 /// The decoder's and the cycle encoder's layers.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum AuxLayout {
     /// As the released code (`meta.py`): dropout after the decoder's first layer; the cycle
@@ -77,9 +78,10 @@ pub enum AuxLayout {
 
 /// The `[method]` settings of `--algo lmac` (defaults: the paper's Table C.3 and the authors'
 /// code).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct LmacSettings {
+    /// How the encoder attends to the agent's trajectory and messages.
     pub encoder: EncoderKind,
     /// Width of the step embedding and the encoder GRU (Table C.3: attention hidden 64).
     pub embed_dim: usize,
@@ -111,7 +113,7 @@ pub struct LmacSettings {
     pub aux_layout: AuxLayout,
     /// Standardise rewards with running statistics before the TD target, as the released
     /// LMAC config does (`standardise_rewards: True`; EPyMARL's default and its QMIX config
-    /// leave rewards as they are). Used when `learn.standardise_rewards` is not set.
+    /// leave rewards as they are). `learn.reward_standardisation` overrides it unless `method`.
     pub standardise_rewards: bool,
     /// Regress z_hat onto a detached z, so the consistency loss trains the decoder and the cycle
     /// encoder but cannot shrink z itself. With the paper's loss (false) the encoder can lower

@@ -58,7 +58,7 @@
 //!   itself among the candidates (`maic_agent.py:93-96`): `entropy_attention = "released"`.
 //!   With n agents a uniform attention is log2(n - 1) bits in the first and log2(n) in the
 //!   second.
-//! - Loss reductions otherwise as released (`docs/fidelity.md`): the MI is the KL summed over
+//! - Loss reductions otherwise as released (`docs/reference/fidelity.md`): the MI is the KL summed over
 //!   the latent dims and averaged over pairs, the entropy summed over the candidates and
 //!   averaged over agents (`maic_agent.py:113,118`), each times its weight.
 //! - The optimizer and the mixer are the run's `[learn]` settings. lmac's default QMIX (2-layer
@@ -87,6 +87,7 @@ pub const MAIC: MethodSpec = MethodSpec {
     mixer: None,
     agent_sees_state: false,
     configure,
+    settings: Some(|| schemars::schema_for!(MaicSettings)),
 };
 
 /// The numbers a MAIC update logs, in order: the two losses (unweighted), the share of
@@ -94,7 +95,7 @@ pub const MAIC: MethodSpec = MethodSpec {
 pub const STAT_NAMES: &[&str] = &["maic_mi", "maic_entropy", "maic_pruned_share", "maic_msg_abs"];
 
 /// Whose hidden state the message net reads next to z_ij.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum MessageInput {
     /// The sender's h_i (the paper).
@@ -104,7 +105,7 @@ pub enum MessageInput {
 }
 
 /// How the batch norms normalise outside training updates.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum BatchNormMode {
     /// Running statistics (torch's eval mode).
@@ -114,7 +115,7 @@ pub enum BatchNormMode {
 }
 
 /// Which action of teammate j the MI loss's inference net reads.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum MiAction {
     /// The action j took (the batch's).
@@ -124,7 +125,7 @@ pub enum MiAction {
 }
 
 /// Which teammate models the MI loss averages over.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum MiPairs {
     /// The pairs i != j: agent i's models of its teammates (the paper).
@@ -135,7 +136,7 @@ pub enum MiPairs {
 }
 
 /// Which attention weights the entropy loss reads (both from detached h and z).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum EntropyAttention {
     /// The attention the messages are weighted with: scores scaled by 1/sqrt(att), softmax over
@@ -147,7 +148,7 @@ pub enum EntropyAttention {
 }
 
 /// The `[method]` settings of `--algo maic` (defaults: the released `maic.yaml`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct MaicSettings {
     /// Latent dims per teammate model (`latent_dim`: 8).

@@ -67,7 +67,7 @@
 //!   code (its VAE encoders, observation noise, the decoder copy inside the target encoder) are
 //!   left out.
 //!
-//! Loss reductions, checked against the released code (`docs/fidelity.md`): reconstruction is
+//! Loss reductions, checked against the released code (`docs/reference/fidelity.md`): reconstruction is
 //! the squared error averaged over the state dims (`ob_attn_ae.py:128`), latent prediction the
 //! squared error summed over the projection's dims (`masia_learner.py:138`), reward prediction
 //! the squared error of the one reward (`:130`); each is a masked mean over steps, and the
@@ -96,6 +96,7 @@ pub const MASIA: MethodSpec = MethodSpec {
     mixer: None,
     agent_sees_state: false,
     configure,
+    settings: Some(|| schemars::schema_for!(MasiaSettings)),
 };
 
 /// The numbers a MASIA update logs, in order: the three losses (unweighted; the latent and
@@ -103,7 +104,7 @@ pub const MASIA: MethodSpec = MethodSpec {
 pub const STAT_NAMES: &[&str] = &["masia_recon", "masia_latent", "masia_reward", "masia_gate_mean"];
 
 /// The `[method]` settings of `--algo masia` (defaults: the released `masia.yaml`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct MasiaSettings {
     /// Latent dims per agent; z is `n * latent_dim` wide (`state_repre_dim`: 8).

@@ -50,7 +50,7 @@
 //!   and is not implemented.
 //!
 //! Loss reductions, checked against the released learner (`categorical_q_learner.py`, see
-//! `docs/fidelity.md`): each term is summed over its feature dims (a message's n*d dims, the
+//! `docs/reference/fidelity.md`): each term is summed over its feature dims (a message's n*d dims, the
 //! one label) and over the agents, then divided by the count of trained steps (not by steps x
 //! agents), as the TD loss; c_beta multiplies all three terms, comm_beta the KL and
 //! entropy_beta the entropy on top (`:176-177`). Only the padding differs (above).
@@ -78,6 +78,7 @@ pub const NDQ: MethodSpec = MethodSpec {
     mixer: None,
     agent_sees_state: false,
     configure,
+    settings: Some(|| schemars::schema_for!(NdqSettings)),
 };
 
 /// The numbers an NDQ update logs, in order: the three losses (unweighted), the inference head's
@@ -85,7 +86,7 @@ pub const NDQ: MethodSpec = MethodSpec {
 pub const STAT_NAMES: &[&str] = &["ndq_ce", "ndq_kl", "ndq_entropy", "ndq_infer_acc", "ndq_mu_abs"];
 
 /// The `[method]` settings of `--algo ndq` (defaults: the released code's `categorical_qmix`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct NdqSettings {
     /// Message dims per (sender, receiver) pair (`comm_embed_dim`: 3).

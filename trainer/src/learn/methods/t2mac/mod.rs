@@ -25,7 +25,7 @@
 //! update (`selector_weight`). The selector reads only the input row, so the TD loss does not
 //! reach it.
 //!
-//! Loss reduction (`docs/fidelity.md`): the selector's cross-entropy is summed over the classes
+//! Loss reduction (`docs/reference/fidelity.md`): the selector's cross-entropy is summed over the classes
 //! (the n candidate receivers) of a sender's row and averaged over the senders of the trained
 //! steps, as torch's `CrossEntropyLoss` averages over rows (`tmac_p2p_comm_controller.py:22`).
 //! The released call passes a [batch, n, n] tensor, so torch takes dim 1 (the senders) as the
@@ -79,6 +79,7 @@ pub const T2MAC: MethodSpec = MethodSpec {
     mixer: None,
     agent_sees_state: false,
     configure,
+    settings: Some(|| schemars::schema_for!(T2macSettings)),
 };
 
 /// The numbers a T2MAC update logs, in order: the selector's cross-entropy, the share of agents
@@ -87,7 +88,7 @@ pub const T2MAC: MethodSpec = MethodSpec {
 pub const STAT_NAMES: &[&str] = &["t2mac_selector_ce", "t2mac_send_rate", "t2mac_label_send_rate", "t2mac_uncertainty", "t2mac_fused_drop"];
 
 /// How the selector that picks the receiver is trained.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum Selector {
     /// Trained to send where the opinion lowers the receiver's uncertainty (the paper).
@@ -97,7 +98,7 @@ pub enum Selector {
 }
 
 /// How an agent's output is made non-negative evidence.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum Evidence {
     /// softplus(q): every action's value keeps a gradient.
@@ -107,7 +108,7 @@ pub enum Evidence {
 }
 
 /// The `[method]` settings of `--algo t2mac` (defaults: the released `tmac_p2p_comm.yaml`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct T2macSettings {
     /// Width of the key, value and query projections (`n_key`, `n_value`, `n_query`: 64).

@@ -4,7 +4,7 @@ constant guess of each dim's median, and its variance across agents, with messag
 (both definitions: a discriminator retrained without messages, and the paper's, the
 with-messages discriminator given zeroed messages).
 
-    python trainer/plot_design.py DESIGN_DIR   (called by `lmac design` at the end)
+    python -m lmac_report.plot_design DESIGN_DIR   (called by `lmac design` at the end)
 
 Reads DESIGN_DIR/summary.json, writes DESIGN_DIR/recovery.png. The fixed dims are phase 0's
 critical dims (all dims when it names none); the second row shows all dims.

@@ -1,13 +1,13 @@
 """Plots of `lmac train` runs: per seed the test return and win rate against env steps, and for
 a group of seeds the mean with a standard-deviation band plus a table of final figures.
 
-    python trainer/plot_runs.py RUN_GROUP_DIR   (called by `lmac train` at the end)
-    python trainer/plot_runs.py --compare OUT.png GROUP_DIR...   (several algorithms in one plot)
+    python -m lmac_report.plot_runs RUN_GROUP_DIR   (called by `lmac train` at the end)
+    python -m lmac_report.plot_runs --compare OUT.png GROUP_DIR...   (several algorithms in one plot)
 
 Seeds test at nearly the same env steps (each test phase starts when its run crosses a multiple
 of run.test_interval), so the common grid is the test points of the seed with the fewest. The
-"final" figures average the last FINAL_TESTS test phases of each seed (one phase is only
-run.test_episodes episodes), then report mean and standard deviation across seeds.
+"final" figures average the last test phases of each seed (`final.py`: the one rule), then
+report mean and standard deviation across seeds.
 """
 import csv
 import json
@@ -19,6 +19,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+
+from .final import FINAL_TEST_PHASES, final_of  # noqa: E402
 
 
 def read(run: pathlib.Path):
@@ -40,8 +42,6 @@ def plot_seed(run: pathlib.Path, test: np.ndarray) -> None:
     fig.savefig(run / "test_return.png", dpi=120)
     plt.close(fig)
 
-
-FINAL_TESTS = 5
 
 
 def group_curves(group: pathlib.Path):
@@ -104,15 +104,15 @@ def main(group: pathlib.Path) -> None:
     fig.tight_layout()
     fig.savefig(group / "summary.png", dpi=120)
     plt.close(fig)
-    finals = [c[-FINAL_TESTS:].mean(0) for c in curves.values()]
+    finals = [(final_of(c[:, 1]), final_of(c[:, 2])) for c in curves.values()]
     summary = {
         "seeds": len(curves),
-        "final_tests_averaged": FINAL_TESTS,
+        "final_tests_averaged": FINAL_TEST_PHASES,
         "final_t_env": [int(c[-1, 0]) for c in curves.values()],
-        "final_test_return_mean": float(np.mean([f[1] for f in finals])),
-        "final_test_return_std": float(np.std([f[1] for f in finals])),
-        "final_test_win_rate_mean": float(np.mean([f[2] for f in finals])),
-        "final_test_win_rate_std": float(np.std([f[2] for f in finals])),
+        "final_test_return_mean": float(np.mean([f[0] for f in finals])),
+        "final_test_return_std": float(np.std([f[0] for f in finals])),
+        "final_test_win_rate_mean": float(np.mean([f[1] for f in finals])),
+        "final_test_win_rate_std": float(np.std([f[1] for f in finals])),
     }
     (group / "summary.json").write_text(json.dumps(summary, indent=2))
     with open(group / "summary.csv", "w") as f:

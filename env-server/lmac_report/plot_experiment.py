@@ -5,7 +5,7 @@
 - phases.png, when the experiment trained the k = 0 and k = 1 ablations next to LMAC: final
   test return against the number of design phases used (the paper's Figure 7(d)).
 
-    python trainer/plot_experiment.py EXPERIMENT_DIR
+    python -m lmac_report.plot_experiment EXPERIMENT_DIR
 """
 import json
 import pathlib
@@ -16,8 +16,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from plot_runs import plot_curves  # noqa: E402
+from .plot_runs import plot_curves  # noqa: E402
 
 
 def main(exp: pathlib.Path) -> None:
