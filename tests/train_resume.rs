@@ -305,3 +305,49 @@ fn two_launches_in_the_same_second_train_their_own_configs() {
     assert_ne!(groups[0], groups[1], "two launches, two directories");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// Rebuilding lmac while a run is under way does not break it: with the binary's file removed
+/// after the run started (what `cargo build` does when it replaces it), the next seed's
+/// pipeline still starts, on the same build. Before, children were started by the file's path,
+/// which then no longer existed ("starting the protocol runner: No such file or directory").
+#[test]
+fn a_run_survives_its_binary_being_replaced() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let tmp = std::env::temp_dir().join(format!("lmac-rebuilt-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).unwrap();
+    let built = std::env::var("LMAC_BIN").map(PathBuf::from).unwrap_or_else(|_| lmac_e2e::harness::root().join("target/release/lmac"));
+    let copy = tmp.join("lmac");
+    std::fs::copy(&built, &copy).unwrap();
+    let out = tmp.join("runs");
+    let child = std::process::Command::new(&copy)
+        .current_dir(lmac_e2e::harness::root())
+        .env("LMAC_ROOT", lmac_e2e::harness::root())
+        .args(["train", "--env", "lbf:8x8-2p-2f-s1-coop", "--algo", "qmix", "--steps", "3000", "--seeds", "0,1"])
+        .args(["--set", "run.envs=8", "--set", "run.servers=1", "--set", "run.test_interval=1000", "--set", "run.test_episodes=4"])
+        .args(["--set", "run.final_eval_episodes=0"])
+        .arg("--out")
+        .arg(&out)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Seed 0's pipeline is up: remove the binary's file, as a rebuild replacing it does.
+    wait_for(Duration::from_secs(60), || pipeline_children(child.id() as i32).into_iter().find(|p| p.role == Role::Trainer))
+        .expect("seed 0's trainer starts");
+    std::fs::remove_file(&copy).unwrap();
+    let (ok, stderr) = finish(child);
+    assert!(ok, "the run failed after its binary was removed:\n{stderr}");
+    let seeds: Vec<PathBuf> = std::fs::read_dir(out.join("lbf_8x8-2p-2f-s1-coop/qmix"))
+        .unwrap()
+        .flatten()
+        .flat_map(|g| std::fs::read_dir(g.path()).unwrap().flatten().map(|s| s.path()))
+        .filter(|p| p.join("metrics.csv").exists())
+        .collect();
+    assert_eq!(seeds.len(), 2, "both seeds trained: {seeds:?}\n{stderr}");
+    for s in &seeds {
+        assert!(metrics_t_env(s).last().copied().unwrap_or(0) >= 3000, "{} reached its steps", s.display());
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+}

@@ -119,6 +119,15 @@ pub const MAX_MEANING_BYTES: usize = 64 << 20;
 pub const PLACEHOLDER: &str = "EDIT:";
 
 impl EnvSchema {
+    /// A short fingerprint of everything the schema says (sizes, limits, every text): the first
+    /// 16 hex digits of the SHA-256 of its JSON form. Protocol files lmac writes carry it, so a
+    /// protocol used after its environment's schema changed is noticed.
+    pub fn fingerprint(&self) -> String {
+        use sha2::{Digest, Sha256};
+        let digest = Sha256::digest(serde_json::to_vec(self).expect("a schema serializes"));
+        digest.iter().take(8).map(|b| format!("{b:02x}")).collect()
+    }
+
     /// Read and validate a schema file.
     pub fn load(path: &Path) -> Result<EnvSchema, SchemaErrors> {
         let err = |field: &str, problem: String| SchemaErrors(vec![SchemaError { file: path.to_path_buf(), field: field.into(), problem }]);

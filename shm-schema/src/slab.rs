@@ -128,6 +128,12 @@ pub enum SlabError {
     NotReady { name: String, waited: Duration },
     #[error("slot {slot} of {name} is owned by the {owner}, not by the {me}: ownership protocol violated")]
     NotOwner { name: String, slot: usize, owner: &'static str, me: &'static str },
+    /// /dev/shm cannot hold the slab. Without this check tmpfs hands out the pages lazily and
+    /// the first write past the end kills the writer with SIGBUS.
+    #[error(
+        "shared memory {name} needs {need} bytes but /dev/shm has {free} bytes free (of {total}): free space there (`lmac clean` removes what dead runs left; `df -h /dev/shm` shows what is used) or use fewer environments or slots"
+    )]
+    NoSpace { name: String, need: usize, free: u64, total: u64 },
     #[error("invalid shared memory name {0:?}: use letters, digits, '-', '_' and '.' only")]
     BadName(String),
     /// A header field written by another process that cannot be right.
@@ -156,6 +162,46 @@ unsafe impl Sync for Slab {}
 
 fn os_err(name: &str, op: &'static str) -> SlabError {
     SlabError::Os { name: name.to_string(), op, err: std::io::Error::last_os_error() }
+}
+
+/// Free and total bytes of the file system behind POSIX shared memory (`/dev/shm`).
+pub fn shm_space() -> Option<(u64, u64)> {
+    let path = CString::new("/dev/shm").expect("no NUL");
+    let mut s: libc::statvfs = unsafe { std::mem::zeroed() };
+    if unsafe { libc::statvfs(path.as_ptr(), &mut s) } != 0 {
+        return None;
+    }
+    let unit = s.f_frsize as u64;
+    Some((s.f_bavail as u64 * unit, s.f_blocks as u64 * unit))
+}
+
+/// Size the new slab's file to `bytes` and reserve its pages now (`posix_fallocate`), so that
+/// a /dev/shm without room is an error naming both numbers, not a SIGBUS in whichever process
+/// first writes past the free space. A file system without fallocate gets a plain ftruncate
+/// after a free-space check.
+unsafe fn reserve(fd: libc::c_int, name: &str, bytes: usize) -> Result<(), SlabError> {
+    let no_space = || {
+        let (free, total) = shm_space().unwrap_or((0, 0));
+        SlabError::NoSpace { name: name.to_string(), need: bytes, free, total }
+    };
+    if let Some((free, _)) = shm_space() {
+        if bytes as u64 > free {
+            return Err(no_space());
+        }
+    }
+    loop {
+        match libc::posix_fallocate(fd, 0, bytes as libc::off_t) {
+            0 => return Ok(()),
+            libc::EINTR => continue,
+            libc::ENOSPC | libc::EFBIG => return Err(no_space()),
+            libc::EOPNOTSUPP | libc::EINVAL => break,
+            e => return Err(SlabError::Os { name: name.to_string(), op: "posix_fallocate", err: std::io::Error::from_raw_os_error(e) }),
+        }
+    }
+    if libc::ftruncate(fd, bytes as libc::off_t) != 0 {
+        return Err(os_err(name, "ftruncate"));
+    }
+    Ok(())
 }
 
 fn shm_name(name: &str) -> Result<CString, SlabError> {
@@ -227,8 +273,7 @@ impl Slab {
             }
             // The umask cannot widen 0600, but make the mode explicit whatever the umask is.
             libc::fchmod(fd, 0o600);
-            if libc::ftruncate(fd, layout.slab_bytes as libc::off_t) != 0 {
-                let e = os_err(name, "ftruncate");
+            if let Err(e) = reserve(fd, name, layout.slab_bytes) {
                 libc::close(fd);
                 libc::shm_unlink(cname.as_ptr());
                 return Err(e);

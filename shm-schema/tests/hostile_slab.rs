@@ -97,3 +97,24 @@ fn out_of_range_slot_is_an_error() {
     let e = slab.slot(0, Stage::Env).err().expect("unknown owner");
     assert!(e.to_string().contains("unknown stage"), "{e}");
 }
+
+/// A slab larger than /dev/shm can hold is refused when it is created, naming the bytes it
+/// needs and the bytes free, and leaves no file behind (before, the file was created sparse and
+/// the first write past the free space killed the writer with SIGBUS).
+#[test]
+fn a_slab_larger_than_dev_shm_is_refused_at_creation() {
+    let (free, total) = lmac_shm_schema::slab::shm_space().expect("statvfs /dev/shm");
+    let s = schema();
+    // Past the file system's total size: refused before a single page is reserved.
+    let bytes = |n_slots| lmac_shm_schema::layout::SlotLayout::new(&s, LayoutParams { n_slots, ..PARAMS }).slab_bytes as u64;
+    let per_slot = bytes(2) - bytes(1);
+    let n_slots = (total / per_slot + 2) as usize;
+    assert!(bytes(n_slots) > total);
+    let name = format!("lmac-test-nospace-{}", std::process::id());
+    let e = Slab::create(&name, &s, LayoutParams { n_slots, ..PARAMS }).err().expect("a slab past /dev/shm's size must be refused");
+    let text = e.to_string();
+    assert!(matches!(e, SlabError::NoSpace { .. }), "{text}");
+    assert!(text.contains(&name) && text.contains("/dev/shm") && text.contains(&format!("of {total}")), "{text}");
+    assert!(free <= total);
+    assert!(!Path::new(&shm_file_path(&name)).exists(), "the refused slab's file must be removed");
+}

@@ -10,7 +10,9 @@
 //! # On-disk format (a directory)
 //! - `header.json`: `{"format": "lmac-trajectories", "version": 1, "env", "n_agents",
 //!   "obs_dim", "state_dim", "n_actions", "episode_limit", "protocol", "policy", "seed",
-//!   "episodes", "steps"}`.
+//!   "episodes", "steps", "episodes_bytes", "episodes_crc32c"}`: the last two are the size and
+//!   CRC-32C of `episodes.bin`, checked before it is parsed (datasets written before they
+//!   existed load without the check).
 //! - `episodes.bin`: the 8 bytes `LMACTRJ1`, then per episode a record, all little-endian:
 //!   `u32 len`, `u8 terminated`, `u8 truncated`, `u16 0`, then `len*n_agents*obs_dim` f32
 //!   observations (step, agent, dim), `len*state_dim` f32 states, `len*n_agents` i32 actions,
@@ -27,6 +29,25 @@ use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 8] = b"LMACTRJ1";
+
+/// A writer that keeps the CRC-32C and length of what passes through it.
+struct Crc32cWriter {
+    inner: std::fs::File,
+    crc: u32,
+    bytes: u64,
+}
+
+impl Write for Crc32cWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.crc = crc32c::crc32c_append(self.crc, &buf[..n]);
+        self.bytes += n as u64;
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
 const FORMAT: &str = "lmac-trajectories";
 const VERSION: u32 = 1;
 
@@ -133,9 +154,8 @@ impl Dataset {
         header["version"] = VERSION.into();
         header["episodes"] = self.episodes.len().into();
         header["steps"] = self.steps().into();
-        std::fs::write(tmp.join("header.json"), serde_json::to_string_pretty(&header)?)?;
         let f = std::fs::File::create(tmp.join("episodes.bin"))?;
-        let mut w = BufWriter::new(f);
+        let mut w = BufWriter::new(Crc32cWriter { inner: f, crc: 0, bytes: 0 });
         w.write_all(MAGIC)?;
         for e in &self.episodes {
             w.write_all(&(e.len as u32).to_le_bytes())?;
@@ -147,7 +167,11 @@ impl Dataset {
             w.write_all(&b)?;
             put_f32(&mut w, &e.reward)?;
         }
-        w.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        let body = w.into_inner().map_err(|e| e.into_error())?;
+        body.inner.sync_all()?;
+        header["episodes_bytes"] = body.bytes.into();
+        header["episodes_crc32c"] = format!("{:08x}", body.crc).into();
+        std::fs::write(tmp.join("header.json"), serde_json::to_string_pretty(&header)?)?;
         if dir.exists() {
             std::fs::remove_dir_all(dir).with_context(|| format!("replacing {}", dir.display()))?;
         }
@@ -169,8 +193,25 @@ impl Dataset {
         let header: DatasetHeader = serde_json::from_value(v.clone()).with_context(|| format!("{}: bad header", hp.display()))?;
         let n_eps = v["episodes"].as_u64().with_context(|| format!("{}: episodes: missing or not a count", hp.display()))?;
         let bp = dir.join("episodes.bin");
+        // A regular file only: a device (a link to /dev/zero) would be read until memory runs out.
+        let meta = std::fs::symlink_metadata(&bp).with_context(|| format!("{}: cannot read", bp.display()))?;
+        if !meta.is_file() {
+            bail!("{}: not a regular file", bp.display());
+        }
+        let want_bytes = v.get("episodes_bytes").filter(|x| !x.is_null());
+        if let Some(want) = want_bytes {
+            if want.as_u64() != Some(meta.len()) {
+                bail!("{}: {} bytes, but {} records episodes_bytes = {want}: the file is truncated or replaced", bp.display(), meta.len(), hp.display());
+            }
+        }
         let mut data = Vec::new();
         std::fs::File::open(&bp).and_then(|mut f| f.read_to_end(&mut data)).with_context(|| format!("{}: cannot read", bp.display()))?;
+        if let Some(want) = v.get("episodes_crc32c").filter(|x| !x.is_null()) {
+            let got = format!("{:08x}", crc32c::crc32c(&data));
+            if want.as_str() != Some(got.as_str()) {
+                bail!("{}: CRC-32C {got}, but {} records {want}: the file is corrupt", bp.display(), hp.display());
+            }
+        }
         if data.len() < 8 || &data[..8] != MAGIC {
             bail!("{}: does not start with the dataset magic {:?}", bp.display(), std::str::from_utf8(MAGIC).unwrap_or_default());
         }
@@ -228,7 +269,10 @@ impl Dataset {
             let (state_b, rest) = rest.split_at(4 * n_state);
             let (act_b, reward_b) = rest.split_at(4 * n_act);
             let f32s = |b: &[u8]| b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>();
-            let actions = act_b.chunks_exact(4).map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+            let actions: Vec<i32> = act_b.chunks_exact(4).map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+            if let Some(bad) = actions.iter().find(|&&a| a < 0 || a as usize >= h.n_actions) {
+                bail!("{}: episode {k}: action {bad} is not one of the {} actions", bp.display(), h.n_actions);
+            }
             episodes.push(Trajectory {
                 len,
                 obs: f32s(obs_b),

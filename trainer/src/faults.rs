@@ -110,7 +110,7 @@ struct Training {
 
 impl Training {
     fn start(args: &[String]) -> Result<Training> {
-        let exe = std::env::current_exe().context("locating the lmac executable")?;
+        let exe = crate::supervisor::self_exe()?;
         let mut child = Command::new(exe)
             .arg("train")
             .args(args)

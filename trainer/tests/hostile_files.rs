@@ -82,8 +82,13 @@ fn hostile_dataset_payloads_are_errors() {
     let good = std::fs::read(&bin).unwrap();
     // An episode length far beyond the file (u32::MAX steps) with a large limit in the header.
     let hp = dir.join("header.json");
-    let header = std::fs::read_to_string(&hp).unwrap();
-    let mut h: serde_json::Value = serde_json::from_str(&header).unwrap();
+    // The payload's own checks, as for a dataset written before its checksum was recorded (the
+    // checksum would refuse each of these first: see the test below).
+    let mut h: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&hp).unwrap()).unwrap();
+    h.as_object_mut().unwrap().remove("episodes_crc32c");
+    h.as_object_mut().unwrap().remove("episodes_bytes");
+    let header = h.to_string();
+    std::fs::write(&hp, &header).unwrap();
     h["episode_limit"] = serde_json::json!(u64::MAX);
     std::fs::write(&hp, h.to_string()).unwrap();
     let mut bad = good.clone();
@@ -98,6 +103,38 @@ fn hostile_dataset_payloads_are_errors() {
         let e = format!("{:#}", Dataset::load(&dir).unwrap_err());
         assert!(e.contains("episodes.bin"), "cut at {cut}: {e}");
     }
+}
+
+/// A dataset records its payload's size and CRC-32C: flipped bytes, an action out of range and
+/// a payload that is a link to a device are refused naming the file (before, flipped bytes and
+/// actions of 1e9 loaded silently and a link to /dev/zero was read until memory ran out).
+#[test]
+fn corrupt_dataset_payloads_are_refused_by_their_checksum() {
+    let dir = tmp_dir("crc").join("data");
+    small().save(&dir).unwrap();
+    let bin = dir.join("episodes.bin");
+    let good = std::fs::read(&bin).unwrap();
+    let h: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("header.json")).unwrap()).unwrap();
+    assert_eq!(h["episodes_bytes"].as_u64(), Some(good.len() as u64));
+    let mut flipped = good.clone();
+    let last = flipped.len() - 1;
+    flipped[last] ^= 0x40;
+    std::fs::write(&bin, &flipped).unwrap();
+    let e = format!("{:#}", Dataset::load(&dir).unwrap_err());
+    assert!(e.contains("episodes.bin") && e.contains("CRC-32C"), "{e}");
+    std::fs::write(&bin, &good[..good.len() - 4]).unwrap();
+    let e = format!("{:#}", Dataset::load(&dir).unwrap_err());
+    assert!(e.contains("episodes.bin") && e.contains("episodes_bytes"), "{e}");
+    std::fs::remove_file(&bin).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", &bin).unwrap();
+    let e = format!("{:#}", Dataset::load(&dir).unwrap_err());
+    assert!(e.contains("episodes.bin") && e.contains("not a regular file"), "{e}");
+    // An action out of range, in a dataset whose checksum matches it.
+    let mut data = small();
+    data.episodes[0].actions[0] = 1_000_000_000;
+    data.save(&dir).unwrap();
+    let e = format!("{:#}", Dataset::load(&dir).unwrap_err());
+    assert!(e.contains("episodes.bin") && e.contains("action 1000000000"), "{e}");
 }
 
 #[test]
