@@ -68,15 +68,6 @@ impl MessagePlan for FullComm {
     }
 }
 
-/// The built-in plan called `name`, if any.
-pub fn builtin(name: &str, n_agents: usize, obs_dim: usize) -> Option<Box<dyn MessagePlan>> {
-    match name {
-        "none" => Some(Box::new(NoMessages)),
-        "fullcomm" => Some(Box::new(FullComm { n_agents, obs_dim })),
-        _ => None,
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

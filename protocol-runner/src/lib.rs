@@ -4,6 +4,9 @@ pub mod builtin;
 pub mod plan;
 pub mod protocol;
 pub mod runner;
+pub mod spec;
+
+pub use spec::ProtocolSpec;
 
 use lmac_shm_schema::EnvSchema;
 use protocol::{ProtocolEnv, ValidatedProtocol};
@@ -15,6 +18,8 @@ pub fn protocol_env(schema: &EnvSchema) -> ProtocolEnv {
     env.obs_names = schema.obs_meanings();
     env.state_names = schema.state_meanings();
     env.action_names = schema.actions.clone();
+    env.env_name = schema.name.clone();
+    env.schema_fingerprint = schema.fingerprint();
     env
 }
 
@@ -31,19 +36,19 @@ pub fn load_phases(files: &[&str], env: &ProtocolEnv) -> Result<Vec<ValidatedPro
     Ok(phases)
 }
 
-/// The message plan named on the command line: a built-in (`none`, `fullcomm`) or protocol
-/// files joined by '+' (`phase0.json+phase1.json+phase2.json`: the final protocol concatenates
-/// the phases). Every process of a run resolves the same name the same way; each call returns
-/// a fresh plan (its own observation history), so use one per env server.
-pub fn plan_for(protocol: &str, schema: &EnvSchema) -> Result<Box<dyn plan::MessagePlan>, String> {
-    if let Some(p) = builtin::builtin(protocol, schema.n_agents, schema.obs_dim) {
-        return Ok(p);
+/// The message plan of `protocol`: a built-in, or the protocol files compiled into one plan (the
+/// final protocol concatenates the phases). Every process of a run resolves the same spec the
+/// same way; each call returns a fresh plan (its own observation history), so use one per env
+/// server.
+pub fn plan_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Box<dyn plan::MessagePlan>, String> {
+    match protocol {
+        ProtocolSpec::None => Ok(Box::new(builtin::NoMessages)),
+        ProtocolSpec::FullComm => Ok(Box::new(builtin::FullComm { n_agents: schema.n_agents, obs_dim: schema.obs_dim })),
+        ProtocolSpec::Files(files) => {
+            let env = protocol_env(schema);
+            let files: Vec<&str> = files.iter().map(String::as_str).collect();
+            let phases = load_phases(&files, &env)?;
+            protocol::compile(&phases, &env).map_err(|e| protocol::errors_to_text(&e))
+        }
     }
-    let files: Vec<&str> = protocol.split('+').collect();
-    if !files.iter().all(|f| f.ends_with(".json")) {
-        return Err(format!("unknown protocol {protocol:?}: use 'none', 'fullcomm' or protocol files (a.json or a.json+b.json)"));
-    }
-    let env = protocol_env(schema);
-    let phases = load_phases(&files, &env)?;
-    protocol::compile(&phases, &env).map_err(|e| protocol::errors_to_text(&e))
 }

@@ -37,7 +37,7 @@ fn fullcomm_with_one_agent_has_no_columns_and_leaves_the_rows_alone() {
     assert_eq!(s.fullcomm_columns(), 0);
     assert_eq!(FullComm::columns(1, s.obs_dim), 0);
     for name in ["fullcomm", "none"] {
-        let mut plan = plan_for(name, &s).unwrap();
+        let mut plan = plan_for(&name.parse().unwrap(), &s).unwrap();
         assert_eq!(plan.msg_dim(), 0, "{name}");
         let mut rows: Vec<f32> = (0..2 * s.obs_dim).map(|x| x as f32).collect();
         let before = rows.clone();

@@ -302,3 +302,26 @@ fn check_summary_reports_widths_and_budget() {
         "OK: lbf_8x8_phase0 (3 field(s): food_in_view=9, free_moves=4, last_action=6): 21 message columns per receiving agent of a budget of 64 (2 agents, 200 critical state dims)"
     );
 }
+
+/// A protocol carries the environment it was designed for: used on another environment, or
+/// after that environment's schema changed, it still validates when its indices fit, with a
+/// warning naming both (before, an LBF protocol compiled silently against any env it fit).
+#[test]
+fn a_protocol_saved_for_another_environment_or_schema_is_flagged() {
+    let mut env = lbf();
+    env.env_name = "lbf:8x8-2p-2f-s1-coop".into();
+    env.schema_fingerprint = "0123456789abcdef".into();
+    let plain = parse_value(&base()).unwrap();
+    assert!(validate_phase(&plain, &env, &[]).unwrap().warnings.is_empty(), "no recorded identity, nothing to compare");
+    let same = Protocol { env: Some(env.env_name.clone()), schema_fingerprint: Some(env.schema_fingerprint.clone()), ..plain.clone() };
+    assert!(validate_phase(&same, &env, &[]).unwrap().warnings.is_empty());
+    let other = Protocol { env: Some("smaclite:bane_vs_hM".into()), ..same.clone() };
+    let w = validate_phase(&other, &env, &[]).unwrap().warnings;
+    assert!(w.len() == 1 && w[0].contains("smaclite:bane_vs_hM") && w[0].contains("lbf:8x8-2p-2f-s1-coop"), "{w:?}");
+    let changed = Protocol { schema_fingerprint: Some("fedcba9876543210".into()), ..same };
+    let w = validate_phase(&changed, &env, &[]).unwrap().warnings;
+    assert!(w.len() == 1 && w[0].contains("fedcba9876543210") && w[0].contains("changed"), "{w:?}");
+    // The identity is lmac's, not the LLM's: the JSON Schema an LLM gets does not offer it.
+    let schema = serde_json::to_string(&schemars::schema_for!(Protocol)).unwrap();
+    assert!(!schema.contains("schema_fingerprint") && !schema.contains("\"env\""));
+}

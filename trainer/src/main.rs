@@ -51,7 +51,7 @@ enum ConfigCmd {
 enum Cmd {
     /// Run the pipeline with a random policy: env servers -> protocol runner -> trainer (throughput, checks).
     Run(RunArgs),
-    /// Train a method (qmix, vdn, qplex, fullcomm, qmix-state, lmac, or a communication baseline) through the pipeline, over several seeds.
+    /// Train a method (a backbone, a baseline, LMAC or a communication baseline: `lmac train --help` lists them) through the pipeline, over several seeds.
     #[command(after_long_help = TRAIN_AFTER_HELP)]
     Train(TrainArgs),
     /// Greedy test episodes of trained runs from their last checkpoints, optionally with a

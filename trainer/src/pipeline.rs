@@ -74,7 +74,7 @@ pub struct TrainerArgs {
     pub startup_timeout: Duration,
     pub verify: Option<MessageCheck>,
     /// The protocol the runner applies (for `MessageCheck::Recompute`).
-    pub protocol: String,
+    pub protocol: lmac_protocol_runner::ProtocolSpec,
     /// Draw a progress bar on stderr.
     pub progress: bool,
 }

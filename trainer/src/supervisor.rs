@@ -25,7 +25,7 @@ pub struct RunPlan {
     pub slots: usize,
     /// Message columns reserved in the slab.
     pub msg_dim: usize,
-    pub protocol: String,
+    pub protocol: lmac_protocol_runner::ProtocolSpec,
     pub seed: u64,
     pub startup_timeout_s: f64,
     /// Extra arguments for the trainer child (after `lmac child trainer ...`).
@@ -162,10 +162,23 @@ fn stop_with_parent(c: &mut Command) {
     }
 }
 
+/// The executable a child of this process runs: this very build. `/proc/self/exe` names the
+/// running binary's inode even after a rebuild has replaced or removed its file (the path
+/// `current_exe` gives then ends in " (deleted)" and cannot be started), so a long `lmac
+/// experiment` survives a `cargo build` beside it and never mixes two builds in one run.
+pub fn self_exe() -> Result<PathBuf> {
+    let running = Path::new("/proc/self/exe");
+    if running.exists() {
+        Ok(running.to_path_buf())
+    } else {
+        std::env::current_exe().context("locating the lmac executable")
+    }
+}
+
 /// Start all processes and supervise them until the trainer finishes, a child dies, or
 /// `interrupted` is set (Ctrl-C).
 pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunOutcome> {
-    let exe = std::env::current_exe().context("locating the lmac executable")?;
+    let exe = self_exe()?;
     // Removed (with the report) when this function returns, after every child has ended.
     let scratch =
         crate::safe_fs::PrivateDir::new(&format!("{}-run", plan.run)).context("creating the run's private temporary directory")?;
@@ -203,8 +216,10 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
             procs.push(Proc { name, child, status: None });
         }
         let common = |c: &mut Command| {
+            // `ps` shows `lmac child ...`, not the /proc path the binary is started by.
+            std::os::unix::process::CommandExt::arg0(c, "lmac");
             c.args(["--run", &plan.run, "--env", &plan.env, "--members", &plan.ring_members().to_string()])
-                .args(["--slots", &plan.slots.to_string(), "--protocol", &plan.protocol])
+                .args(["--slots", &plan.slots.to_string(), "--protocol", &plan.protocol.to_string()])
                 .args(["--startup-timeout", &plan.startup_timeout_s.to_string()])
                 .stdin(Stdio::null());
             stop_with_parent(c);

@@ -268,7 +268,7 @@ fn the_communication_baselines_resolve_through_the_run_config_without_a_protocol
     ] {
         let set = |extra: &str| vec![format!("run.algo={algo:?}"), extra.to_string()];
         let cfg = TrainConfig::resolve(None, &set(good)).unwrap_or_else(|e| panic!("{algo}: {e:#}"));
-        assert_eq!(cfg.protocol().unwrap(), "none", "{algo} makes its own messages: the runner writes none");
+        assert_eq!(cfg.protocol().unwrap().to_string(), "none", "{algo} makes its own messages: the runner writes none");
         let err = format!("{:#}", TrainConfig::resolve(None, &set(bad)).unwrap_err());
         assert!(err.contains(field), "{algo}: {err}");
     }

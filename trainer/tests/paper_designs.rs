@@ -259,14 +259,14 @@ fn paper_specs_find_the_shipped_design_or_name_the_env() {
     // By archive task, by env, and `paper` for the run's env: the same three files.
     for spec in ["paper:1o_10b_vs_1r", "paper:smaclite:1o_10b_vs_1r", "paper"] {
         let c = config("smaclite:1o_10b_vs_1r", spec).unwrap_or_else(|e| panic!("{spec}: {e:#}"));
-        assert_eq!(c.protocol().unwrap(), want.join("+"), "{spec}");
+        assert_eq!(c.protocol().unwrap().to_string(), want.join("+"), "{spec}");
     }
     let lbf = config("lbf:8x8-2p-2f-s1-coop", "paper:Foraging-8x8-2p-2f-s1True").unwrap();
-    assert!(lbf.protocol().unwrap().contains("lbf_8x8-2p-2f-s1-coop/phase2/protocol.json"));
+    assert!(lbf.protocol().unwrap().to_string().contains("lbf_8x8-2p-2f-s1-coop/phase2/protocol.json"));
     // design_k picks the first phases, as for any design directory.
     let mut k0 = config("smaclite:1o_10b_vs_1r", "paper").unwrap();
     k0.run.design_k = Some(0);
-    assert_eq!(k0.protocol().unwrap(), want[0]);
+    assert_eq!(k0.protocol().unwrap().to_string(), want[0]);
 
     // No design for this env: the error names it.
     let e = format!("{:#}", config("lbf:8x8-2p-2f-s1-coop-entity", "paper").unwrap_err());

@@ -45,6 +45,17 @@ pub struct Protocol {
     pub layout: MessageLayout,
     /// The message fields, in column order. At least one.
     pub fields: Vec<Field>,
+    /// The environment the protocol was designed for (`family:variant`), recorded by lmac when
+    /// it saves a design (not part of what an LLM writes). Used on another environment, or after
+    /// that environment's schema changed, the protocol still compiles when its indices fit, but
+    /// `lmac train` and `lmac protocol check` warn.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(skip)]
+    pub env: Option<String>,
+    /// That environment's schema fingerprint when the protocol was saved.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(skip)]
+    pub schema_fingerprint: Option<String>,
 }
 
 fn default_true() -> bool {

@@ -29,6 +29,9 @@ pub struct ProtocolEnv {
     pub state_names: Vec<String>,
     /// Optional names of the actions; empty = unknown.
     pub action_names: Vec<String>,
+    /// The environment's name and schema fingerprint; empty = unknown (no identity check).
+    pub env_name: String,
+    pub schema_fingerprint: String,
 }
 
 impl ProtocolEnv {
@@ -130,6 +133,9 @@ pub struct ValidatedProtocol {
     pub width: usize,
     /// The critical state dims, expanded and sorted.
     pub critical_dims: Vec<usize>,
+    /// What is valid but suspicious: the protocol was saved for another environment, or before
+    /// its environment's schema changed.
+    pub warnings: Vec<String>,
 }
 
 impl ValidatedProtocol {
@@ -517,7 +523,24 @@ pub fn validate_phase(p: &Protocol, env: &ProtocolEnv, previous: &[ValidatedProt
         sends,
         width,
         critical_dims: critical_dims.into_iter().collect(),
+        warnings: identity_warnings(p, env),
     })
+}
+
+/// The protocol's recorded environment against the one it is used on.
+fn identity_warnings(p: &Protocol, env: &ProtocolEnv) -> Vec<String> {
+    match (&p.env, &p.schema_fingerprint) {
+        (Some(written), _) if !env.env_name.is_empty() && *written != env.env_name => vec![format!(
+            "this protocol was designed for {written}, not {}: its dims fit, but what they mean may not",
+            env.env_name
+        )],
+        (_, Some(fp)) if !env.schema_fingerprint.is_empty() && *fp != env.schema_fingerprint => vec![format!(
+            "the schema of {} changed since this protocol was saved (fingerprint {fp}, now {}): check that the dims it reads still mean the same",
+            if env.env_name.is_empty() { "the environment" } else { &env.env_name },
+            env.schema_fingerprint
+        )],
+        _ => Vec::new(),
+    }
 }
 
 fn valid_ident(s: &str) -> bool {

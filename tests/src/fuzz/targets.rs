@@ -143,7 +143,7 @@ impl Target for SchemaTarget {
         // What the rest of lmac computes from an accepted schema.
         let _ = (s.obs_meanings(), s.state_meanings(), s.fullcomm_columns());
         let env = lmac_protocol_runner::protocol_env(&s);
-        let _ = lmac_protocol_runner::plan_for("fullcomm", &s).map(|p| p.msg_dim());
+        let _ = lmac_protocol_runner::plan_for(&lmac_protocol_runner::ProtocolSpec::FullComm, &s).map(|p| p.msg_dim());
         let _ = env;
         Ok(())
     }
@@ -601,7 +601,7 @@ impl Target for DatasetTarget {
         case.write_to(&self.dir).map_err(|e| format!("fuzz harness: {e}"))?;
         let d = Dataset::load(&self.dir).map_err(|e| format!("{e:#}"))?;
         // What the design loop does next with a dataset: recompute messages with a plan.
-        let mut plan = lmac_protocol_runner::builtin::builtin("none", d.header.n_agents, d.header.obs_dim).expect("the none plan");
+        let mut plan = Box::new(lmac_protocol_runner::builtin::NoMessages);
         let msgs = d.messages(plan.as_mut());
         if msgs.len() != d.episodes.len() {
             panic!("messages for {} episodes out of {}", msgs.len(), d.episodes.len());

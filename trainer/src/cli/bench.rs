@@ -150,7 +150,7 @@ pub(crate) fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Resu
     let (raw_rate, pipe_rate, ratio) = (overall(&m.raws), overall(&m.pipes), median(ratios.clone()));
     let (lo, hi) = ratios.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &r| (lo.min(r), hi.max(r)));
     let v = serde_json::json!({
-        "env": p.env, "envs_total": p.envs * p.servers, "servers": p.servers, "protocol": p.protocol,
+        "env": p.env, "envs_total": p.envs * p.servers, "servers": p.servers, "protocol": p.protocol.to_string(),
         "sub_batches": sub_batches,
         "env_steps": p.steps, "repeats": repeat, "method": m.method,
         "raw_env_steps_per_s": raw_rate, "pipeline_env_steps_per_s": pipe_rate, "ratio": ratio,

@@ -19,7 +19,7 @@ pub(crate) struct ChildOpts {
     #[arg(long)]
     slots: usize,
     #[arg(long)]
-    protocol: String,
+    protocol: lmac_protocol_runner::ProtocolSpec,
     #[arg(long, default_value_t = 60.0)]
     startup_timeout: f64,
 }
@@ -84,10 +84,10 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
         ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress, train_dir, evaluate, report: report_to } => {
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
             let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
-            let check = match o.protocol.as_str() {
-                "fullcomm" => MessageCheck::FullComm,
-                "none" => MessageCheck::None,
-                _ => MessageCheck::Recompute,
+            let check = match o.protocol {
+                lmac_protocol_runner::ProtocolSpec::FullComm => MessageCheck::FullComm,
+                lmac_protocol_runner::ProtocolSpec::None => MessageCheck::None,
+                lmac_protocol_runner::ProtocolSpec::Files(_) => MessageCheck::Recompute,
             };
             let args = TrainerArgs {
                 run: o.run,

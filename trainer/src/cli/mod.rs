@@ -42,9 +42,9 @@ pub(crate) struct PipelineOpts {
     /// Slots in each server's shared-memory slab.
     #[arg(long, default_value_t = 4)]
     slots: usize,
-    /// Communication protocol applied by the runner: none | fullcomm.
+    /// Communication protocol applied by the runner: none | fullcomm | protocol files a.json+b.json.
     #[arg(long, default_value = "none")]
-    protocol: String,
+    protocol: lmac_protocol_runner::ProtocolSpec,
     /// Env steps to collect (after warm-up).
     #[arg(long, default_value_t = 20_000)]
     steps: u64,

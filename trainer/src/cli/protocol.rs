@@ -75,6 +75,9 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
                 Ok(phases) => {
                     for (f, p) in files.iter().zip(&phases) {
                         println!("{f}: {}", protocol::check_summary(p));
+                        for w in &p.warnings {
+                            println!("{f}: warning: {w}");
+                        }
                     }
                     let total = protocol::check_phases(&phases, &penv).map_err(|e| anyhow::anyhow!(protocol::errors_to_text(&e)))?;
                     println!("all phases: {total} message columns per agent (budget {})", schema.message_columns);

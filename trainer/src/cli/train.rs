@@ -24,14 +24,20 @@ replay buffer (run.save_buffer = false) the learner refills learn.batch_size epi
 updates again. Metrics rows logged after that checkpoint are dropped, so curves continue
 without a step backwards; each checkpoint is logged in metrics.jsonl.";
 
+/// `--algo`'s values, with each method's line, from the method registry.
+pub(crate) fn algo_names() -> clap::builder::PossibleValuesParser {
+    clap::builder::PossibleValuesParser::new(
+        lmac_trainer::learn::methods::REGISTRY.iter().map(|m| clap::builder::PossibleValue::new(m.name).help(m.about)),
+    )
+}
+
 #[derive(Args)]
 pub(crate) struct TrainArgs {
     /// Environment (overrides run.env).
     #[arg(long)]
     env: Option<String>,
-    /// qmix | vdn | qplex | fullcomm | qmix-state | lmac | ndq | maic | masia | t2mac | cola (overrides
-    /// run.algo).
-    #[arg(long)]
+    /// The method to train (overrides run.algo).
+    #[arg(long, value_parser = algo_names())]
     algo: Option<String>,
     /// Protocol: a design directory (from `lmac design`), phase files a.json+b.json, or the LMAC
     /// authors' design shipped in protocols/paper/: `paper` (for --env) or `paper:<task>`
@@ -95,13 +101,19 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
         // design (`paper`, `paper:<task>`) stays as named: it is found in the repository each time.
         let paper = lmac_trainer::train::resolve_paper_spec(&cfg.run.protocol, &cfg.run.env)? != cfg.run.protocol;
         if !cfg.run.protocol.is_empty() && !paper {
-            let files: Result<Vec<String>> = cfg
-                .run
-                .protocol
-                .split('+')
-                .map(|f| Ok(std::fs::canonicalize(f).with_context(|| format!("run.protocol: {f}"))?.display().to_string()))
-                .collect();
-            cfg.run.protocol = files?.join("+");
+            let absolute = |f: &str| -> Result<String> {
+                Ok(std::fs::canonicalize(f).with_context(|| format!("run.protocol: {f}"))?.display().to_string())
+            };
+            // Protocol files (or a built-in), else a design directory.
+            cfg.run.protocol = match cfg.run.protocol.parse::<lmac_protocol_runner::ProtocolSpec>() {
+                Ok(spec) => spec.map_files(absolute)?.to_string(),
+                Err(_) => absolute(&cfg.run.protocol)?,
+            };
+        }
+        // Valid but suspicious protocol files (another environment's, or an older schema's); an
+        // invalid protocol is reported by the config check below.
+        for w in cfg.protocol_warnings().unwrap_or_default() {
+            eprintln!("lmac: warning: run.protocol: {w}");
         }
         // A group directory of this command's own (two launches in the same second get two),
         // and each seed's lock taken before its config is written: no other lmac ever trains a

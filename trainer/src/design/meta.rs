@@ -70,8 +70,6 @@ impl std::str::FromStr for NoMessages {
     }
 }
 
-/// Names of the thirds of an episode.
-pub const THIRDS: [&str; 3] = ["early", "mid", "late"];
 
 /// Which third of an episode of `len` steps step `t` falls in.
 pub fn third(t: usize, len: usize) -> usize {
@@ -162,19 +160,9 @@ impl Recovery {
     }
 }
 
+pub use super::meta_info::{dim_label, skill, THIRDS};
 pub use crate::stats::{mean, variance};
 
-/// Recovery relative to a constant guess: (rate - guess) / (1 - guess), 1 for a dim the guess
-/// always gets right (a constant dim). 0 means no better than guessing; negative, worse.
-/// Sparse dims (an LBF cell is empty most of the time) reach high raw rates by guessing 0,
-/// so rankings of "worst recovered" use this instead of the raw rate.
-pub fn skill(rate: f64, guess: f64) -> f64 {
-    if guess >= 1.0 - 1e-9 {
-        1.0
-    } else {
-        (rate - guess) / (1.0 - guess)
-    }
-}
 
 /// Per dim of `dims`: E_t[chi] of the best-known constant guess, the median of the dim over
 /// (at most 20 000 evenly spread steps of) the training episodes, on the held-out episodes.
@@ -224,13 +212,6 @@ fn side(r: &Recovery, k: usize) -> SideRecovery {
     SideRecovery::from_rates(&r.rates(k), [&early, &mid, &late])
 }
 
-/// The label of a state dim: `s[62] - <meaning>` (or `s[62]` when the meaning is unknown).
-pub fn dim_label(d: usize, names: &[String]) -> String {
-    match names.get(d).filter(|s| !s.is_empty()) {
-        Some(m) => format!("s[{d}] - {m}"),
-        None => format!("s[{d}]"),
-    }
-}
 
 /// Choose the target dims from the measured ones: `wanted` (all measured when empty), capped
 /// to `max` worst recovered with messages relative to the constant guess ([`skill`]; `guess`

@@ -19,8 +19,31 @@
 //! is exactly what the file and the prompt show.
 
 use super::discriminator::{DiscriminatorConfig, TrainReport};
-use super::meta::{mean, variance, THIRDS};
+use crate::stats::{mean, variance};
 use serde::{Deserialize, Serialize};
+
+/// Names of the thirds of an episode.
+pub const THIRDS: [&str; 3] = ["early", "mid", "late"];
+
+/// Recovery relative to a constant guess: (rate - guess) / (1 - guess), 1 for a dim the guess
+/// always gets right (a constant dim). 0 means no better than guessing; negative, worse.
+/// Sparse dims (an LBF cell is empty most of the time) reach high raw rates by guessing 0,
+/// so rankings of "worst recovered" use this instead of the raw rate.
+pub fn skill(rate: f64, guess: f64) -> f64 {
+    if guess >= 1.0 - 1e-9 {
+        1.0
+    } else {
+        (rate - guess) / (1.0 - guess)
+    }
+}
+
+/// The label of a state dim: `s[62] - <meaning>` (or `s[62]` when the meaning is unknown).
+pub fn dim_label(d: usize, names: &[String]) -> String {
+    match names.get(d).filter(|s| !s.is_empty()) {
+        Some(m) => format!("s[{d}] - {m}"),
+        None => format!("s[{d}]"),
+    }
+}
 
 /// The meta-information of phases 0..=k on held-out episodes of B.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -73,7 +96,7 @@ pub struct DiscriminatorReports {
 pub struct DimRecovery {
     /// The state dim's index: what programs use (the label is for people and the LLM).
     pub dim: usize,
-    /// `s[62] - <meaning>` ([`super::meta::dim_label`]).
+    /// `s[62] - <meaning>` ([`dim_label`]).
     pub dimension: String,
     /// E[chi] of always guessing the dim's median: the level a rate must beat.
     pub constant_guess_rate: f64,
@@ -169,7 +192,7 @@ pub struct DimRates {
 pub struct SideTrend {
     /// Mean over dims and agents of E_t[chi].
     pub mean_recovery: f64,
-    /// Skill over the constant guess of the set ([`super::meta::skill`] of `mean_recovery`
+    /// Skill over the constant guess of the set ([`skill`] of `mean_recovery`
     /// against the set's mean constant-guess rate): 0 = no better than guessing each dim's
     /// median, 1 = always within alpha, negative = worse than the guess.
     pub skill: f64,
@@ -214,7 +237,7 @@ impl SetTrend {
     /// The verdict on these dims (`what`: how the set is named in the sentence).
     pub fn verdict(&self, what: &str) -> Verdict {
         let (w, o) = (&self.with_messages, &self.without_retrained);
-        let over_none = super::meta::skill(w.mean_recovery, o.mean_recovery);
+        let over_none = skill(w.mean_recovery, o.mean_recovery);
         let r4 = |x: f64| (x * 1e4).round() / 1e4;
         let helps = w.mean_recovery > o.mean_recovery && w.skill > 0.0;
         let numbers = format!(
@@ -253,12 +276,12 @@ impl SetTrend {
         let side = |pick: fn(&DimRates) -> &Vec<f64>| -> SideTrend {
             let n_agents = rows.first().map(|r| pick(r).len()).unwrap_or(0);
             let means: Vec<f64> = rows.iter().map(|r| mean(pick(r))).collect();
-            let skills: Vec<f64> = rows.iter().map(|r| super::meta::skill(mean(pick(r)), r.constant_guess_rate)).collect();
+            let skills: Vec<f64> = rows.iter().map(|r| skill(mean(pick(r)), r.constant_guess_rate)).collect();
             let vars: Vec<f64> = rows.iter().map(|r| variance(pick(r))).collect();
             let guess = mean(&rows.iter().map(|r| r.constant_guess_rate).collect::<Vec<f64>>());
             SideTrend {
                 mean_recovery: r4(mean(&means)),
-                skill: r4(super::meta::skill(mean(&means), guess)),
+                skill: r4(skill(mean(&means), guess)),
                 mean_skill: r4(mean(&skills)),
                 mean_variance_across_agents: (mean(&vars) * 1e6).round() / 1e6,
                 per_agent: (0..n_agents).map(|i| r4(mean(&rows.iter().map(|r| pick(r)[i]).collect::<Vec<f64>>()))).collect(),
@@ -315,7 +338,7 @@ impl MetaInfo {
 pub(crate) fn example(dims: &[(usize, String)], with: &[f64], without: &[f64]) -> MetaInfo {
     let side = |r: &[f64]| SideRecovery::from_rates(r, [r, r, r]);
     let mean_side =
-        |r: &[f64]| RecoverySummary { mean_recovery: round3(super::meta::mean(r)), mean_variance_across_agents: round5(variance(r)) };
+        |r: &[f64]| RecoverySummary { mean_recovery: round3(mean(r)), mean_variance_across_agents: round5(variance(r)) };
     MetaInfo {
         env: "lbf:8x8-2p-2f-s1-coop".into(),
         alpha: 0.1,

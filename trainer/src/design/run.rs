@@ -134,7 +134,14 @@ fn save_phase(dir: &Path, k: usize, p: &PhaseProtocol, ctx: &DesignContext) -> R
     let pd = dir.join(format!("phase{k}"));
     std::fs::create_dir_all(&pd)?;
     let file = pd.join("protocol.json");
-    write(&file, &serde_json::to_string_pretty(&p.protocol)?)?;
+    // The file says which environment (and schema) it was designed for; the in-memory protocol,
+    // which prompts and recordings read, stays as the designer wrote it.
+    let saved = protocol::Protocol {
+        env: Some(ctx.env_name.to_string()),
+        schema_fingerprint: Some(ctx.schema.fingerprint()),
+        ..p.protocol.clone()
+    };
+    write(&file, &serde_json::to_string_pretty(&saved)?)?;
     write(&pd.join("protocol.txt"), &protocol::explain(&p.protocol, Some(ctx.env)))?;
     write(&pd.join("reasoning.md"), &p.reasoning)?;
     Ok(file)
@@ -177,24 +184,26 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
         None => {
             let run_dir = dir.join("collect");
             std::fs::create_dir_all(&run_dir)?;
-            let protocol = files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join("+");
-            let cfg = crate::train::TrainConfig::resolve(
-                None,
-                &[
-                    format!("run.env={:?}", opts.env),
-                    "run.algo=\"qmix\"".into(),
-                    format!("run.protocol={protocol:?}"),
-                    format!("run.steps={}", opts.pretrain_steps.max(1)),
-                    format!("run.envs={}", opts.envs),
-                    format!("run.servers={}", opts.servers),
-                    format!("run.dataset_episodes={}", opts.dataset_episodes),
-                    // Only its dataset is kept: no final evaluation of the collecting policy.
-                    "run.final_eval_episodes=0".into(),
-                    format!("learn.seed={}", opts.seed),
-                ],
-            )?;
-            let mut cfg = cfg;
-            cfg.run.dataset_epsilon = opts.dataset_epsilon;
+            // No phase yet (the offline designer designs phase 0 from B): QMIX's own, no messages.
+            let protocol = match files.is_empty() {
+                true => String::new(),
+                false => lmac_protocol_runner::ProtocolSpec::Files(files.iter().map(|f| f.display().to_string()).collect()).to_string(),
+            };
+            let mut cfg = crate::train::TrainConfig::default();
+            cfg.run = crate::train::RunSection {
+                env: opts.env.clone(),
+                algo: "qmix".into(),
+                protocol,
+                steps: opts.pretrain_steps.max(1),
+                envs: opts.envs,
+                servers: opts.servers,
+                dataset_episodes: opts.dataset_episodes,
+                dataset_epsilon: opts.dataset_epsilon,
+                // Only its dataset is kept: no final evaluation of the collecting policy.
+                final_eval_episodes: Some(0),
+                ..cfg.run
+            };
+            cfg.learn.seed = opts.seed;
             cfg.check()?;
             write(&run_dir.join("config.toml"), &toml::to_string_pretty(&cfg)?)?;
             eprintln!("lmac: collecting the dataset: QMIX for {} env steps, then {} episodes", opts.pretrain_steps, opts.dataset_episodes);

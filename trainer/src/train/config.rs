@@ -6,6 +6,7 @@
 use crate::learn::methods::{self, AgentConfig, Messages, MethodContext};
 use crate::learn::LearnConfig;
 use anyhow::{bail, Context, Result};
+use lmac_protocol_runner::ProtocolSpec;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -16,8 +17,8 @@ pub struct RunSection {
     /// The environment, `family:variant` (`lmac envs` lists them; e.g. `smaclite:1o_10b_vs_1r`,
     /// `pz:mpe2.simple_spread_v3`): its schema file is `env-server/schemas/<family>/<variant>.toml`.
     pub env: String,
-    /// A method of `learn::methods::REGISTRY`: qmix, vdn, qplex, fullcomm, qmix-state, lmac, ndq,
-    /// maic, masia, t2mac, cola.
+    /// The method: one of the registry's `--algo` names (`lmac train --help` lists them with a
+    /// line each; their settings are the `[method]` section).
     pub algo: String,
     /// Environment steps to train for.
     pub steps: u64,
@@ -233,7 +234,7 @@ pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
         }
         found
     } else {
-        spec.split('+').map(str::to_string).collect()
+        spec.parse::<ProtocolSpec>().map_err(|e| anyhow::anyhow!("run.protocol: {e}"))?.files().to_vec()
     };
     match k {
         Some(k) if k + 1 > files.len() => bail!("run.design_k: {k} asks for {} phases but {spec} has {}", k + 1, files.len()),
@@ -357,7 +358,7 @@ impl TrainConfig {
     }
 
     /// The protocol the runner applies: the method's own, or `run.protocol` resolved to files.
-    pub fn protocol(&self) -> Result<String> {
+    pub fn protocol(&self) -> Result<ProtocolSpec> {
         let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
         let given = !self.run.protocol.is_empty();
         match m.messages {
@@ -365,7 +366,7 @@ impl TrainConfig {
                 let takes: Vec<&str> = methods::REGISTRY.iter().filter(|x| x.messages != Messages::FullComm).map(|x| x.name).collect();
                 bail!("run.protocol: {} fixes its protocol (fullcomm); give a protocol to {}", m.name, takes.join(", "))
             }
-            Messages::FullComm => Ok("fullcomm".into()),
+            Messages::FullComm => Ok(ProtocolSpec::FullComm),
             Messages::Designed if !given => bail!(
                 "run.protocol: {} needs a designed protocol: --protocol <design directory> (from `lmac design`) or phase files a.json+b.json",
                 m.name
@@ -374,7 +375,7 @@ impl TrainConfig {
                 if self.run.design_k.is_some() {
                     bail!("run.design_k: set, but run.protocol is empty");
                 }
-                Ok("none".into())
+                Ok(ProtocolSpec::None)
             }
             _ => {
                 let spec = resolve_paper_spec(&self.run.protocol, &self.run.env)?;
@@ -382,9 +383,22 @@ impl TrainConfig {
                 if let Some(env) = design_env(dir).filter(|e| *e != self.run.env) {
                     bail!("run.protocol: the design in {} was made for {env}, this run is on {}", dir.display(), self.run.env);
                 }
-                Ok(protocol_files(&spec, self.run.design_k)?.join("+"))
+                Ok(ProtocolSpec::Files(protocol_files(&spec, self.run.design_k)?))
             }
         }
+    }
+
+    /// What is valid but suspicious about the run's protocol files (designed for another
+    /// environment, or before its schema changed), each naming its file, for the caller to show.
+    pub fn protocol_warnings(&self) -> Result<Vec<String>> {
+        let ProtocolSpec::Files(files) = self.protocol()? else {
+            return Ok(Vec::new());
+        };
+        let schema = lmac_shm_schema::schema::load_env(&self.run.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
+        let env = lmac_protocol_runner::protocol_env(&schema);
+        let refs: Vec<&str> = files.iter().map(String::as_str).collect();
+        let phases = lmac_protocol_runner::load_phases(&refs, &env).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))?;
+        Ok(files.iter().zip(&phases).flat_map(|(f, p)| p.warnings.iter().map(move |w| format!("{f}: {w}"))).collect())
     }
 
     /// The learner config with the method's backbone and inputs applied.
@@ -404,8 +418,8 @@ impl TrainConfig {
         let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
         let protocol = self.protocol()?;
         let mut critical = std::collections::BTreeSet::new();
-        if protocol != "none" && protocol != "fullcomm" {
-            let files: Vec<&str> = protocol.split('+').collect();
+        if let ProtocolSpec::Files(files) = &protocol {
+            let files: Vec<&str> = files.iter().map(String::as_str).collect();
             let env = lmac_protocol_runner::protocol_env(schema);
             for phase in lmac_protocol_runner::load_phases(&files, &env).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))? {
                 critical.extend(phase.critical_dims);

@@ -388,7 +388,7 @@ fn save_dataset(run_dir: &Path, actor: &TrainActor, args: &crate::pipeline::Trai
         state_dim: s.state_dim,
         n_actions: s.n_actions,
         episode_limit: s.episode_limit,
-        protocol: args.protocol.clone(),
+        protocol: args.protocol.to_string(),
         policy: format!(
             "{} ({} mixer) after {} env steps, epsilon-greedy with epsilon {eps:.3}",
             actor.cfg.run.algo,

@@ -140,6 +140,8 @@ pub(super) fn probe(kinds: &[Kind], env: &ProtocolEnv) -> Result<(ValidatedProto
         // sender blocks at fixed positions, so say so.
         layout: MessageLayout::SenderBlocks,
         fields,
+        env: None,
+        schema_fingerprint: None,
     };
     let mut penv = env.clone();
     penv.message_budget = usize::MAX / 4;

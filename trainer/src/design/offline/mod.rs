@@ -209,6 +209,8 @@ impl OfflineDesigner {
             history_padding: HistoryPadding::default(),
             layout: MessageLayout::default(),
             fields,
+            env: None,
+            schema_fingerprint: None,
         };
         let validated = protocol::validate_phase(&p, env, &prev)
             .map_err(|e| anyhow!("offline designer: its phase {phase} protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;

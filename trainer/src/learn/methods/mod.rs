@@ -118,63 +118,146 @@ pub fn no_settings(table: &toml::Table, _: &MethodContext) -> Result<AgentConfig
     }
 }
 
-/// The agent network a method builds, saved in checkpoints with the learner's config.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "agent", rename_all = "kebab-case")]
-pub enum AgentConfig {
-    /// pymarl's RNN agent (QMIX, VDN, QPLEX, FullComm, QMIX+State).
-    #[default]
-    Rnn,
+/// Every method network, declared once: the `AgentConfig` variant a method's `configure` returns
+/// (saved in checkpoints with the learner's config, tagged `agent = "<variant in kebab case>"`),
+/// the `AgentNet` variant holding its burn module, and the dispatch over both. A method's module
+/// gives its config a `validate`, its agent `new(rng, config, layout, learn, device)`,
+/// `state_width`, `step` and `unroll`, a `STAT_NAMES` list and a [`MethodHooks`] impl; adding a
+/// method is one line here (and one in [`REGISTRY`]).
+macro_rules! method_networks {
+    ($( $(#[$doc:meta])* $variant:ident => $module:ident :: { $config:ident, $agent:ident } ),* $(,)?) => {
+        /// The agent network a method builds, saved in checkpoints with the learner's config.
+        #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+        #[serde(tag = "agent", rename_all = "kebab-case")]
+        pub enum AgentConfig {
+            /// pymarl's RNN agent (QMIX, VDN, QPLEX, FullComm, QMIX+State).
+            #[default]
+            Rnn,
+            $( $(#[$doc])* $variant($module::$config), )*
+        }
+
+        /// One agent network for every method (burn modules are concrete types, so the seam is
+        /// an enum).
+        #[derive(Module, Debug)]
+        pub enum AgentNet {
+            Rnn(RnnAgent),
+            $( $variant($module::$agent), )*
+        }
+
+        impl AgentConfig {
+            pub fn validate(&self) -> Result<(), ConfigError> {
+                match self {
+                    AgentConfig::Rnn => Ok(()),
+                    $( AgentConfig::$variant(c) => c.validate(), )*
+                }
+            }
+
+            /// The extra numbers an update of this method logs, in order.
+            pub fn stat_names(&self) -> &'static [&'static str] {
+                match self {
+                    AgentConfig::Rnn => &[],
+                    $( AgentConfig::$variant(_) => $module::STAT_NAMES, )*
+                }
+            }
+        }
+
+        impl AgentNet {
+            /// The network of `agent`, weights drawn from `rng`.
+            fn build(rng: &mut LearnRng, agent: &AgentConfig, layout: &InputLayout, cfg: &LearnConfig, device: &Device) -> Self {
+                match agent {
+                    AgentConfig::Rnn => {
+                        AgentNet::Rnn(RnnAgent::new(rng, layout.width(), cfg.rnn_hidden_dim, layout.dims.n_actions, device))
+                    }
+                    $( AgentConfig::$variant(c) => AgentNet::$variant($module::$agent::new(rng, c, layout, cfg, device)), )*
+                }
+            }
+
+            /// The method's pymarl RNN agent, for methods built around one (COLA has its own).
+            pub fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
+                match self {
+                    AgentNet::Rnn(a) => Some(a),
+                    $( AgentNet::$variant(a) => a.rnn_agent_mut(), )*
+                }
+            }
+
+            /// Width of the per-agent recurrent state the controller carries between steps.
+            pub fn state_width(&self) -> usize {
+                match self {
+                    AgentNet::Rnn(a) => a.hidden_dim,
+                    $( AgentNet::$variant(a) => a.state_width(), )*
+                }
+            }
+
+            /// One acting step, deterministic (no dropout): x [N, in], state [N, S] -> (q [N, A], state').
+            pub fn step(&self, x: Tensor<2>, state: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+                match self {
+                    AgentNet::Rnn(a) => a.step(x, state),
+                    $( AgentNet::$variant(a) => a.step(x, state), )*
+                }
+            }
+
+            /// Unroll from zero states: `inputs[t]` is [N, in] with N = B * n_agents (batch-major
+            /// rows). Returns Q [T, N, A] and, when `train` is given (the online network in an
+            /// update), the method's extra loss terms. Without `train` the network is deterministic.
+            pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
+                match self {
+                    AgentNet::Rnn(a) => (a.unroll(inputs), Vec::new()),
+                    $( AgentNet::$variant(a) => a.unroll(inputs, train), )*
+                }
+            }
+
+            /// After every optimizer step of the online network: a method's updates that are not
+            /// gradient steps (an EMA teacher, a momentum target encoder). Parameters it keeps
+            /// this way do not require grad, so the optimizer leaves them alone; they are saved
+            /// with the rest.
+            pub fn after_update(self) -> Self {
+                match self {
+                    AgentNet::Rnn(a) => AgentNet::Rnn(a),
+                    $( AgentNet::$variant(a) => AgentNet::$variant(MethodHooks::after_update(a)), )*
+                }
+            }
+        }
+    };
+}
+
+method_networks! {
     /// The LMAC agent: the meta-cognitive latent module in front of an RNN agent.
-    Lmac(lmac::LmacConfig),
+    Lmac => lmac::{LmacConfig, LmacAgent},
     /// NDQ: Gaussian messages to every teammate, an action-inference head (Wang et al. 2020).
-    Ndq(ndq::NdqConfig),
+    Ndq => ndq::{NdqConfig, NdqAgent},
     /// MAIC: teammate models and incentive messages added to the receivers' Q-values (Yuan et
     /// al. 2022).
-    Maic(maic::MaicConfig),
+    Maic => maic::{MaicConfig, MaicAgent},
     /// T2MAC: attention over teammates, evidential opinions sent to selected teammates and fused
     /// (Sun et al. 2024).
-    T2mac(t2mac::T2macConfig),
+    T2mac => t2mac::{T2macConfig, T2macAgent},
     /// COLA: a consensus class per agent and step, learnt DINO-style so that agents agree, next
     /// to the GRU state (Xu et al. 2023).
-    Cola(cola::ColaConfig),
+    Cola => cola::{ColaConfig, ColaAgent},
     /// MASIA: every agent's input aggregated by a self-supervised attention encoder, gated per
     /// agent (Guan et al. 2022).
-    Masia(masia::MasiaConfig),
+    Masia => masia::{MasiaConfig, MasiaAgent},
+}
+
+/// What a method's network offers beyond `new`, `state_width`, `step` and `unroll`, with the
+/// defaults most methods need.
+pub trait MethodHooks: Sized {
+    /// The pymarl RNN agent the method is built around (its `fused` switch follows
+    /// `learn.fused_gru`); `None` when it has its own recurrence.
+    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent>;
+    /// Updates after each optimizer step that are not gradient steps; none by default.
+    fn after_update(self) -> Self {
+        self
+    }
 }
 
 impl AgentConfig {
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        match self {
-            AgentConfig::Rnn => Ok(()),
-            AgentConfig::Lmac(c) => c.validate(),
-            AgentConfig::Ndq(c) => c.validate(),
-            AgentConfig::Maic(c) => c.validate(),
-            AgentConfig::T2mac(c) => c.validate(),
-            AgentConfig::Cola(c) => c.validate(),
-            AgentConfig::Masia(c) => c.validate(),
-        }
-    }
-
     /// Whether the method's reference code standardises rewards (`learn.reward_standardisation
     /// = "method"`): LMAC's released config does; the baselines run EPyMARL's default (no).
     pub fn standardises_rewards(&self) -> bool {
         match self {
             AgentConfig::Lmac(c) => c.settings.standardise_rewards,
             _ => false,
-        }
-    }
-
-    /// The names of the numbers `unroll` logs in training (losses and diagnostics), in order.
-    pub fn stat_names(&self) -> &'static [&'static str] {
-        match self {
-            AgentConfig::Rnn => &[],
-            AgentConfig::Lmac(_) => lmac::STAT_NAMES,
-            AgentConfig::Ndq(_) => ndq::STAT_NAMES,
-            AgentConfig::Maic(_) => maic::STAT_NAMES,
-            AgentConfig::T2mac(_) => t2mac::STAT_NAMES,
-            AgentConfig::Cola(_) => cola::STAT_NAMES,
-            AgentConfig::Masia(_) => masia::STAT_NAMES,
         }
     }
 }
@@ -246,89 +329,14 @@ pub struct AuxTerm {
     pub value: f32,
 }
 
-/// One agent network for every method (burn modules are concrete types, so the seam is an enum).
-#[derive(Module, Debug)]
-pub enum AgentNet {
-    Rnn(RnnAgent),
-    Lmac(lmac::LmacAgent),
-    Ndq(ndq::NdqAgent),
-    Maic(maic::MaicAgent),
-    T2mac(t2mac::T2macAgent),
-    Cola(cola::ColaAgent),
-    Masia(masia::MasiaAgent),
-}
-
 impl AgentNet {
     /// Build with weights drawn from `rng`. `layout` is what the learner writes per agent-row.
     pub fn new(rng: &mut LearnRng, agent: &AgentConfig, layout: &InputLayout, cfg: &LearnConfig, device: &Device) -> Self {
-        let d = &layout.dims;
-        let mut net = match agent {
-            AgentConfig::Rnn => AgentNet::Rnn(RnnAgent::new(rng, layout.width(), cfg.rnn_hidden_dim, d.n_actions, device)),
-            AgentConfig::Lmac(c) => AgentNet::Lmac(lmac::LmacAgent::new(rng, c, layout, cfg, device)),
-            AgentConfig::Ndq(c) => AgentNet::Ndq(ndq::NdqAgent::new(rng, c, layout, cfg, device)),
-            AgentConfig::Maic(c) => AgentNet::Maic(maic::MaicAgent::new(rng, c, layout, cfg, device)),
-            AgentConfig::T2mac(c) => AgentNet::T2mac(t2mac::T2macAgent::new(rng, c, layout, cfg, device)),
-            AgentConfig::Cola(c) => AgentNet::Cola(cola::ColaAgent::new(rng, c, layout, cfg, device)),
-            AgentConfig::Masia(c) => AgentNet::Masia(masia::MasiaAgent::new(rng, c, layout, cfg, device)),
-        };
+        let mut net = AgentNet::build(rng, agent, layout, cfg, device);
         if let Some(rnn) = net.rnn_agent_mut() {
             rnn.fused = cfg.fused_gru;
         }
         net
-    }
-
-    /// The method's pymarl RNN agent, for methods built around one (COLA has its own).
-    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
-        match self {
-            AgentNet::Rnn(a) => Some(a),
-            AgentNet::Lmac(a) => Some(&mut a.agent),
-            AgentNet::Ndq(a) => Some(&mut a.agent),
-            AgentNet::Maic(a) => Some(&mut a.agent),
-            AgentNet::T2mac(a) => Some(&mut a.agent),
-            AgentNet::Masia(a) => Some(&mut a.agent),
-            AgentNet::Cola(_) => None,
-        }
-    }
-
-    /// Width of one agent-row's recurrent state (all zeros at an episode's start).
-    pub fn state_width(&self) -> usize {
-        match self {
-            AgentNet::Rnn(a) => a.hidden_dim,
-            AgentNet::Lmac(a) => a.state_width(),
-            AgentNet::Ndq(a) => a.state_width(),
-            AgentNet::Maic(a) => a.state_width(),
-            AgentNet::T2mac(a) => a.state_width(),
-            AgentNet::Cola(a) => a.state_width(),
-            AgentNet::Masia(a) => a.state_width(),
-        }
-    }
-
-    /// One acting step, deterministic (no dropout): x [N, in], state [N, S] -> (q [N, A], state').
-    pub fn step(&self, x: Tensor<2>, state: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
-        match self {
-            AgentNet::Rnn(a) => a.step(x, state),
-            AgentNet::Lmac(a) => a.step(x, state),
-            AgentNet::Ndq(a) => a.step(x, state),
-            AgentNet::Maic(a) => a.step(x, state),
-            AgentNet::T2mac(a) => a.step(x, state),
-            AgentNet::Cola(a) => a.step(x, state),
-            AgentNet::Masia(a) => a.step(x, state),
-        }
-    }
-
-    /// Unroll from zero states: `inputs[t]` is [N, in] with N = B * n_agents (batch-major rows).
-    /// Returns Q [T, N, A] and, when `train` is given (the online network in an update), the
-    /// method's extra loss terms. Without `train` the network is deterministic.
-    pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
-        match self {
-            AgentNet::Rnn(a) => (a.unroll(inputs), Vec::new()),
-            AgentNet::Lmac(a) => a.unroll(inputs, train),
-            AgentNet::Ndq(a) => a.unroll(inputs, train),
-            AgentNet::Maic(a) => a.unroll(inputs, train),
-            AgentNet::T2mac(a) => a.unroll(inputs, train),
-            AgentNet::Cola(a) => a.unroll(inputs, train),
-            AgentNet::Masia(a) => a.unroll(inputs, train),
-        }
     }
 
     /// Change the test-time settings of a trained network from `from` to `to` (what
@@ -356,17 +364,6 @@ impl AgentNet {
                  test-time settings can change for a trained network: method.cut (ndq), method.prune (maic)",
                 config_differences(from, to)
             )),
-        }
-    }
-
-    /// After every optimizer step of the online network: a method's updates that are not
-    /// gradient steps (an EMA teacher, a momentum target encoder). Parameters it keeps this way
-    /// do not require grad, so the optimizer leaves them alone; they are saved with the rest.
-    pub fn after_update(self) -> Self {
-        match self {
-            AgentNet::Cola(a) => AgentNet::Cola(a.after_update()),
-            AgentNet::Masia(a) => AgentNet::Masia(a.after_update()),
-            a @ (AgentNet::Rnn(_) | AgentNet::Lmac(_) | AgentNet::Ndq(_) | AgentNet::Maic(_) | AgentNet::T2mac(_)) => a,
         }
     }
 }

@@ -17,10 +17,10 @@ use burn::tensor::activation::{log_softmax, relu, softmax};
 use burn::tensor::{Device, Tensor, TensorData};
 
 use super::{agreement_and_entropy, classes, ColaConfig, ConsensusInput};
-use crate::learn::agent::FusedGru;
+use crate::learn::agent::{FusedGru, RnnAgent};
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
-use crate::learn::methods::{standard_normal, AuxTerm, TrainContext};
+use crate::learn::methods::{standard_normal, AuxTerm, MethodHooks, TrainContext};
 use crate::learn::{InputLayout, LearnRng};
 
 /// The student's (or the teacher's) network: input -> 2W -> ReLU -> W ("view"), then W -> W ->
@@ -112,6 +112,17 @@ pub struct ColaAgent {
     /// message columns; 0: every agent counts as alive).
     pub obs_cols: usize,
     pub hidden_dim: usize,
+}
+
+impl MethodHooks for ColaAgent {
+    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
+        None
+    }
+
+    /// Moves the EMA teacher and the center ([`ColaAgent::after_update`]).
+    fn after_update(self) -> Self {
+        ColaAgent::after_update(self)
+    }
 }
 
 impl ColaAgent {

@@ -30,7 +30,7 @@ use super::{AuxLayout, EncoderKind, LatentReduction, LmacConfig};
 use crate::learn::agent::{FusedGru, RnnAgent};
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
-use crate::learn::methods::{dropout, AuxTerm, TrainContext};
+use crate::learn::methods::{dropout, AuxTerm, MethodHooks, TrainContext};
 use crate::learn::window_attention::window_attention;
 use crate::learn::{InputLayout, LearnRng};
 
@@ -82,6 +82,12 @@ pub struct LmacAgent {
     pub obs_dim: usize,
     /// Width of the learner's input row.
     pub in_width: usize,
+}
+
+impl MethodHooks for LmacAgent {
+    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
+        Some(&mut self.agent)
+    }
 }
 
 impl LmacAgent {

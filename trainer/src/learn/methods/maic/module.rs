@@ -17,7 +17,7 @@ use super::{BatchNormMode, EntropyAttention, MaicConfig, MessageInput, MiAction,
 use crate::learn::agent::RnnAgent;
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
-use crate::learn::methods::{leaky_relu, standard_normal, AuxTerm, TrainContext};
+use crate::learn::methods::{leaky_relu, standard_normal, AuxTerm, MethodHooks, TrainContext};
 use crate::learn::{InputLayout, LearnRng};
 
 const LEAK: f64 = 0.01; // torch's LeakyReLU default
@@ -138,6 +138,12 @@ struct Internals {
     alpha: Tensor<4>,
     /// [T, B, n, A] the incoming weighted messages.
     incoming: Tensor<4>,
+}
+
+impl MethodHooks for MaicAgent {
+    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
+        Some(&mut self.agent)
+    }
 }
 
 impl MaicAgent {

@@ -19,7 +19,7 @@ use super::MasiaConfig;
 use crate::learn::agent::{FusedGru, RnnAgent};
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
-use crate::learn::methods::{AuxTerm, TrainContext};
+use crate::learn::methods::{AuxTerm, MethodHooks, TrainContext};
 use crate::learn::{InputLayout, LearnRng};
 
 /// Linear -> ReLU -> Linear.
@@ -172,6 +172,17 @@ struct Trace {
     z: Tensor<3>,
     rows: Tensor<2>,
     gates: Tensor<2>,
+}
+
+impl MethodHooks for MasiaAgent {
+    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
+        Some(&mut self.agent)
+    }
+
+    /// Moves the momentum target encoder ([`MasiaAgent::after_update`]).
+    fn after_update(self) -> Self {
+        MasiaAgent::after_update(self)
+    }
 }
 
 impl MasiaAgent {

@@ -14,7 +14,7 @@ use super::{cut_mask, NdqConfig};
 use crate::learn::agent::RnnAgent;
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
-use crate::learn::methods::{standard_normal, AuxTerm, TrainContext};
+use crate::learn::methods::{standard_normal, AuxTerm, MethodHooks, TrainContext};
 use crate::learn::{InputLayout, LearnRng};
 
 #[derive(Module, Debug)]
@@ -29,6 +29,12 @@ pub struct NdqAgent {
     #[module(skip)]
     pub cfg: NdqConfig,
     pub n_agents: usize,
+}
+
+impl MethodHooks for NdqAgent {
+    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
+        Some(&mut self.agent)
+    }
 }
 
 impl NdqAgent {

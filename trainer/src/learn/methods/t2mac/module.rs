@@ -19,7 +19,7 @@ use super::{Evidence, Selector, T2macConfig};
 use crate::learn::agent::RnnAgent;
 use crate::learn::config::LearnConfig;
 use crate::learn::init::linear;
-use crate::learn::methods::{AuxTerm, TrainContext};
+use crate::learn::methods::{AuxTerm, MethodHooks, TrainContext};
 use crate::learn::{InputLayout, LearnRng};
 
 #[derive(Module, Debug)]
@@ -38,6 +38,12 @@ pub struct T2macAgent {
     #[module(skip)]
     pub cfg: T2macConfig,
     pub n_agents: usize,
+}
+
+impl MethodHooks for T2macAgent {
+    fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
+        Some(&mut self.agent)
+    }
 }
 
 impl T2macAgent {
