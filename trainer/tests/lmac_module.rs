@@ -259,19 +259,24 @@ fn the_consistency_loss_averages_over_the_latent_unless_told_to_sum() {
     assert!((sum - latent * mean).abs() <= 1e-4 * sum, "sum {sum} = {latent} x mean {mean}");
 }
 
-/// Rewards in the TD targets: LMAC standardises them by default (its released config), QMIX
-/// keeps them raw (EPyMARL's default); `released` folds the padding's zero rewards into the
-/// statistics, `valid-steps` only the real steps.
+/// Rewards in the TD targets: raw by default for every method; LMAC with
+/// `method.standardise_rewards = true` (its released config) standardises them, QMIX never by
+/// its own choice; `released` folds the padding's zero rewards into the statistics,
+/// `valid-steps` only the real steps.
 #[test]
-fn lmac_standardises_rewards_over_valid_steps_and_qmix_does_not() {
+fn lmac_standardises_rewards_over_valid_steps_when_asked_and_qmix_does_not() {
     use lmac_trainer::episode::Episode;
     use lmac_trainer::learn::methods::{self, MethodContext};
     use lmac_trainer::learn::{Learner, RewardStandardisation};
     let dims = EpisodeDims { n_agents: 2, obs_width: 6, state_dim: 4, n_actions: 3 };
     let ctx = MethodContext { msg_cols: 2, alpha: 0.1, critical_dims: vec![0, 1], state_dim: 4 };
     let count_after_one_update = |algo: &str, standardise: RewardStandardisation| {
+        let (algo, settings) = match algo.strip_suffix("+std") {
+            Some(a) => (a, toml::toml! { standardise_rewards = true }),
+            None => (algo, toml::Table::new()),
+        };
         let spec = methods::method(algo).unwrap();
-        let agent = (spec.configure)(&toml::Table::new(), &ctx).unwrap();
+        let agent = (spec.configure)(&settings, &ctx).unwrap();
         let learn = LearnConfig { batch_size: 2, buffer_size: 2, reward_standardisation: standardise, ..LearnConfig::default() };
         let mut l = Learner::with_agent(dims, learn, agent, Device::default()).unwrap();
         let mut rng = LearnRng::seed_from(1);
@@ -286,8 +291,9 @@ fn lmac_standardises_rewards_over_valid_steps_and_qmix_does_not() {
     };
     let prior = lmac_trainer::learn::RewardStats::default();
     assert_eq!(count_after_one_update("qmix", RewardStandardisation::Method), prior, "QMIX keeps raw rewards");
-    let valid = count_after_one_update("lmac", RewardStandardisation::Method);
-    assert!((valid.count - prior.count - 8.0).abs() < 1e-9, "LMAC folds in the 8 real steps: {valid:?}");
+    assert_eq!(count_after_one_update("lmac", RewardStandardisation::Method), prior, "LMAC keeps raw rewards by default");
+    let valid = count_after_one_update("lmac+std", RewardStandardisation::Method);
+    assert!((valid.count - prior.count - 8.0).abs() < 1e-9, "LMAC's released config folds in the 8 real steps: {valid:?}");
     // rewards 1,3,5 and 1,3,5,7,9: mean 34/8
     assert!((valid.mean - 34.0 / 8.0 * 8.0 / (8.0 + prior.count)).abs() < 1e-6, "{valid:?}");
     let released = count_after_one_update("lmac", RewardStandardisation::Released);

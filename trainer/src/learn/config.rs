@@ -27,8 +27,9 @@ pub enum OptimizerKind {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum RewardStandardisation {
-    /// The method's own choice: LMAC standardises (the released LMAC config sets
-    /// `standardise_rewards: True`), every other method keeps raw rewards (EPyMARL's default).
+    /// The method's own choice: raw rewards for every method unless its settings say otherwise
+    /// (LMAC's `method.standardise_rewards = true` is the released LMAC config's
+    /// `standardise_rewards: True`).
     Method,
     /// Raw rewards.
     Off,

@@ -112,8 +112,13 @@ pub struct LmacSettings {
     /// The decoder's and cycle encoder's layers: `released` (default) or `compact`.
     pub aux_layout: AuxLayout,
     /// Standardise rewards with running statistics before the TD target, as the released
-    /// LMAC config does (`standardise_rewards: True`; EPyMARL's default and its QMIX config
-    /// leave rewards as they are). `learn.reward_standardisation` overrides it unless `method`.
+    /// LMAC config does (`standardise_rewards: True`; the paper does not mention it, and
+    /// EPyMARL's QMIX config leaves rewards as they are). Off by default: at the paper's
+    /// schedule on smaclite:1o_10b_vs_1r with the authors' design (seed 0, 300k steps) LMAC
+    /// with it collapsed after 100k steps (final test return 0.40, Q-values growing to 32)
+    /// where LMAC without it ended at 7.95, and QMIX with it fell to 1.76 against 4.78 raw
+    /// (docs/results/reproduction.md). `learn.reward_standardisation` overrides it unless
+    /// `method`.
     pub standardise_rewards: bool,
     /// Regress z_hat onto a detached z, so the consistency loss trains the decoder and the cycle
     /// encoder but cannot shrink z itself. With the paper's loss (false) the encoder can lower
@@ -146,7 +151,7 @@ impl Default for LmacSettings {
             mask_consistency: true,
             consistency_over_latent: LatentReduction::Mean,
             aux_layout: AuxLayout::Released,
-            standardise_rewards: true,
+            standardise_rewards: false,
             detach_consistency_target: false,
             alpha: None,
         }
