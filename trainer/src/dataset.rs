@@ -29,6 +29,8 @@ use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 8] = b"LMACTRJ1";
+const FORMAT: &str = "lmac-trajectories";
+const VERSION: u32 = 1;
 
 /// A writer that keeps the CRC-32C and length of what passes through it.
 struct Crc32cWriter {
@@ -48,8 +50,6 @@ impl Write for Crc32cWriter {
         self.inner.flush()
     }
 }
-const FORMAT: &str = "lmac-trajectories";
-const VERSION: u32 = 1;
 
 /// What the dataset holds and how it was collected.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -198,10 +198,14 @@ impl Dataset {
         if !meta.is_file() {
             bail!("{}: not a regular file", bp.display());
         }
-        let want_bytes = v.get("episodes_bytes").filter(|x| !x.is_null());
-        if let Some(want) = want_bytes {
+        if let Some(want) = v.get("episodes_bytes").filter(|x| !x.is_null()) {
             if want.as_u64() != Some(meta.len()) {
-                bail!("{}: {} bytes, but {} records episodes_bytes = {want}: the file is truncated or replaced", bp.display(), meta.len(), hp.display());
+                bail!(
+                    "{}: {} bytes, but {} records episodes_bytes = {want}: the file is truncated or replaced",
+                    bp.display(),
+                    meta.len(),
+                    hp.display()
+                );
             }
         }
         let mut data = Vec::new();

@@ -135,11 +135,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
             Ok(0)
         }
         Cmd::Config(ConfigCmd::Show { config, preset, set }) => {
-            let mut overrides = match &preset {
-                Some(p) => lmac_trainer::train::preset_overrides(p)?,
-                None => Vec::new(),
-            };
-            overrides.extend(set);
+            let overrides = lmac_trainer::train::preset_then(preset.as_deref(), &set)?;
             let cfg = lmac_trainer::train::TrainConfig::resolve(config.as_deref(), &overrides)?;
             print!("{}", toml::to_string_pretty(&cfg)?);
             Ok(0)

@@ -166,11 +166,7 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
         for &seed in &a.seeds {
             let d = dir.join("runs").join(&label).join(format!("seed{seed}"));
             if !d.join("config.toml").exists() {
-                let mut o = match &a.preset {
-                    Some(p) => lmac_trainer::train::preset_overrides(p)?,
-                    None => Vec::new(),
-                };
-                o.extend(a.set.iter().cloned());
+                let mut o = lmac_trainer::train::preset_then(a.preset.as_deref(), &a.set)?;
                 o.push(format!("run.env={:?}", a.env));
                 o.push(format!("run.algo={algo:?}"));
                 o.push(format!("run.steps={}", a.steps));

@@ -148,8 +148,7 @@ pub(crate) fn pipeline_report(
 /// Draw a run's or a design's figures with one of the reporting package's matplotlib modules
 /// (`python -m lmac_report.<module> DIR`, the project's Python); a failure is reported, not fatal.
 pub(crate) fn plot(module: &str, dir: &std::path::Path) {
-    let out = supervisor::python_command()
-        .and_then(|mut c| Ok(c.arg("-m").arg(format!("lmac_report.{module}")).arg(dir).output()?));
+    let out = supervisor::python_command().and_then(|mut c| Ok(c.arg("-m").arg(format!("lmac_report.{module}")).arg(dir).output()?));
     match out {
         Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
         Ok(o) => eprintln!("lmac: lmac_report.{module} failed: {}", String::from_utf8_lossy(&o.stderr)),

@@ -79,11 +79,7 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
     let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
         seed_dirs(r)?
     } else {
-        let mut overrides = match &a.preset {
-            Some(p) => lmac_trainer::train::preset_overrides(p)?,
-            None => Vec::new(),
-        };
-        overrides.extend(a.set.iter().cloned());
+        let mut overrides = lmac_trainer::train::preset_then(a.preset.as_deref(), &a.set)?;
         if let Some(e) = &a.env {
             overrides.push(format!("run.env={e:?}"));
         }

@@ -70,7 +70,6 @@ impl std::str::FromStr for NoMessages {
     }
 }
 
-
 /// Which third of an episode of `len` steps step `t` falls in.
 pub fn third(t: usize, len: usize) -> usize {
     (3 * t / len.max(1)).min(2)
@@ -163,7 +162,6 @@ impl Recovery {
 pub use super::meta_info::{dim_label, skill, THIRDS};
 pub use crate::stats::{mean, variance};
 
-
 /// Per dim of `dims`: E_t[chi] of the best-known constant guess, the median of the dim over
 /// (at most 20 000 evenly spread steps of) the training episodes, on the held-out episodes.
 pub fn constant_guess(data: &Dataset, train: &[usize], test: &[usize], dims: &[usize], alpha: f64) -> Vec<f64> {
@@ -211,7 +209,6 @@ fn side(r: &Recovery, k: usize) -> SideRecovery {
     let [early, mid, late] = [0, 1, 2].map(|th| (0..r.n_agents).map(|i| r.third_rate(k, i, th)).collect::<Vec<f64>>());
     SideRecovery::from_rates(&r.rates(k), [&early, &mid, &late])
 }
-
 
 /// Choose the target dims from the measured ones: `wanted` (all measured when empty), capped
 /// to `max` worst recovered with messages relative to the constant guess ([`skill`]; `guess`

@@ -337,8 +337,7 @@ impl MetaInfo {
 #[cfg(test)]
 pub(crate) fn example(dims: &[(usize, String)], with: &[f64], without: &[f64]) -> MetaInfo {
     let side = |r: &[f64]| SideRecovery::from_rates(r, [r, r, r]);
-    let mean_side =
-        |r: &[f64]| RecoverySummary { mean_recovery: round3(mean(r)), mean_variance_across_agents: round5(variance(r)) };
+    let mean_side = |r: &[f64]| RecoverySummary { mean_recovery: round3(mean(r)), mean_variance_across_agents: round5(variance(r)) };
     MetaInfo {
         env: "lbf:8x8-2p-2f-s1-coop".into(),
         alpha: 0.1,

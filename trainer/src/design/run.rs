@@ -189,21 +189,23 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
                 true => String::new(),
                 false => lmac_protocol_runner::ProtocolSpec::Files(files.iter().map(|f| f.display().to_string()).collect()).to_string(),
             };
-            let mut cfg = crate::train::TrainConfig::default();
-            cfg.run = crate::train::RunSection {
-                env: opts.env.clone(),
-                algo: "qmix".into(),
-                protocol,
-                steps: opts.pretrain_steps.max(1),
-                envs: opts.envs,
-                servers: opts.servers,
-                dataset_episodes: opts.dataset_episodes,
-                dataset_epsilon: opts.dataset_epsilon,
-                // Only its dataset is kept: no final evaluation of the collecting policy.
-                final_eval_episodes: Some(0),
-                ..cfg.run
+            let cfg = crate::train::TrainConfig {
+                run: crate::train::RunSection {
+                    env: opts.env.clone(),
+                    algo: "qmix".into(),
+                    protocol,
+                    steps: opts.pretrain_steps.max(1),
+                    envs: opts.envs,
+                    servers: opts.servers,
+                    dataset_episodes: opts.dataset_episodes,
+                    dataset_epsilon: opts.dataset_epsilon,
+                    // Only its dataset is kept: no final evaluation of the collecting policy.
+                    final_eval_episodes: Some(0),
+                    ..Default::default()
+                },
+                learn: crate::learn::LearnConfig { seed: opts.seed, ..Default::default() },
+                ..Default::default()
             };
-            cfg.learn.seed = opts.seed;
             cfg.check()?;
             write(&run_dir.join("config.toml"), &toml::to_string_pretty(&cfg)?)?;
             eprintln!("lmac: collecting the dataset: QMIX for {} env steps, then {} episodes", opts.pretrain_steps, opts.dataset_episodes);

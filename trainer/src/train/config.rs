@@ -140,6 +140,17 @@ pub const PRESETS: &[(&str, &str)] = &[
     ),
 ];
 
+/// The overrides of an optional preset followed by `sets` (`--set` after `--preset`), as
+/// `lmac train`, `lmac experiment` and `lmac config show` apply them.
+pub fn preset_then(preset: Option<&str>, sets: &[String]) -> Result<Vec<String>> {
+    let mut o = match preset {
+        Some(p) => preset_overrides(p)?,
+        None => Vec::new(),
+    };
+    o.extend(sets.iter().cloned());
+    Ok(o)
+}
+
 /// The `key=value` overrides of a preset.
 pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
     let episode_runner = || {

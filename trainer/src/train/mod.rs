@@ -11,7 +11,7 @@ pub mod marl_eval;
 pub mod metrics;
 pub mod reference;
 
-pub use config::{paper_designs_dir, preset_overrides, protocol_files, resolve_paper_spec, RunSection, TrainConfig, PRESETS};
+pub use config::{paper_designs_dir, preset_overrides, preset_then, protocol_files, resolve_paper_spec, RunSection, TrainConfig, PRESETS};
 pub use metrics::{read_metrics, CheckpointWritten, Metrics, MetricsResume, MetricsRow};
 
 use crate::dataset::{Dataset, DatasetHeader, Trajectory};

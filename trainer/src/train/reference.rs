@@ -86,10 +86,8 @@ fn table(out: &mut String, schema: &schemars::Schema) {
 
 /// "One of: `a` (what a is), `b`." for a property whose type is an enum, else None.
 fn enum_choices(prop: &Value, defs: &Value) -> Option<String> {
-    let reference = prop
-        .get("$ref")
-        .or_else(|| prop.get("allOf").and_then(|a| a.get(0)).and_then(|a| a.get("$ref")))
-        .and_then(Value::as_str)?;
+    let reference =
+        prop.get("$ref").or_else(|| prop.get("allOf").and_then(|a| a.get(0)).and_then(|a| a.get("$ref"))).and_then(Value::as_str)?;
     let def = defs.get(reference.rsplit('/').next()?)?;
     let mut choices = Vec::new();
     if let Some(variants) = def.get("oneOf").and_then(Value::as_array) {
