@@ -231,8 +231,16 @@ def serve(args) -> int:
         f"env server, ring members {args.first_member}-{last} ({args.env})"
     units: list[_SubBatch] = []
     try:
-        for k in range(args.sub_batches):
-            units.append(_SubBatch(args, args.first_member + k, args.envs // args.sub_batches, lmac_shm))
+        try:
+            for k in range(args.sub_batches):
+                units.append(_SubBatch(args, args.first_member + k, args.envs // args.sub_batches, lmac_shm))
+        except (ImportError, ValueError) as e:
+            # The env's module cannot be found or imported: one line, no traceback (a ValueError
+            # from inside a module that did load is the module's own bug and keeps its traceback).
+            if isinstance(e, ValueError) and "unknown environment family" not in str(e):
+                raise
+            print(f"lmac: {who}: {e} (python: {sys.executable})", file=sys.stderr, flush=True)
+            return 2
         for u in units:
             u.port.handshake(args.startup_timeout)
         for u in units:

@@ -374,10 +374,15 @@ def main(argv=None) -> int:
             bad += 1
             print(f"lmac: {e}", file=sys.stderr)
         except ValueError as e:  # the env refused its schema itself (lbf, pz) or the name
-            if "unknown environment family" in str(e):
-                print(f"skip {name}: {e}")
-                continue
             bad += 1
+            if "unknown environment family" in str(e):
+                # A typo in the family or a module not on the servers' path: the run would fail
+                # the same way, so --check fails now, naming the schema that asks for it.
+                from .core import schema_path
+                family = name.partition(":")[0]
+                e = (f"{schema_path(name)}: no module makes family {family!r} under {sys.executable}: "
+                     f"put the folder holding {family.replace('.', '/')}.py on PYTHONPATH, install it, "
+                     "or rename the schema's folder to the module's dotted path")
             print(f"lmac: {e}", file=sys.stderr)
     return 1 if bad else 0
 

@@ -107,7 +107,7 @@ def main(group: pathlib.Path) -> None:
     finals = [(final_of(c[:, 1]), final_of(c[:, 2])) for c in curves.values()]
     summary = {
         "seeds": len(curves),
-        "final_tests_averaged": FINAL_TEST_PHASES,
+        "final_tests_averaged": min(FINAL_TEST_PHASES, min(len(c) for c in curves.values())),
         "final_t_env": [int(c[-1, 0]) for c in curves.values()],
         "final_test_return_mean": float(np.mean([f[0] for f in finals])),
         "final_test_return_std": float(np.std([f[0] for f in finals])),

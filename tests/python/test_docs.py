@@ -42,7 +42,13 @@ def slug(heading):
 
 
 def anchors(path):
-    return {slug(m.group(1)) for m in re.finditer(r"^#{1,6} (.+)$", text_outside_code(path, inline=True), re.M)}
+    """The page's heading anchors, with those of the files it includes (as mdbook renders it)."""
+    own = {slug(m.group(1)) for m in re.finditer(r"^#{1,6} (.+)$", text_outside_code(path, inline=True), re.M)}
+    for m in INCLUDE.finditer(path.read_text()):
+        included = (path.parent / m.group(1)).resolve()
+        if included.is_file():
+            own |= anchors(included)
+    return own
 
 
 def links(path):

@@ -63,3 +63,20 @@ def test_generate_names_what_is_missing_when_a_module_cannot_say_its_sizes(tmp_p
     r = run(["envs", "--generate", NAME], tmp_path)
     assert r.returncode != 0
     assert "module sized_toy has no sizes(variant)" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_family_no_module_makes_fails_check_and_run_in_one_line(tmp_path):
+    """A typo in the family (or its folder off the env servers' PYTHONPATH) is not skipped by
+    --check: the run would fail the same way. The env server says so in one line."""
+    from test_sizes import TRUE
+
+    path = tmp_path / "no_such_family_zz" / f"{VARIANT}.toml"
+    path.parent.mkdir(parents=True)
+    path.write_text(schema_text(f"no_such_family_zz:{VARIANT}", **TRUE))
+    r = run(["envs", "--check"], tmp_path)
+    assert r.returncode != 0
+    assert f"{path}: no module makes family 'no_such_family_zz'" in r.stderr, r.stderr
+    r = run(["run", "--env", f"no_such_family_zz:{VARIANT}", "--envs", "2", "--steps", "40"], tmp_path)
+    assert r.returncode != 0
+    assert "unknown environment family 'no_such_family_zz'" in r.stderr, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
