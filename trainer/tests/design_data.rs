@@ -10,7 +10,7 @@ use lmac_shm_schema::schema::{DimGroup, EnvSchema};
 use lmac_trainer::dataset::{Dataset, DatasetHeader, Trajectory};
 use lmac_trainer::design::discriminator::{split_episodes, DiscInput, Discriminator, DiscriminatorConfig};
 use lmac_trainer::design::meta::{self, MetaConfig, Recovery};
-use lmac_trainer::design::offline::{OfflineConfig, OfflineDesigner};
+use lmac_trainer::design::offline::{CriticalBy, OfflineConfig, OfflineDesigner};
 use lmac_trainer::design::{DesignContext, Designer, PhaseProtocol};
 use lmac_trainer::episode::Episode;
 use lmac_trainer::learn::LearnRng;
@@ -76,6 +76,11 @@ const SYN_NA: usize = 3;
 const SYN_LEN: usize = 12;
 
 fn synthetic(episodes: usize, seed: u64) -> Dataset {
+    synthetic_rewarded(episodes, seed, |_| 0.0)
+}
+
+/// [`synthetic`] with each step's reward a function of its state.
+fn synthetic_rewarded(episodes: usize, seed: u64, reward: impl Fn(&[f32]) -> f32) -> Dataset {
     let mut rng = LearnRng::seed_from(seed);
     let mut eps = Vec::new();
     for _ in 0..episodes {
@@ -95,7 +100,7 @@ fn synthetic(episodes: usize, seed: u64) -> Dataset {
             tr.obs.extend_from_slice(&[rng.below(3) as f32, b, h3, 0.0]);
             tr.state.extend_from_slice(&[h0, b, 1.0, h3, g]);
             tr.actions.extend((0..SYN_N).map(|_| rng.below(SYN_NA) as i32));
-            tr.reward.push(0.0);
+            tr.reward.push(reward(&[h0, b, 1.0, h3, g]));
         }
         eps.push(tr);
     }
@@ -512,7 +517,9 @@ fn offline_designer_three_phases() {
     assert!(total <= 30);
     let t = designer.transcript();
     let kinds: Vec<&str> = t.iter().map(|e| e.kind.as_str()).collect();
-    assert_eq!(kinds, vec!["critical_dims", "protocol", "feedback", "protocol", "feedback", "protocol"]);
+    assert_eq!(kinds, vec!["relevance", "critical_dims", "protocol", "feedback", "protocol", "feedback", "protocol"]);
+    // No reward on this dataset: the relevance ranking cannot be used, and phase 0 says so.
+    assert!(t[1].reply.contains("falls back to the hardest dims to recover"), "{}", t[1].reply);
     // Deterministic: the same inputs give the same phase 0.
     let mut again = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..Default::default() });
     assert_eq!(again.initial(&c).unwrap().protocol, phases[0].protocol);
@@ -745,4 +752,30 @@ fn phase_evaluation_reads_the_trend_on_fixed_dims_with_both_definitions() {
         assert!(d["constant_guess_rate"].is_number());
     }
     assert!(dir.join("phase1/meta.json").exists());
+}
+
+/// Issue 28: with a return that depends on hidden value B (state dim 3, seen by agent 1 only),
+/// relevance picks that dim alone; hidden value A and the episode constant are as hard to
+/// recover but the return does not depend on them. `critical_by = recovery` keeps the old rule.
+#[test]
+fn offline_designer_chooses_what_the_return_depends_on() {
+    let data = synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 });
+    let schema = synthetic_schema(30);
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    let c = ctx(&schema, &env, &data);
+    let mut designer = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..Default::default() });
+    let p0 = designer.initial(&c).unwrap();
+    let rel = designer.relevance().expect("phase 0 measured relevance");
+    assert_eq!(rel.ranking()[0], 3, "{rel:?}");
+    assert!(rel.held_out_r2 > 0.05, "the return-to-go is mostly future noise, but h3 explains part of it: {rel:?}");
+    assert_eq!(p0.validated.critical_dims, vec![3], "{}", p0.reasoning);
+    let t = designer.transcript();
+    assert!(t[0].kind == "relevance" && t[0].reply.contains("s[3] - hidden value B: relevance"), "{}", t[0].reply);
+    assert!(t[0].reply.contains("CHOSEN"), "{}", t[0].reply);
+    // Agent 1's o[2] (hidden value B) goes to agent 0.
+    let json = serde_json::to_string(&p0.protocol).unwrap();
+    assert!(json.contains("\"obs\":[2"), "{json}");
+    let mut old =
+        OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), critical_by: CriticalBy::Recovery, ..Default::default() });
+    assert_eq!(old.initial(&c).unwrap().validated.critical_dims, vec![0, 3, 4]);
 }

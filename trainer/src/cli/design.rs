@@ -68,6 +68,16 @@ pub(crate) struct DesignArgs {
     /// discriminator given zeroed messages). Both are measured and written to recovery.json.
     #[arg(long, default_value = "retrained")]
     pub(crate) without: lmac_trainer::design::meta::NoMessages,
+    /// Drop a phase whose messages add nothing to the earlier phases' on the fixed dims (every
+    /// phase's verdict is printed and in summary.json either way; without this flag the final
+    /// protocol keeps all phases, as the paper's does)
+    #[arg(long)]
+    pub(crate) drop_unhelpful_phases: bool,
+    /// How the offline designer chooses phase 0's task-critical dims: `relevance` (what the
+    /// return depends on, from a value model fitted on the dataset, and agents recover poorly
+    /// without messages) or `recovery` (the hardest to recover, its first rule)
+    #[arg(long, default_value = "relevance")]
+    pub(crate) critical_by: lmac_trainer::design::offline::CriticalBy,
     #[arg(long, default_value_t = 0)]
     pub(crate) seed: u64,
     /// Where design directories go.
@@ -114,6 +124,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
         dataset: a.dataset.clone(),
         phases: a.phases,
         without: a.without,
+        drop_unhelpful_phases: a.drop_unhelpful_phases,
     };
     // One discriminator configuration for the offline designer's phase-0 measurement and for
     // every phase's meta-information.
@@ -124,7 +135,12 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
     meta_cfg.without = a.without;
     meta_cfg.discriminator.validate()?;
     let mut designer: Box<dyn Designer> = if a.llm == "offline" {
-        let cfg = OfflineConfig { discriminator: meta_cfg.discriminator.clone(), phases: a.phases, ..Default::default() };
+        let cfg = OfflineConfig {
+            discriminator: meta_cfg.discriminator.clone(),
+            phases: a.phases,
+            critical_by: a.critical_by,
+            ..Default::default()
+        };
         Box::new(OfflineDesigner::new(cfg))
     } else {
         let mode: LlmMode = a.llm_mode.parse().map_err(anyhow::Error::msg)?;

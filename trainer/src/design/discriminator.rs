@@ -265,14 +265,14 @@ impl StateAutoencoder {
 
 /// Per-column standardization: x' = (x - mean) * inv_std.
 #[derive(Clone, Debug)]
-struct Standardize {
+pub(super) struct Standardize {
     mean: Vec<f32>,
     inv_std: Vec<f32>,
 }
 
 impl Standardize {
     /// Columns whose standard deviation is below 1e-6 of their scale are only centred.
-    fn fit(width: usize, rows: impl Iterator<Item = Vec<f32>>) -> Self {
+    pub(super) fn fit(width: usize, rows: impl Iterator<Item = Vec<f32>>) -> Self {
         let m = crate::stats::ColumnMoments::of_rows(width, rows);
         let mean = m.mean.iter().map(|&x| x as f32).collect();
         let inv_std =
@@ -280,7 +280,7 @@ impl Standardize {
         Standardize { mean, inv_std }
     }
 
-    fn apply(&self, row: &mut [f32]) {
+    pub(super) fn apply(&self, row: &mut [f32]) {
         for ((v, m), s) in row.iter_mut().zip(&self.mean).zip(&self.inv_std) {
             *v = (*v - m) * s;
         }

@@ -305,6 +305,7 @@ pub fn meta_info(facts: &MetaFacts, with: &Recovery, without: &Recovery, guess: 
             without_communication: summary(&mo, &vo),
         },
         dead_fields: Vec::new(),
+        verdicts: Vec::new(),
     }
 }
 

@@ -68,6 +68,11 @@ pub struct MetaInfo {
     /// observes; see `dead_fields`), one line each: candidates to replace.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub dead_fields: Vec<String>,
+    /// The design loop's verdicts, said plainly (issue 28): whether the messages of phases
+    /// 0..=k help on the fixed dims at all, and whether the newest phase added anything to the
+    /// phases before it (or was dropped). Filled by the design loop, read by every designer.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub verdicts: Vec<String>,
 }
 
 /// Which data chi was measured on.
@@ -259,6 +264,31 @@ impl SetTrend {
         Verdict { messages_help: helps, skill_over_no_messages: r4(over_none), skill_over_constant_guess: r4(w.skill), text }
     }
 
+    /// Does the newest phase add anything? `self`: phases 0..=k on the fixed dims, `before`:
+    /// phases 0..k on the same dims. It helps when recovery with all k + 1 phases' messages is
+    /// above recovery with the first k phases' (both discriminators trained on the same B).
+    pub fn marginal_verdict(&self, before: &SetTrend, phase: usize, columns: usize) -> Verdict {
+        let (now, then) = (self.with_messages.mean_recovery, before.with_messages.mean_recovery);
+        let r4 = |x: f64| (x * 1e4).round() / 1e4;
+        let over_before = skill(now, then);
+        let helps = now > then;
+        let numbers = format!(
+            "recovery on the {} fixed dims {:.3} with phases 0..={phase} against {:.3} with phases 0..{phase}: skill {:.3} over the earlier phases, for {columns} more message columns",
+            self.dims, now, then, over_before
+        );
+        let text = if helps {
+            format!("phase {phase} adds to the earlier phases ({numbers})")
+        } else {
+            format!("phase {phase} does NOT add to the earlier phases ({numbers}); its messages cost columns and recover nothing more")
+        };
+        Verdict {
+            messages_help: helps,
+            skill_over_no_messages: r4(over_before),
+            skill_over_constant_guess: r4(self.with_messages.skill),
+            text,
+        }
+    }
+
     /// One line for logs and the CLI.
     pub fn summary_line(&self) -> String {
         let (w, r, z) = (&self.with_messages, &self.without_retrained, &self.without_zeroed);
@@ -366,6 +396,7 @@ pub(crate) fn example(dims: &[(usize, String)], with: &[f64], without: &[f64]) -
             without_communication: mean_side(without),
         },
         dead_fields: Vec::new(),
+        verdicts: Vec::new(),
     }
 }
 

@@ -23,6 +23,7 @@ pub mod meta;
 pub mod meta_info;
 pub mod offline;
 pub mod prompts;
+pub mod relevance;
 pub mod run;
 
 use lmac_protocol_runner::protocol::{Protocol, ProtocolEnv, ValidatedProtocol};

@@ -51,6 +51,9 @@ pub struct DesignOptions {
     pub phases: usize,
     /// Which "without messages" the designer is shown (both are measured).
     pub without: super::meta::NoMessages,
+    /// Drop a phase whose messages add nothing to the earlier phases' on the fixed dims (its
+    /// verdict says so either way); off keeps the paper's three phases.
+    pub drop_unhelpful_phases: bool,
 }
 
 /// How the design runs the pipeline: train the run directory (a `config.toml` inside) through
@@ -77,6 +80,11 @@ pub struct PhaseEvaluation {
     /// Do the messages of phases 0..=k help on the fixed dims (against the no-message baseline
     /// and a constant guess)?
     pub verdict: Verdict,
+    /// Phase k >= 1: does it add to phases 0..k on the fixed dims?
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub adds: Option<Verdict>,
+    /// Dropped from the final protocol (see [`DesignOptions::drop_unhelpful_phases`]).
+    pub dropped: bool,
 }
 
 /// The dims the trend is read on, fixed at phase 0: its task-critical dims (all dims when it
@@ -116,6 +124,8 @@ pub fn evaluate_phase(
         without_messages: meta.summary.without_communication.clone(),
         target_dims: meta.summary.target_dims.clone(),
         verdict,
+        adds: None,
+        dropped: false,
     };
     eprintln!("lmac: phase {k}: {}", meta.summary_line());
     for d in &meta.dead_fields {
@@ -234,11 +244,35 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
         phases.push(p0);
     }
 
-    let mut evaluations = Vec::new();
+    let mut evaluations: Vec<PhaseEvaluation> = Vec::new();
     let (fixed, fixed_source) = fixed_dims(&phases[0].validated);
+    // The evaluation of the phases kept so far, with its meta-information (what a dropped
+    // phase's successor is designed from).
+    let mut kept: Option<(super::meta_info::MetaInfo, PhaseEvaluation)> = None;
     for k in 0..opts.phases {
         let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
-        let (meta, ev) = evaluate_phase(&ctx, &validated, &fixed, evaluate, &dir.join(format!("phase{k}")))?;
+        let (mut meta, mut ev) = evaluate_phase(&ctx, &validated, &fixed, evaluate, &dir.join(format!("phase{k}")))?;
+        meta.verdicts.push(format!("phases 0..={k}: {}", ev.verdict.text));
+        if let (true, Some((kept_meta, kept_ev))) = (k > 0, &kept) {
+            let added = ev.message_columns.saturating_sub(kept_ev.message_columns);
+            let adds = ev.fixed_dims.marginal_verdict(&kept_ev.fixed_dims, k, added);
+            eprintln!("lmac: phase {k}: {}", adds.text);
+            if !adds.messages_help && opts.drop_unhelpful_phases {
+                eprintln!("lmac: phase {k}: dropped from the final protocol (--drop-unhelpful-phases)");
+                phases.pop();
+                files.pop();
+                ev.dropped = true;
+                // The next phase is designed on the phases kept, told why this one went.
+                meta = kept_meta.clone();
+                meta.verdicts.push(format!("{}; it was dropped, so the next phase builds on phases before it", adds.text));
+            } else {
+                meta.verdicts.push(adds.text.clone());
+            }
+            ev.adds = Some(adds);
+        }
+        if !ev.dropped {
+            kept = Some((meta.clone(), ev.clone()));
+        }
         evaluations.push(ev);
         persist_transcript(designer)?;
         if k + 1 == opts.phases {

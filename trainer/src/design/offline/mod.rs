@@ -77,6 +77,49 @@ pub struct OfflineConfig {
     pub link_fraction: f64,
     /// Phases the budget is shared between (the paper's 3).
     pub phases: usize,
+    /// Count a candidate's cost as the message columns its receivers get (its values on every
+    /// link, plus each new sender's one-hot), so one sender of 3 values (14 columns per receiver
+    /// on 1o_10b) is preferred to a value broadcast by 10 senders (120); false: its width in one
+    /// sender block, as the designer did first (it sent 183 columns in phase 0 on 1o_10b).
+    pub count_sender_columns: bool,
+    /// How phase 0 chooses the task-critical dims.
+    pub critical_by: CriticalBy,
+    /// The value model behind [`CriticalBy::Relevance`].
+    pub relevance: super::relevance::RelevanceConfig,
+    /// A dim is task-relevant when shuffling it costs at least this fraction of the held-out
+    /// return's variance ([`super::relevance`]).
+    pub min_relevance: f64,
+    /// Most critical dims [`CriticalBy::Relevance`] lists (the authors' GPT-4.1 designs name
+    /// 4-12; a short list keeps the decoder's target and the messages compact).
+    pub max_relevant_dims: usize,
+    /// Below this held-out R^2 the value model explains too little of the return to rank dims
+    /// by, and phase 0 falls back to [`CriticalBy::Recovery`] (saying so).
+    pub min_value_r2: f64,
+}
+
+/// How phase 0 chooses the task-critical dims.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CriticalBy {
+    /// What the return depends on and agents cannot see (issue 28): relevance to the return
+    /// (a value model's permutation importance on B) x how badly agents recover the dim
+    /// without messages; only dims that are both relevant and poorly recovered.
+    Relevance,
+    /// The hardest to recover without messages, whatever their bearing on the task (the
+    /// designer's first rule, kept as an option: it picked 48 dims on 1o_10b, 33 of them
+    /// teammates' last actions).
+    Recovery,
+}
+
+impl std::str::FromStr for CriticalBy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "relevance" => Ok(CriticalBy::Relevance),
+            "recovery" => Ok(CriticalBy::Recovery),
+            _ => Err(format!("{s:?}: use relevance or recovery")),
+        }
+    }
 }
 
 impl Default for OfflineConfig {
@@ -91,6 +134,12 @@ impl Default for OfflineConfig {
             min_gain: 0.004,
             link_fraction: 0.1,
             phases: 3,
+            count_sender_columns: true,
+            critical_by: CriticalBy::Relevance,
+            relevance: Default::default(),
+            min_relevance: 0.01,
+            max_relevant_dims: 12,
+            min_value_r2: 0.05,
         }
     }
 }
@@ -99,15 +148,22 @@ impl Default for OfflineConfig {
 pub struct OfflineDesigner {
     cfg: OfflineConfig,
     transcript: Vec<TranscriptEntry>,
+    /// Phase 0's relevance measurement (None before it, or with [`CriticalBy::Recovery`]).
+    relevance: Option<super::relevance::Relevance>,
 }
 
 impl OfflineDesigner {
     pub fn new(cfg: OfflineConfig) -> Self {
-        OfflineDesigner { cfg, transcript: Vec::new() }
+        OfflineDesigner { cfg, transcript: Vec::new(), relevance: None }
     }
 
     pub fn config(&self) -> &OfflineConfig {
         &self.cfg
+    }
+
+    /// Phase 0's relevance measurement, once made.
+    pub fn relevance(&self) -> Option<&super::relevance::Relevance> {
+        self.relevance.as_ref()
     }
 
     fn log(&mut self, phase: usize, kind: &str, prompt: String, reply: String) {
@@ -239,6 +295,84 @@ impl OfflineDesigner {
     }
 }
 
+impl OfflineDesigner {
+    /// [`CriticalBy::Relevance`]: the dims that are relevant to the return and poorly recovered
+    /// without messages, most relevant x worst recovered first, with the reason (Err: why the
+    /// ranking cannot be used). `all` is (dim, skill without messages, per-agent failures).
+    /// The ranking with the reason for each of its top dims goes to the transcript and the log.
+    fn by_relevance(
+        &mut self,
+        ctx: &DesignContext,
+        rel: &super::relevance::Relevance,
+        all: &[(usize, f64, Vec<f64>)],
+    ) -> std::result::Result<(Vec<usize>, String), String> {
+        let (thr, min_rel) = (self.cfg.poor_threshold, self.cfg.min_relevance);
+        let names = ctx.schema.state_meanings();
+        let skill_of = |d: usize| all.iter().find(|x| x.0 == d).map(|x| x.1);
+        let priority = |d: usize| rel.importance[d] * (1.0 - skill_of(d).unwrap_or(1.0).clamp(0.0, 1.0));
+        let mut chosen: Vec<usize> = all.iter().filter(|x| rel.importance[x.0] >= min_rel && x.1 < thr).map(|x| x.0).collect();
+        chosen.sort_by(|&a, &b| priority(b).total_cmp(&priority(a)).then(a.cmp(&b)));
+        chosen.truncate(self.cfg.max_relevant_dims);
+        let relevant = rel.importance.iter().filter(|&&x| x >= min_rel).count();
+        let head = format!(
+            "A value model of the state (an MLP predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); a dim's relevance is the share of that variance lost when the dim is shuffled across {} held-out steps. {relevant} dim(s) have a relevance of at least {min_rel}.",
+            rel.gamma,
+            100.0 * rel.held_out_r2,
+            rel.train_episodes,
+            rel.held_out_episodes,
+            rel.eval_rows
+        );
+        let ranking: Vec<String> = rel
+            .ranking()
+            .into_iter()
+            .take(15)
+            .map(|d| {
+                let verdict = match skill_of(d) {
+                    None => "not chosen: constant on B".to_string(),
+                    Some(_) if chosen.contains(&d) => "CHOSEN: relevant and poorly recovered without messages".into(),
+                    Some(_) if rel.importance[d] < min_rel => format!("not chosen: relevance below {min_rel}"),
+                    Some(k) if k >= thr => format!("not chosen: agents recover it without messages (skill {k:.2} >= {thr})"),
+                    Some(_) => format!("not chosen: beyond the {} dims kept", self.cfg.max_relevant_dims),
+                };
+                format!(
+                    "{}. {}: relevance {:.4}, skill without messages {}; {verdict}",
+                    rel.rank_of(d),
+                    meta::dim_label(d, &names),
+                    rel.importance[d],
+                    skill_of(d).map_or("-".into(), |k| format!("{k:.2}"))
+                )
+            })
+            .collect();
+        self.log(
+            0,
+            "relevance",
+            "offline designer: fit a value model of the state on B and rank every state dim by its permutation importance".into(),
+            format!("{head}\nMost relevant dims:\n{}", ranking.join("\n")),
+        );
+        eprintln!("lmac: offline designer: {head}");
+        for line in ranking.iter().take(8) {
+            eprintln!("lmac:   {line}");
+        }
+        if rel.held_out_r2 < self.cfg.min_value_r2 {
+            return Err(format!(
+                "The value model explains only {:.1}% of the held-out return's variance (below {:.1}%), too little to rank dims by.",
+                100.0 * rel.held_out_r2,
+                100.0 * self.cfg.min_value_r2
+            ));
+        }
+        if chosen.is_empty() {
+            return Err(format!(
+                "No dim is both relevant (at least {min_rel}) and poorly recovered without messages (skill below {thr}): agents already see what the return depends on."
+            ));
+        }
+        let why = format!(
+            "{head} The task-critical dims are the {} that are relevant and recovered with a skill below {thr} over a constant guess without messages, ordered by relevance x (1 - skill); each receiver's weight on a dim is its failure rate relative to the guess's times the dim's relevance.",
+            chosen.len()
+        );
+        Ok((chosen, why))
+    }
+}
+
 /// Targets from the worst entries of `scored` (dim, score, per-agent weights), ascending score.
 fn worst(mut scored: Vec<(usize, f64, Vec<f64>)>, max: usize) -> (Vec<usize>, Vec<Vec<f64>>) {
     scored.sort_by(|a, b| a.1.partial_cmp(&b.1).unwrap_or(std::cmp::Ordering::Equal).then(a.0.cmp(&b.0)));
@@ -273,18 +407,51 @@ impl Designer for OfflineDesigner {
             bail!("offline designer: every state dim is constant on the dataset, so there is nothing for messages to recover");
         }
         let poor: Vec<_> = all.iter().filter(|x| x.1 < thr).cloned().collect();
-        let (critical, why) = if poor.is_empty() {
-            let (d, _) = worst(all.clone(), 8.min(all.len()));
-            (d, format!("Without messages every varying state dim is recovered with a skill of at least {thr} over a constant guess (E_t[chi], alpha {}), so the 8 least recovered are targeted.", ctx.schema.alpha))
-        } else {
-            let (d, _) = worst(poor.clone(), self.cfg.max_critical_dims);
-            let why = format!(
-                "Without messages, {} of {} varying state dims are recovered with a skill below {thr} (mean E_t[chi] over agents on held-out steps, alpha {}, relative to always guessing the dim's median: 0 = no better than the guess); the {} worst are taken as task-critical.",
-                poor.len(), all.len(), ctx.schema.alpha, d.len()
-            );
-            (d, why)
+        let max_critical = self.cfg.max_critical_dims;
+        let by_recovery = || -> (Vec<usize>, String) {
+            if poor.is_empty() {
+                let (d, _) = worst(all.clone(), 8.min(all.len()));
+                (d, format!("Without messages every varying state dim is recovered with a skill of at least {thr} over a constant guess (E_t[chi], alpha {}), so the 8 least recovered are targeted.", ctx.schema.alpha))
+            } else {
+                let (d, _) = worst(poor.clone(), max_critical);
+                let why = format!(
+                    "Without messages, {} of {} varying state dims are recovered with a skill below {thr} (mean E_t[chi] over agents on held-out steps, alpha {}, relative to always guessing the dim's median: 0 = no better than the guess); the {} worst are taken as task-critical.",
+                    poor.len(), all.len(), ctx.schema.alpha, d.len()
+                );
+                (d, why)
+            }
         };
-        let pool: Vec<_> = all.iter().filter(|x| critical.contains(&x.0)).cloned().collect();
+        // (dims, why, per-dim factor on the receivers' weights)
+        let (critical, why, importance) = match self.cfg.critical_by {
+            CriticalBy::Recovery => {
+                let (d, why) = by_recovery();
+                (d, why, None)
+            }
+            CriticalBy::Relevance => {
+                let data = ctx.dataset.context("offline designer: ranking dims by relevance needs the dataset B")?;
+                let rel = super::relevance::measure(data, &self.cfg.relevance, ctx.seed)
+                    .context("offline designer: measuring each state dim's relevance to the return")?;
+                let choice = self.by_relevance(ctx, &rel, &all);
+                self.relevance = Some(rel.clone());
+                match choice {
+                    Ok((d, why)) => (d, why, Some(rel.importance)),
+                    Err(reason) => {
+                        let (d, why) = by_recovery();
+                        (d, format!("{reason} So phase 0 falls back to the hardest dims to recover: {why}"), None)
+                    }
+                }
+            }
+        };
+        let pool: Vec<_> = all
+            .iter()
+            .filter(|x| critical.contains(&x.0))
+            .map(|x| {
+                let f = importance.as_ref().map_or(1.0, |imp| imp[x.0]);
+                // Relevance mode ranks by relevance x failure; the weights carry both.
+                let score = if importance.is_some() { -f * (1.0 - x.1.clamp(0.0, 1.0)) } else { x.1 };
+                (x.0, score, x.2.iter().map(|w| w * f).collect::<Vec<f64>>())
+            })
+            .collect();
         let (dims, weights) = worst(pool, self.cfg.max_targets);
         debug_assert_eq!(weights.len(), n);
         let names = ctx.schema.state_meanings();
@@ -292,7 +459,14 @@ impl Designer for OfflineDesigner {
             .iter()
             .map(|&d| {
                 let k = r.position(d).unwrap_or(0);
-                format!("{} (mean E_t[chi] without messages {:.3}, constant guess {:.3})", meta::dim_label(d, &names), r.mean_rate(k), g[k])
+                let rel = self.relevance.as_ref().filter(|_| importance.is_some());
+                let rel = rel.map_or(String::new(), |x| format!("relevance {:.4} (rank {}), ", x.importance[d], x.rank_of(d)));
+                format!(
+                    "{} ({rel}mean E_t[chi] without messages {:.3}, constant guess {:.3})",
+                    meta::dim_label(d, &names),
+                    r.mean_rate(k),
+                    g[k]
+                )
             })
             .collect();
         self.log(

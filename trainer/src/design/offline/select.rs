@@ -460,6 +460,19 @@ pub(super) fn select(
     let mut picks: Vec<Pick> = Vec::new();
     let mut log = Vec::new();
     let mut left = columns;
+    // sends[j][i]: j already sends something to i in this phase, so i already has j's one-hot
+    // (the compact layout puts each sender's one-hot once per receiver and phase).
+    let mut sends = vec![vec![false; n]; n];
+    // Message columns per receiver, on average, that a pick's links add.
+    let cost_of = |links: &[Vec<bool>], width: usize, sends: &[Vec<bool>]| -> f64 {
+        let mut cols = 0usize;
+        for j in 0..n {
+            for i in (0..n).filter(|&i| links[j][i]) {
+                cols += width + if cfg.count_sender_columns && !sends[j][i] { n } else { 0 };
+            }
+        }
+        cols as f64 / n as f64
+    };
     loop {
         let mut best: Option<(f64, Pick)> = None;
         for &k in kept {
@@ -475,8 +488,21 @@ pub(super) fn select(
                 }
             }
             let top = pair.iter().flatten().cloned().fold(0f64, f64::max);
-            let links: Vec<Vec<bool>> =
+            let mut links: Vec<Vec<bool>> =
                 (0..n).map(|j| (0..n).map(|i| i != j && top > 0.0 && pair[j][i] >= cfg.link_fraction * top).collect()).collect();
+            if cfg.count_sender_columns {
+                // A link must pay for its own columns (its values and, for a new sender, the
+                // sender's one-hot): few senders and few columns (the paper's "compact").
+                for j in 0..n {
+                    for i in 0..n {
+                        if links[j][i] {
+                            let own = c.width + if sends[j][i] { 0 } else { n };
+                            let per_col = pair[j][i] / total_w / (own as f64 / n as f64);
+                            links[j][i] = pair[j][i] >= top - 1e-15 || per_col >= cfg.min_gain;
+                        }
+                    }
+                }
+            }
             let gain: f64 = (0..n)
                 .map(|i| {
                     let g: Vec<usize> = (0..n).filter(|&j| links[j][i]).flat_map(|j| vars(c, j)).collect();
@@ -484,7 +510,11 @@ pub(super) fn select(
                 })
                 .sum::<f64>()
                 / total_w;
-            let per_col = gain / c.width as f64;
+            // Gain per message column: with count_sender_columns the columns are what the
+            // receivers get (values and new senders' one-hots, averaged over receivers), else
+            // the candidate's width in one sender block.
+            let cost = if cfg.count_sender_columns { cost_of(&links, c.width, &sends).max(1e-12) } else { c.width as f64 };
+            let per_col = gain / cost;
             if best.as_ref().is_none_or(|(b, _)| per_col > *b) {
                 best = Some((per_col, Pick { cand: k, links, gain }));
             }
@@ -503,6 +533,11 @@ pub(super) fn select(
             }
         }
         left -= c.width;
+        for (j, row) in pick.links.iter().enumerate() {
+            for (i, &l) in row.iter().enumerate() {
+                sends[j][i] |= l;
+            }
+        }
         log.push(format!("picked {} (gain {:.4}, {:.4} per column, {} columns left)", cand_label(c), pick.gain, per_col, left));
         picks.push(pick);
         if left == 0 {
