@@ -101,4 +101,10 @@ pub trait Designer {
     ) -> anyhow::Result<PhaseProtocol>;
     /// Everything said so far (prompts and replies), for the transcript file.
     fn transcript(&self) -> Vec<TranscriptEntry>;
+
+    /// What the designer measured itself, for the design's `summary.json` (the offline
+    /// designer: each state dim's relevance to the return).
+    fn measurements(&self) -> Option<serde_json::Value> {
+        None
+    }
 }

@@ -308,6 +308,7 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
         "fixed_dims_source": fixed_source,
         "evaluations": evaluations,
         "final_protocol": spec,
+        "designer_measurements": designer.measurements(),
     });
     write(&dir.join("summary.json"), &serde_json::to_string_pretty(&summary)?)?;
     Ok(dir)

@@ -628,4 +628,26 @@ impl Designer for OfflineDesigner {
     fn transcript(&self) -> Vec<TranscriptEntry> {
         self.transcript.clone()
     }
+
+    fn measurements(&self) -> Option<serde_json::Value> {
+        let r = self.relevance.as_ref()?;
+        let ranking: Vec<serde_json::Value> = r
+            .ranking()
+            .into_iter()
+            .take(30)
+            .map(|d| serde_json::json!({ "dim": d, "rank": r.rank_of(d), "relevance": (r.importance[d] * 1e4).round() / 1e4 }))
+            .collect();
+        Some(serde_json::json!({
+            "relevance": {
+                "what": "permutation importance of each state dim for a value model of the return-to-go fitted on B: the share of the held-out return's variance lost when the dim is shuffled",
+                "held_out_r2": (r.held_out_r2 * 1e4).round() / 1e4,
+                "gamma": r.gamma,
+                "train_episodes": r.train_episodes,
+                "held_out_episodes": r.held_out_episodes,
+                "eval_rows": r.eval_rows,
+                "top": ranking,
+                "importance": r.importance.iter().map(|x| (x * 1e4).round() / 1e4).collect::<Vec<f64>>(),
+            }
+        }))
+    }
 }
