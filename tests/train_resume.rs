@@ -175,6 +175,42 @@ fn chaos_kills_every_kind_of_process_and_every_resume_continues() {
     assert!(new_shm_files(&shm_before).is_empty(), "{:?}", new_shm_files(&shm_before));
 }
 
+/// Issue 30: kills inside the checkpoint save (the trainer aborts at a step of the save
+/// protocol) and in the start-up window of a resume, besides kills of a running pipeline.
+#[test]
+fn chaos_kills_inside_the_save_and_at_start_up_and_every_resume_continues() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let shm_before = lmac_shm_files();
+    let report = std::env::temp_dir().join(format!("lmac-chaos-modes-{}.json", std::process::id()));
+    let out = lmac()
+        .args(["chaos", "--mode", "all", "--kills", "6", "--kill-after", "3,5", "--checkpoint-interval", "3000", "--seed", "3"])
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let Ok(text) = std::fs::read_to_string(&report) else {
+        panic!("no chaos report: {stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    };
+    let r: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let _ = std::fs::remove_file(&report);
+    assert!(out.status.success(), "lmac chaos found a fault: {stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    let modes: Vec<&str> = r["runs"].as_array().unwrap().iter().map(|k| k["mode"].as_str().unwrap()).collect();
+    assert_eq!(modes, ["running", "save", "startup", "running", "save", "startup"]);
+    for k in r["runs"].as_array().unwrap() {
+        if k["mode"] == "save" {
+            assert!(k["save_step"].is_string() && k["victim"] == "trainer", "the trainer aborted inside its save: {k}");
+        }
+        assert_eq!(k["resume_continued"], true, "{k}");
+        assert!(k["steps_lost"].as_u64().expect("measured") <= 2 * 3000, "{k}");
+    }
+    assert_eq!(r["undetected"], 0, "{r}");
+    assert_eq!(r["checkpoint_load_failures"], 0, "{r}");
+    assert_eq!(r["shm_files_left"], 0, "{r}");
+    assert_eq!(r["metrics_monotone"], true);
+    assert!(new_shm_files(&shm_before).is_empty(), "{:?}", new_shm_files(&shm_before));
+}
+
 #[test]
 fn a_checkpoint_that_cannot_be_written_ends_the_run_naming_the_file() {
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());

@@ -101,6 +101,22 @@ fn shm_files() -> Vec<String> {
     v
 }
 
+/// What a killed run left in /dev/shm: its slabs by name (`run_id`), iceoryx2's files (hashed
+/// names) by what is new since `baseline` (other iceoryx2 applications running meanwhile would
+/// count too).
+fn leftovers(run_id: &str, baseline: &[String]) -> Vec<String> {
+    shm_files()
+        .into_iter()
+        .filter(|f| {
+            if f.starts_with("lmac-") {
+                !run_id.is_empty() && f.starts_with(&format!("lmac-{run_id}-"))
+            } else {
+                !baseline.contains(f)
+            }
+        })
+        .collect()
+}
+
 /// A running `lmac train` with its stderr read line by line on a thread, each line stamped.
 struct Training {
     child: Child,
@@ -109,9 +125,14 @@ struct Training {
 }
 
 impl Training {
-    fn start(args: &[String]) -> Result<Training> {
+    /// `lmac train ARGS`, with `fault` (name, value) in its environment (and so its children's).
+    fn start(args: &[String], fault: Option<(&str, String)>) -> Result<Training> {
         let exe = crate::supervisor::self_exe()?;
-        let mut child = Command::new(exe)
+        let mut cmd = Command::new(exe);
+        if let Some((k, v)) = fault {
+            cmd.env(k, v);
+        }
+        let mut child = cmd
             .arg("train")
             .args(args)
             .stdin(Stdio::null())
@@ -189,9 +210,76 @@ fn resumed_at(stderr: &str) -> Option<u64> {
     line.split("at t_env ").nth(1)?.split_whitespace().next()?.parse().ok()
 }
 
+/// When in a run's life `lmac chaos` kills.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ChaosMode {
+    /// A random process at a random moment once the pipeline is up (`--kill-after`).
+    Running,
+    /// The trainer inside a checkpoint save: it aborts at a random step of the save protocol
+    /// (`learn::checkpoint::fault::EVERY_SAVE`, through `LMAC_FAULT_CHECKPOINT`), at the first
+    /// save after the resume.
+    Save,
+    /// A random process that exists in the first `--startup-window` seconds of a resume, before
+    /// the pipeline is up: handshakes, slab creation, the checkpoint load.
+    Startup,
+    /// The three in turn, kill by kill.
+    All,
+}
+
+impl std::str::FromStr for ChaosMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "running" => Ok(ChaosMode::Running),
+            "save" => Ok(ChaosMode::Save),
+            "startup" => Ok(ChaosMode::Startup),
+            "all" => Ok(ChaosMode::All),
+            _ => Err(format!("{s:?}: use running, save, startup or all")),
+        }
+    }
+}
+
+impl ChaosMode {
+    /// The mode of kill `k`. The first kill is always `Running`: the run needs a checkpoint
+    /// before a crash inside a save or at start-up can be resumed (a run with no checkpoint
+    /// and metrics beyond step 0 refuses to restart, by design).
+    fn of_kill(self, k: usize) -> ChaosMode {
+        match (self, k) {
+            (_, 0) => ChaosMode::Running,
+            (ChaosMode::All, k) => [ChaosMode::Running, ChaosMode::Save, ChaosMode::Startup][k % 3],
+            (m, _) => m,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ChaosMode::Running => "running",
+            ChaosMode::Save => "save",
+            ChaosMode::Startup => "startup",
+            ChaosMode::All => "all",
+        }
+    }
+}
+
+/// Record on `kills` the resume that followed them: it continued from `resumed` (None: it did
+/// not load a checkpoint) and the run's metrics went on past that step.
+fn settle(kills: &mut [Kill], resumed: Option<u64>, dir: &Path) {
+    let continued = resumed.is_some_and(|r| metrics_t_env(dir).last().is_some_and(|&t| t > r));
+    for k in kills {
+        k.resumed_t_env = resumed;
+        k.steps_lost = resumed.map(|r| k.reached_t_env.saturating_sub(r));
+        k.resume_continued = continued;
+        k.checkpoint_load_failed = resumed.is_none();
+    }
+}
+
 /// What `lmac chaos` is asked to do.
 #[derive(Clone, Debug)]
 pub struct ChaosOptions {
+    pub mode: ChaosMode,
+    /// [`ChaosMode::Startup`]: kills land uniformly in this many seconds after the resume.
+    pub startup_window: f64,
     pub kills: usize,
     pub seed: u64,
     /// Where the training group is written (a fresh folder).
@@ -208,6 +296,13 @@ pub struct ChaosOptions {
 /// One kill and what followed.
 #[derive(Clone, Debug, Serialize)]
 pub struct Kill {
+    pub mode: ChaosMode,
+    /// [`ChaosMode::Save`]: the save step the trainer aborted at.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub save_step: Option<&'static str>,
+    /// A killed parent's children still alive 5 s after the kill (each should stop at once).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub slow_to_stop: Vec<Role>,
     pub victim: Role,
     pub after_s: f64,
     /// From the SIGKILL to the first sign the death was noticed: the parent naming the dead
@@ -238,6 +333,7 @@ pub struct ChaosReport {
     pub shm_files_left: usize,
     pub metrics_monotone: bool,
     pub by_victim: Vec<serde_json::Value>,
+    pub by_mode: Vec<serde_json::Value>,
     pub runs: Vec<Kill>,
     pub seconds: f64,
 }
@@ -275,17 +371,22 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
     .chain([o.out.display().to_string()])
     .collect();
     let mut seed_dir: Option<PathBuf> = None;
-    let mut kills = Vec::new();
+    let mut kills: Vec<Kill> = Vec::new();
+    // kills[pending..] wait for a resume to say where it continued.
+    let mut pending = 0;
     for k in 0..o.kills {
         let args = match &seed_dir {
             None => fresh.clone(),
             Some(d) => vec!["--resume".to_string(), d.display().to_string()],
         };
-        let mut run = Training::start(&args)?;
+        let mode = o.mode.of_kill(k);
+        use crate::learn::checkpoint::fault;
+        let save_step = (mode == ChaosMode::Save).then(|| fault::EVERY_SAVE[rng.random_range(0..fault::EVERY_SAVE.len())]);
+        let mut run = Training::start(&args, save_step.map(|s| (fault::ENV, format!("{s}@1"))))?;
         let t_start = Instant::now();
-        // Wait until the pipeline is up: every role present.
+        // Wait until the pipeline is up: every role present (not for a start-up kill).
         let mut exited_early = None;
-        loop {
+        while mode != ChaosMode::Startup {
             let roles: std::collections::BTreeSet<Role> = pipeline_children(run.child.id() as i32).iter().map(|r| r.role).collect();
             if roles.len() == 3 {
                 break;
@@ -310,22 +411,80 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
                 group.join("seed0")
             }
         };
-        let wait = rng.random_range(o.kill_after.0..=o.kill_after.1);
+        let wait = match mode {
+            ChaosMode::Startup => rng.random_range(0.0..=o.startup_window),
+            // The trainer aborts by itself inside its first save; this is the most to wait.
+            ChaosMode::Save => 60.0,
+            _ => rng.random_range(o.kill_after.0..=o.kill_after.1),
+        };
         let deadline = t_start + Duration::from_secs_f64(wait);
-        while exited_early.is_none() && Instant::now() < deadline {
+        // The previous run's children (by their parent) while this one is alive: the save
+        // mode's victim dies by itself, so they are read before it does.
+        let mut seen: Vec<RunProc> = Vec::new();
+        // The first kill waits for the run's first checkpoint too: a run killed before it has
+        // one but after logging metrics refuses to restart from step 0 (by design), which
+        // would end the chaos on a loaded machine rather than test anything.
+        let has_checkpoint = || crate::learn::checkpoint::checkpoint_exists(crate::train::checkpoint_dir(&dir));
+        while exited_early.is_none()
+            && (Instant::now() < deadline || (k == 0 && !has_checkpoint() && t_start.elapsed() < Duration::from_secs(300)))
+        {
+            if mode == ChaosMode::Save {
+                let now = pipeline_children(run.child.id() as i32);
+                if !now.is_empty() {
+                    seen = now;
+                }
+                if run.first_line_after(t_start, |l| l.contains(fault::ENV)).is_some() {
+                    break;
+                }
+            }
             exited_early = run.child.try_wait()?;
             std::thread::sleep(Duration::from_millis(10));
         }
-        // The previous kill's resume: did it load its checkpoint and continue?
-        let resumed_t_env = resumed_at(&run.text());
-        if let Some(prev) = kills.last_mut() {
-            let prev: &mut Kill = prev;
-            prev.resumed_t_env = resumed_t_env;
-            prev.steps_lost = resumed_t_env.map(|r| prev.reached_t_env.saturating_sub(r));
-            prev.resume_continued = resumed_t_env.is_some_and(|r| metrics_t_env(&dir).last().is_some_and(|&t| t > r));
-            prev.checkpoint_load_failed = resumed_t_env.is_none();
+        if mode == ChaosMode::Save {
+            // The trainer aborted inside its save (or, past the deadline, never saved: then it
+            // is killed like a running one and the round says so).
+            let reached = metrics_t_env(&dir).last().copied().unwrap_or(0);
+            let run_id = seen.iter().find_map(|p| run_id_of(p.pid)).unwrap_or_default();
+            if run.first_line_after(t_start, |l| l.contains(fault::ENV)).is_none() && run.child.try_wait()?.is_none() {
+                let _ = run.child.kill();
+            }
+            let _ = run.wait(Duration::from_secs(90));
+            // Read after the wait, which drains the rest of the run's stderr.
+            let aborted = run.first_line_after(t_start, |l| l.contains(fault::ENV));
+            let detect_s = aborted.and_then(|t| run.first_line_after(t, |l| l.contains("died")).map(|d| d.duration_since(t).as_secs_f64()));
+            let t0 = Instant::now();
+            while seen.iter().any(|p| alive(p.pid)) && t0.elapsed() < Duration::from_secs(90) {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            settle(&mut kills[pending..], resumed_at(&run.text()), &dir);
+            pending = kills.len();
+            let shm_left = leftovers(&run_id, &baseline_shm);
+            let kill = Kill {
+                mode,
+                save_step: if aborted.is_some() { save_step } else { None },
+                slow_to_stop: Vec::new(),
+                victim: Role::Trainer,
+                after_s: t_start.elapsed().as_secs_f64(),
+                detect_s,
+                reached_t_env: reached,
+                resumed_t_env: None,
+                steps_lost: None,
+                resume_continued: false,
+                checkpoint_load_failed: false,
+                shm_left,
+            };
+            progress(k, &kill);
+            kills.push(kill);
+            seed_dir = Some(dir);
+            continue;
         }
-        if let Some(st) = exited_early {
+        // The earlier kills' resume: did it load its checkpoint and continue? A start-up kill
+        // lands before the run can show that, so its resume is judged with the next round's.
+        if mode != ChaosMode::Startup {
+            settle(&mut kills[pending..], resumed_at(&run.text()), &dir);
+            pending = kills.len();
+        }
+        if let (Some(st), false) = (exited_early, mode == ChaosMode::Startup) {
             if k > 0 {
                 eprintln!("lmac: chaos: the resume after kill {} failed ({st}):\n{}", k - 1, run.text());
                 break;
@@ -336,35 +495,45 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
             .chain(pipeline_children(run.child.id() as i32))
             .collect();
         let victim = victims[rng.random_range(0..victims.len())].clone();
+        if exited_early.is_some() {
+            // A start-up kill after the resume already failed by itself: that is a finding.
+            bail!("kill {k} ({}): lmac train exited by itself within {wait:.2} s of the resume:\n{}", mode.name(), run.text());
+        }
         let reached = metrics_t_env(&dir).last().copied().unwrap_or(0);
         let children: Vec<i32> = victims.iter().filter(|p| p.role != Role::Parent).map(|p| p.pid).collect();
         let run_id = children.iter().find_map(|&p| run_id_of(p)).unwrap_or_default();
         let t_kill = Instant::now();
         unsafe { libc::kill(victim.pid, libc::SIGKILL) };
+        let mut slow_to_stop = Vec::new();
         let detect_s = if victim.role == Role::Parent {
             let _ = run.wait(Duration::from_secs(10));
             let t0 = Instant::now();
             while children.iter().any(|&p| alive(p)) && t0.elapsed() < Duration::from_secs(90) {
+                if slow_to_stop.is_empty() && t_kill.elapsed() > Duration::from_secs(5) {
+                    slow_to_stop = victims.iter().filter(|p| p.role != Role::Parent && alive(p.pid)).map(|p| p.role).collect();
+                }
                 std::thread::sleep(Duration::from_millis(5));
             }
             // The children noticed when they began to stop; they are gone once all have exited.
             (!children.iter().any(|&p| alive(p))).then(|| t_kill.elapsed().as_secs_f64())
         } else {
             let _ = run.wait(Duration::from_secs(90))?;
-            run.first_line_after(t_kill, |l| l.contains("died")).map(|t| t.duration_since(t_kill).as_secs_f64())
+            // At start-up the parent may stop on the failed handshake before naming the death.
+            let exited = t_kill.elapsed().as_secs_f64();
+            run.first_line_after(t_kill, |l| l.contains("died"))
+                .map(|t| t.duration_since(t_kill).as_secs_f64())
+                .or((mode == ChaosMode::Startup).then_some(exited))
         };
         // Orphans of a killed parent reap themselves; wait until nothing of the run is alive.
         let t0 = Instant::now();
         while children.iter().any(|&p| alive(p)) && t0.elapsed() < Duration::from_secs(90) {
             std::thread::sleep(Duration::from_millis(20));
         }
-        // This run's slabs by name; iceoryx2's files (hashed names) by what is new since the start
-        // (other iceoryx2 applications running meanwhile would count too).
-        let shm_left: Vec<String> = shm_files()
-            .into_iter()
-            .filter(|f| if f.starts_with("lmac-") { f.starts_with(&format!("lmac-{run_id}-")) } else { !baseline_shm.contains(f) })
-            .collect();
+        let shm_left = leftovers(&run_id, &baseline_shm);
         let kill = Kill {
+            mode,
+            save_step: None,
+            slow_to_stop,
             victim: victim.role,
             after_s: wait,
             detect_s,
@@ -381,7 +550,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
     }
     // One last resume shows the last kill's recovery; it is stopped gracefully.
     if let Some(d) = &seed_dir {
-        let mut run = Training::start(&["--resume".to_string(), d.display().to_string()])?;
+        let mut run = Training::start(&["--resume".to_string(), d.display().to_string()], None)?;
         let t0 = Instant::now();
         let resumed = loop {
             if let Some(r) = resumed_at(&run.text()) {
@@ -403,11 +572,11 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         }
         unsafe { libc::kill(run.child.id() as i32, libc::SIGINT) };
         let _ = run.wait(Duration::from_secs(90));
-        if let Some(last) = kills.last_mut() {
-            last.resumed_t_env = resumed;
-            last.steps_lost = resumed.map(|r| last.reached_t_env.saturating_sub(r));
-            last.resume_continued = continued;
-            last.checkpoint_load_failed = resumed.is_none();
+        for k in &mut kills[pending..] {
+            k.resumed_t_env = resumed;
+            k.steps_lost = resumed.map(|r| k.reached_t_env.saturating_sub(r));
+            k.resume_continued = continued;
+            k.checkpoint_load_failed = resumed.is_none();
         }
     }
     let t = seed_dir.as_ref().map(|d| metrics_t_env(d)).unwrap_or_default();
@@ -420,6 +589,21 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         by_victim.push(serde_json::json!({
             "victim": role.name(), "kills": of.len(), "detect_p50_s": quantile(&d, 0.5), "detect_max_s": d.iter().cloned().fold(f64::NAN, f64::max),
             "steps_lost_max": of.iter().filter_map(|k| k.steps_lost).max(),
+        }));
+    }
+    let mut by_mode = Vec::new();
+    for mode in [ChaosMode::Running, ChaosMode::Save, ChaosMode::Startup] {
+        let of: Vec<&Kill> = kills.iter().filter(|k| k.mode == mode).collect();
+        if of.is_empty() {
+            continue;
+        }
+        let d: Vec<f64> = of.iter().filter_map(|k| k.detect_s).collect();
+        by_mode.push(serde_json::json!({
+            "mode": mode.name(), "kills": of.len(), "detect_p50_s": quantile(&d, 0.5), "detect_max_s": d.iter().cloned().fold(f64::NAN, f64::max),
+            "resumes_continued": of.iter().filter(|k| k.resume_continued).count(),
+            "checkpoint_load_failures": of.iter().filter(|k| k.checkpoint_load_failed).count(),
+            "steps_lost_max": of.iter().filter_map(|k| k.steps_lost).max(),
+            "save_steps": of.iter().filter_map(|k| k.save_step).collect::<std::collections::BTreeSet<_>>().len(),
         }));
     }
     Ok(ChaosReport {
@@ -437,6 +621,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         shm_files_left: kills.iter().map(|k| k.shm_left.len()).sum(),
         metrics_monotone: t.windows(2).all(|w| w[0] <= w[1]),
         by_victim,
+        by_mode,
         runs: kills,
         seconds: started.elapsed().as_secs_f64(),
     })
@@ -534,7 +719,7 @@ pub fn soak(
     buffer_episodes: u64,
     mut progress: impl FnMut(&SoakSample),
 ) -> Result<SoakReport> {
-    let mut run = Training::start(train_args)?;
+    let mut run = Training::start(train_args, None)?;
     let t0 = Instant::now();
     let parent = run.child.id() as i32;
     let mut samples: Vec<SoakSample> = Vec::new();

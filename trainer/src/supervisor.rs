@@ -147,9 +147,15 @@ fn report_path(scratch: &crate::safe_fs::PrivateDir) -> PathBuf {
 fn stop_with_parent(c: &mut Command) {
     use std::os::unix::process::CommandExt;
     let parent = std::process::id() as libc::pid_t;
-    // SAFETY: only async-signal-safe calls (prctl, getppid, raise) between fork and exec.
+    // SAFETY: only async-signal-safe calls (signal, prctl, getppid, raise) between fork and exec.
     unsafe {
         c.pre_exec(move || {
+            // Between fork and exec the child still runs this process's SIGTERM handler, which
+            // only sets a flag in memory that exec discards: a parent dying in that window would
+            // leave the child running on, waiting out its start-up timeout as an orphan
+            // (`lmac chaos --mode startup` found it: 60 s). With the default action the signal
+            // ends the child before exec; after exec the program's own handler takes over.
+            libc::signal(libc::SIGTERM, libc::SIG_DFL);
             if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
                 return Err(std::io::Error::last_os_error());
             }

@@ -9,6 +9,16 @@ pub(crate) struct ChaosArgs {
     /// Kills (each followed by a resume).
     #[arg(long, default_value_t = 100)]
     kills: usize,
+    /// When to kill: `running` (a random process once the pipeline is up, after --kill-after),
+    /// `save` (the trainer aborts at a random step inside its first checkpoint save after the
+    /// resume), `startup` (a random process within --startup-window seconds of the resume,
+    /// before the pipeline is up) or `all` (the three in turn). The first kill is always
+    /// `running`, so the run has a checkpoint to resume from.
+    #[arg(long, default_value = "running")]
+    mode: lmac_trainer::faults::ChaosMode,
+    /// Seconds after a resume within which `startup` kills land (uniformly).
+    #[arg(long, default_value_t = 1.5)]
+    startup_window: f64,
     #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
     env: String,
     /// Env steps between checkpoints (at most this many are lost per crash).
@@ -69,7 +79,12 @@ pub(crate) fn chaos(a: ChaosArgs) -> Result<i32> {
         None => Some(lmac_trainer::safe_fs::PrivateDir::new("chaos").context("creating a private temporary directory")?),
     };
     let out = a.out.clone().unwrap_or_else(|| scratch.as_ref().expect("made without --out").path().to_path_buf());
+    if !(a.startup_window > 0.0 && a.startup_window.is_finite()) {
+        bail!("--startup-window: need a positive number of seconds, got {}", a.startup_window);
+    }
     let o = ChaosOptions {
+        mode: a.mode,
+        startup_window: a.startup_window,
         kills: a.kills,
         seed: a.seed,
         out: out.clone(),
@@ -111,6 +126,19 @@ pub(crate) fn chaos(a: ChaosArgs) -> Result<i32> {
             v["detect_p50_s"].as_f64().unwrap_or(f64::NAN),
             v["detect_max_s"].as_f64().unwrap_or(f64::NAN),
             v["steps_lost_max"]
+        );
+    }
+    for m in &r.by_mode {
+        println!(
+            "  mode {}: {} kills, noticed in p50 {:.2} s (max {:.2} s), resumes that continued {}, checkpoint load failures {}, steps lost max {}{}",
+            m["mode"].as_str().unwrap_or(""),
+            m["kills"],
+            m["detect_p50_s"].as_f64().unwrap_or(f64::NAN),
+            m["detect_max_s"].as_f64().unwrap_or(f64::NAN),
+            m["resumes_continued"],
+            m["checkpoint_load_failures"],
+            m["steps_lost_max"],
+            if m["mode"] == "save" { format!(", {} distinct save steps", m["save_steps"]) } else { String::new() }
         );
     }
     let ok = r.undetected == 0

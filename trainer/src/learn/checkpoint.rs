@@ -211,6 +211,23 @@ pub mod fault {
         "done",
     ];
 
+    /// The steps every save reaches once a checkpoint exists and no earlier crash left
+    /// anything to settle (the others: `settled-old`, `removing-stale-tmp`, `removing-old`,
+    /// only after a crash at some step). `lmac chaos --mode save` aborts at one of these.
+    pub const EVERY_SAVE: &[&str] = &[
+        "begin",
+        "settled-tmp",
+        "removed-stale-tmp",
+        "wrote-networks",
+        "wrote-state",
+        "wrote-manifest",
+        "removed-old",
+        "moved-dir-to-old",
+        "moved-tmp-to-dir",
+        "removing-old-after",
+        "done",
+    ];
+
     /// `STEP` or `STEP@N`: the process aborts the N-th time (default 1st) a save of any
     /// checkpoint reaches STEP: a real crash, for end-to-end tests through the trainer child.
     pub const ENV: &str = "LMAC_FAULT_CHECKPOINT";
