@@ -434,4 +434,22 @@ mod verdict_tests {
         let guess = SetTrend::over(&[rates(0, 0.95, 0.9, 0.6)], &[]).verdict("x");
         assert!(!guess.messages_help && guess.text.contains("a constant guess of each dim does as well"), "{}", guess.text);
     }
+
+    /// The LBF relevance design's phase 2 (docs/results/design.md): 0.957 with phases 0..=2
+    /// against 0.960 with phases 0..2 adds nothing; phase 1's 0.960 against 0.958 adds.
+    #[test]
+    fn the_marginal_verdict_says_whether_a_phase_adds() {
+        let before = SetTrend::over(&[rates(0, 0.92, 0.960, 0.94)], &[]);
+        let after = SetTrend::over(&[rates(0, 0.92, 0.957, 0.94)], &[]);
+        let v = after.marginal_verdict(&before, 2, 1);
+        assert!(!v.messages_help && v.text.contains("phase 2 does NOT add"), "{}", v.text);
+        assert!(
+            v.text.contains("0.957 with phases 0..=2 against 0.960 with phases 0..2") && v.text.contains("1 more message columns"),
+            "{}",
+            v.text
+        );
+        let v = before.marginal_verdict(&SetTrend::over(&[rates(0, 0.92, 0.958, 0.94)], &[]), 1, 0);
+        assert!(v.messages_help && v.text.starts_with("phase 1 adds"), "{}", v.text);
+        assert!((v.skill_over_no_messages - 0.0476).abs() < 1e-3, "(0.960 - 0.958) / (1 - 0.958): {v:?}");
+    }
 }
