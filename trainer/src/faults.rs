@@ -101,20 +101,18 @@ fn shm_files() -> Vec<String> {
     v
 }
 
-/// What a killed run left in /dev/shm: its slabs by name (`run_id`), iceoryx2's files (hashed
-/// names) by what is new since `baseline` (other iceoryx2 applications running meanwhile would
-/// count too).
-fn leftovers(run_id: &str, baseline: &[String]) -> Vec<String> {
-    shm_files()
-        .into_iter()
-        .filter(|f| {
-            if f.starts_with("lmac-") {
-                !run_id.is_empty() && f.starts_with(&format!("lmac-{run_id}-"))
-            } else {
-                !baseline.contains(f)
-            }
-        })
-        .collect()
+/// What a killed run left in shared memory before anything cleaned up after it: its slabs
+/// (named by `run_id`) and the iceoryx2 nodes of its dead processes (by the run id in their
+/// name). Counted by owner, not as new files since the start: other runs on the machine (an
+/// experiment beside the chaos) create and remove iceoryx2 files all the time.
+fn leftovers(run_id: &str) -> Vec<String> {
+    if run_id.is_empty() {
+        return Vec::new();
+    }
+    let mut v: Vec<String> = shm_files().into_iter().filter(|f| f.starts_with(&format!("lmac-{run_id}-"))).collect();
+    use lmac_shm_schema::leftovers::{survey, Kind};
+    v.extend(survey().dead.into_iter().filter(|f| f.kind == Kind::Node && f.run == run_id).map(|f| format!("iceoryx2 node {}", f.name)));
+    v
 }
 
 /// A running `lmac train` with its stderr read line by line on a thread, each line stamped.
@@ -262,16 +260,23 @@ impl ChaosMode {
     }
 }
 
-/// Record on `kills` the resume that followed them: it continued from `resumed` (None: it did
-/// not load a checkpoint) and the run's metrics went on past that step.
-fn settle(kills: &mut [Kill], resumed: Option<u64>, dir: &Path) {
+/// Record on `kills` the resume that followed them, when it can be judged: it did not load a
+/// checkpoint (`resumed` None: judged, failed) or its metrics went on past the step it resumed
+/// from (judged, continued). A resume killed before its first metrics row past that step (a
+/// loaded machine can take seconds) says nothing yet: the kills stay pending (false) and the
+/// next resume judges them, the last one by a graceful run.
+fn judge(kills: &mut [Kill], resumed: Option<u64>, dir: &Path) -> bool {
     let continued = resumed.is_some_and(|r| metrics_t_env(dir).last().is_some_and(|&t| t > r));
+    if resumed.is_some() && !continued {
+        return false;
+    }
     for k in kills {
         k.resumed_t_env = resumed;
         k.steps_lost = resumed.map(|r| k.reached_t_env.saturating_sub(r));
         k.resume_continued = continued;
         k.checkpoint_load_failed = resumed.is_none();
     }
+    true
 }
 
 /// What `lmac chaos` is asked to do.
@@ -345,7 +350,6 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
     if o.out.exists() && std::fs::read_dir(&o.out)?.next().is_some() {
         bail!("--out {}: not empty (chaos starts a fresh run there)", o.out.display());
     }
-    let baseline_shm = shm_files();
     // Long enough never to finish: the kills end it.
     let fresh: Vec<String> = [
         "--env",
@@ -456,9 +460,10 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
             while seen.iter().any(|p| alive(p.pid)) && t0.elapsed() < Duration::from_secs(90) {
                 std::thread::sleep(Duration::from_millis(20));
             }
-            settle(&mut kills[pending..], resumed_at(&run.text()), &dir);
-            pending = kills.len();
-            let shm_left = leftovers(&run_id, &baseline_shm);
+            if judge(&mut kills[pending..], resumed_at(&run.text()), &dir) {
+                pending = kills.len();
+            }
+            let shm_left = leftovers(&run_id);
             let kill = Kill {
                 mode,
                 save_step: if aborted.is_some() { save_step } else { None },
@@ -480,8 +485,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         }
         // The earlier kills' resume: did it load its checkpoint and continue? A start-up kill
         // lands before the run can show that, so its resume is judged with the next round's.
-        if mode != ChaosMode::Startup {
-            settle(&mut kills[pending..], resumed_at(&run.text()), &dir);
+        if mode != ChaosMode::Startup && judge(&mut kills[pending..], resumed_at(&run.text()), &dir) {
             pending = kills.len();
         }
         if let (Some(st), false) = (exited_early, mode == ChaosMode::Startup) {
@@ -529,7 +533,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         while children.iter().any(|&p| alive(p)) && t0.elapsed() < Duration::from_secs(90) {
             std::thread::sleep(Duration::from_millis(20));
         }
-        let shm_left = leftovers(&run_id, &baseline_shm);
+        let shm_left = leftovers(&run_id);
         let kill = Kill {
             mode,
             save_step: None,
