@@ -523,6 +523,13 @@ fn offline_designer_three_phases() {
     // Deterministic: the same inputs give the same phase 0.
     let mut again = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..Default::default() });
     assert_eq!(again.initial(&c).unwrap().protocol, phases[0].protocol);
+    // Told that the newest phase added nothing, the designer asks more of the next one.
+    let validated: Vec<ValidatedProtocol> = phases[..2].iter().map(|p| p.validated.clone()).collect();
+    let mut m = meta::evaluate(&c, &validated, &mcfg).unwrap();
+    m.newest_phase_added = Some(false);
+    let fb = designer.feedback(&c, 2, &phases[..2], &m).unwrap();
+    let stricter = designer.refine(&c, 2, &phases[..2], &fb, &m).unwrap();
+    assert!(stricter.reasoning.contains("Phase 1 added nothing") && stricter.reasoning.contains("2x min_gain"), "{}", stricter.reasoning);
 }
 
 #[test]

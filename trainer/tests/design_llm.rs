@@ -209,6 +209,7 @@ fn meta(phase: usize) -> MetaInfo {
         },
         dead_fields: vec!["phase 0 field `x` from agent 0 to agent 1 carries nothing on the dataset: [0] always 0".into()],
         verdicts: vec!["phase 1 does NOT add to the earlier phases (recovery on the 4 fixed dims 0.500 with phases 0..=1 against 0.510 with phases 0..1)".into()],
+        newest_phase_added: Some(false),
     }
 }
 

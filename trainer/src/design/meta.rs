@@ -306,6 +306,7 @@ pub fn meta_info(facts: &MetaFacts, with: &Recovery, without: &Recovery, guess: 
         },
         dead_fields: Vec::new(),
         verdicts: Vec::new(),
+        newest_phase_added: None,
     }
 }
 

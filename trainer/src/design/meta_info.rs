@@ -73,6 +73,10 @@ pub struct MetaInfo {
     /// phases before it (or was dropped). Filled by the design loop, read by every designer.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub verdicts: Vec<String>,
+    /// Whether the newest phase added to the phases before it (None for phase 0); the offline
+    /// designer raises its bar for the next phase when it did not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub newest_phase_added: Option<bool>,
 }
 
 /// Which data chi was measured on.
@@ -397,6 +401,7 @@ pub(crate) fn example(dims: &[(usize, String)], with: &[f64], without: &[f64]) -
         },
         dead_fields: Vec::new(),
         verdicts: Vec::new(),
+        newest_phase_added: None,
     }
 }
 

@@ -268,6 +268,7 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
             } else {
                 meta.verdicts.push(adds.text.clone());
             }
+            meta.newest_phase_added = Some(adds.messages_help);
             ev.adds = Some(adds);
         }
         if !ev.dropped {

@@ -150,11 +150,14 @@ pub struct OfflineDesigner {
     transcript: Vec<TranscriptEntry>,
     /// Phase 0's relevance measurement (None before it, or with [`CriticalBy::Recovery`]).
     relevance: Option<super::relevance::Relevance>,
+    /// Factor on [`OfflineConfig::min_gain`]: doubled each time a phase added nothing to the
+    /// phases before it, so the next one sends only what explains more per column.
+    gain_scale: f64,
 }
 
 impl OfflineDesigner {
     pub fn new(cfg: OfflineConfig) -> Self {
-        OfflineDesigner { cfg, transcript: Vec::new(), relevance: None }
+        OfflineDesigner { cfg, transcript: Vec::new(), relevance: None, gain_scale: 1.0 }
     }
 
     pub fn config(&self) -> &OfflineConfig {
@@ -229,7 +232,8 @@ impl OfflineDesigner {
         cols.sort_unstable();
         let stats = covariance(&mut s, cols)?;
         drop(s);
-        let (picks, steps) = select(stats, &cands, &kept, &targets.weights, per_block, &self.cfg);
+        let cfg = OfflineConfig { min_gain: self.cfg.min_gain * self.gain_scale, ..self.cfg.clone() };
+        let (picks, steps) = select(stats, &cands, &kept, &targets.weights, per_block, &cfg);
         if picks.is_empty() {
             bail!("offline designer: no candidate feature fits the {per_block} value columns per sender block of phase {phase}");
         }
@@ -621,6 +625,18 @@ impl Designer for OfflineDesigner {
             );
             Targets { dims: t, weights: w, why }
         };
+        // The design loop said the newest phase added nothing: its columns did not pay, so this
+        // phase asks twice the gain per column of every candidate.
+        let mut targets = targets;
+        if meta_v.newest_phase_added == Some(false) {
+            self.gain_scale *= 2.0;
+            targets.why.push_str(&format!(
+                " Phase {} added nothing to the phases before it on the fixed dims, so this phase sends only candidates that explain at least {:.4} of the weighted target variance per column ({}x min_gain).",
+                phase - 1,
+                self.cfg.min_gain * self.gain_scale,
+                self.gain_scale
+            ));
+        }
         let critical = targets.dims.clone();
         self.design(ctx, phase, previous, targets, &critical)
     }
