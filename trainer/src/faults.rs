@@ -390,7 +390,10 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         let t_start = Instant::now();
         // Wait until the pipeline is up: every role present (not for a start-up kill).
         let mut exited_early = None;
-        while mode != ChaosMode::Startup {
+        loop {
+            if mode == ChaosMode::Startup {
+                break;
+            }
             let roles: std::collections::BTreeSet<Role> = pipeline_children(run.child.id() as i32).iter().map(|r| r.role).collect();
             if roles.len() == 3 {
                 break;
