@@ -303,14 +303,19 @@ fn read_body(resp: reqwest::blocking::Response) -> Result<String, BodyError> {
 
 /// `Retry-After` (seconds or an HTTP date) or `retry-after-ms` (OpenAI sends it), if present.
 fn retry_after(h: &reqwest::header::HeaderMap) -> Option<Duration> {
+    // A server's number, bounded before it becomes a Duration: `Duration::from_secs_f64` panics
+    // past about 1.8e19 s, and `Retry-After: 1e20` is only bytes from outside. A day is far
+    // beyond any wait the client would honour anyway.
+    const MOST_S: f64 = 86_400.0;
+    let secs = |s: f64| (s.is_finite() && s >= 0.0).then(|| Duration::from_secs_f64(s.min(MOST_S)));
     if let Some(ms) = h.get("retry-after-ms").and_then(|v| v.to_str().ok()).and_then(|s| s.trim().parse::<f64>().ok()) {
-        if ms.is_finite() && ms >= 0.0 {
-            return Some(Duration::from_secs_f64(ms / 1000.0));
+        if let Some(d) = secs(ms / 1000.0) {
+            return Some(d);
         }
     }
     let v = h.get(reqwest::header::RETRY_AFTER)?.to_str().ok()?.trim();
     if let Ok(s) = v.parse::<f64>() {
-        return (s.is_finite() && s >= 0.0).then(|| Duration::from_secs_f64(s));
+        return secs(s);
     }
     let at = parse_http_date(v)?;
     let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).ok()?.as_secs();
@@ -346,6 +351,24 @@ fn parse_http_date(s: &str) -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 30's rule, never panic on bytes from outside: huge or odd numbers from a server
+    /// are bounded or ignored, not turned into a panicking Duration.
+    #[test]
+    fn hostile_retry_after_headers_do_not_panic() {
+        let mut h = reqwest::header::HeaderMap::new();
+        for (name, value, want) in [
+            ("retry-after", "1e20", Some(86_400.0)),
+            ("retry-after-ms", "1e30", Some(86_400.0)),
+            ("retry-after", "-1", None),
+            ("retry-after", "NaN", None),
+            ("retry-after", "2.5", Some(2.5)),
+        ] {
+            h.clear();
+            h.insert(name, value.parse().unwrap());
+            assert_eq!(retry_after(&h).map(|d| d.as_secs_f64()), want, "{name}: {value}");
+        }
+    }
 
     #[test]
     fn http_dates() {
