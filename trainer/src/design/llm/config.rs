@@ -106,8 +106,9 @@ impl LlmConfig {
         })
     }
 
-    /// Read the key from `var` (None: send no key), e.g. for a local or third-party server that
-    /// needs one; the variable must then be set.
+    /// Read the key from `var`, e.g. for a local or third-party server that needs one; the
+    /// variable must then be set. None keeps what [`LlmConfig::from_spec`] chose: the provider's
+    /// own variable for its own server, no key for a custom base URL.
     pub fn with_api_key_env(mut self, var: Option<&str>) -> Self {
         if let Some(v) = var {
             self.api_key_env = Some(v.to_string());
