@@ -26,7 +26,7 @@ fn a_trained_run_is_evaluated_at_each_message_cut_and_a_shape_change_is_refused(
     let me: serde_json::Value = serde_json::from_slice(&std::fs::read(seed.join("marl_eval.json")).unwrap()).unwrap();
     let runs = &me["lbf"]["8x8-2p-2f-s1-coop"]["ndq"]["seed_0"];
     assert_eq!(runs["absolute_metrics"]["return"].as_array().unwrap().len(), 40, "{me}");
-    assert_eq!(runs["absolute_metrics"]["checkpoint"], "best");
+    assert_eq!(runs["absolute_metrics_source"]["checkpoint"], "best");
     assert_eq!(runs["step_0"]["step_count"], 0);
     assert!(runs["step_3"]["step_count"].as_u64().unwrap() >= 3000, "test phases at 0, 1000, 2000 and the end: {me}");
     let json = out.join("eval.json");

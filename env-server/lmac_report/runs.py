@@ -29,6 +29,9 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 from .final import FINAL_TEST_PHASES as FINAL_TESTS, final_of  # noqa: E402  (the one rule)
+# What runs written before 2026-12-04 kept inside absolute_metrics besides the metrics: which
+# checkpoint the final evaluation used and its step (now in absolute_metrics_source).
+OLD_ANNOTATIONS = ("checkpoint", "t_env")
 FLAT = re.compile(r"^(?P<label>.+)_seed(?P<seed>\d+)\.csv$")
 STEP = re.compile(r"^step_(\d+)$")
 
@@ -116,6 +119,8 @@ def check_seed_data(data, where: str) -> dict:
             continue  # marl-eval tolerates other keys; so do we
         for name, values in metrics.items():
             if name == "step_count":
+                continue
+            if key == "absolute_metrics" and name in OLD_ANNOTATIONS:
                 continue
             if not isinstance(values, list) or not values:
                 raise ReportError(f"{where}/{key}/{name}: expected a non-empty list of numbers, found {values!r}")

@@ -131,6 +131,23 @@ def test_seed_dir_from_marl_eval_json(tmp_path):
     assert r.curve("return") == ([0, 1000], [0.0, 0.5])
 
 
+def test_marl_eval_json_as_lmac_writes_it_and_as_it_did_before(tmp_path):
+    """lmac writes which checkpoint the final evaluation used beside absolute_metrics; runs
+    written before 2026-12-04 carry it inside (checkpoint "best", t_env), which a report reads past
+    (it used to refuse every such run)."""
+    for k, where in enumerate(["beside", "inside"]):
+        d = seed_dir(tmp_path / f"exp{k}/runs/lmac/seed0", algo="lmac", seed=0)
+        doc = marl_eval("lbf", "8x8-2p-2f-s1-coop", "lmac", 0, [0.0, 0.5], [0.25, 0.75])
+        seed = doc["lbf"]["8x8-2p-2f-s1-coop"]["lmac"]["seed_0"]
+        if where == "beside":
+            seed["absolute_metrics_source"] = {"checkpoint": "best", "t_env": 1000}
+        else:
+            seed["absolute_metrics"].update({"checkpoint": "best", "t_env": 1000})
+        (d / "marl_eval.json").write_text(json.dumps(doc))
+        [r] = load(str(tmp_path / f"exp{k}"))
+        assert r.final("return") == (pytest.approx(0.5), "absolute"), where
+
+
 def test_flat_copies_and_json_files(tmp_path):
     (tmp_path / "lmac-td_seed2.csv").write_text(metrics_csv([0.1, 0.3]))
     (tmp_path / "lmac-td_seed2.config.toml").write_text(CONFIG.format(env="lbf:x", algo="lmac", seed=2, steps=1000))

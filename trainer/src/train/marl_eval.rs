@@ -5,8 +5,13 @@
 //! {env family: {task: {algo: {"seed_<k>": {
 //!     "step_<i>": {"step_count": t_env, "return": [mean test return], "win_rate": [rate]},
 //!     ...,
-//!     "absolute_metrics": {"return": [per-episode returns], "win_rate": [rate]}}}}}}
+//!     "absolute_metrics": {"return": [per-episode returns], "win_rate": [rate]},
+//!     "absolute_metrics_source": {"checkpoint": "best", "t_env": step of that checkpoint}}}}}}
 //! ```
+//!
+//! Every entry of `absolute_metrics` is a list of numbers, as marl-eval reads them; which
+//! checkpoint was evaluated is said beside it (runs written before 2026-12-04 carry
+//! `checkpoint` and `t_env` inside `absolute_metrics`, which `lmac report` skips).
 //!
 //! The env family and the task are the env name split at its first ':' (`lbf` /
 //! `8x8-2p-2f-s1-coop`); step i is the run's i-th test phase (each a mean over
@@ -30,10 +35,8 @@ pub fn marl_eval_json(run_dir: &Path, cfg: &TrainConfig, final_eval: Option<&Eva
         seed.insert(format!("step_{i}"), json!({"step_count": t_env, "return": [ret], "win_rate": [win]}));
     }
     if let Some(e) = final_eval {
-        seed.insert(
-            "absolute_metrics".into(),
-            json!({"return": e.returns, "win_rate": [e.win_rate], "checkpoint": e.checkpoint, "t_env": e.t_env}),
-        );
+        seed.insert("absolute_metrics".into(), json!({"return": e.returns, "win_rate": [e.win_rate]}));
+        seed.insert("absolute_metrics_source".into(), json!({"checkpoint": e.checkpoint, "t_env": e.t_env}));
     }
     Ok(json!({family: {task: {cfg.run.algo.clone(): {format!("seed_{}", cfg.learn.seed): Value::Object(seed)}}}}))
 }
@@ -72,7 +75,9 @@ mod tests {
         assert_eq!(seed["step_1"], json!({"step_count": 10010, "return": [0.25], "win_rate": [0.5]}));
         assert!(seed.get("step_2").is_none(), "a training row is not a step");
         assert_eq!(seed["absolute_metrics"]["return"], json!([1.0, 0.5]));
-        assert_eq!(seed["absolute_metrics"]["checkpoint"], "best");
+        assert_eq!(seed["absolute_metrics_source"], json!({"checkpoint": "best", "t_env": 10010}));
+        // Only lists of numbers in absolute_metrics (what marl-eval and lmac report read).
+        assert!(seed["absolute_metrics"].as_object().unwrap().values().all(|v| v.is_array()), "{seed}");
         write_marl_eval(&dir, &cfg, None).unwrap();
         let back: Value = serde_json::from_slice(&std::fs::read(dir.join("marl_eval.json")).unwrap()).unwrap();
         assert!(back["lbf"]["8x8-2p-2f-s1-coop"]["ndq"]["seed_3"].get("absolute_metrics").is_none());
