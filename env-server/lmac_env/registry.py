@@ -20,6 +20,11 @@ import types
 
 from .core import VecEnv
 
+
+class UnknownFamily(ValueError):
+    """No built-in, entry point or importable module makes this family (a typo, or the module's
+    folder not on the env servers' path)."""
+
 ENTRY_POINT_GROUP = "lmac_env.families"
 
 # family prefix -> module with `make(variant: str, num_envs: int, seed: int) -> VecEnv`
@@ -54,7 +59,7 @@ def family_module(family: str, env_name: str):
         except ModuleNotFoundError as e:
             if e.name is None or not family.startswith(e.name):
                 raise  # the module exists but one of its own imports is missing
-    raise ValueError(f"unknown environment family {family!r} in {env_name!r}: not built in "
+    raise UnknownFamily(f"unknown environment family {family!r} in {env_name!r}: not built in "
                      f"({', '.join(sorted(FAMILIES))}), no {ENTRY_POINT_GROUP!r} entry point of that name, "
                      "and no importable module of that dotted path")
 

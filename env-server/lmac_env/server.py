@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from .core import Batch, Schema, VecEnv, schema_path
-from .registry import make
+from .registry import UnknownFamily, make
 from .sizes import SizeChecked, SizeMismatch
 
 FLAG_FIRST = 1     # shm-schema layout.rs FLAG_FIRST: this row starts an episode
@@ -234,11 +234,9 @@ def serve(args) -> int:
         try:
             for k in range(args.sub_batches):
                 units.append(_SubBatch(args, args.first_member + k, args.envs // args.sub_batches, lmac_shm))
-        except (ImportError, ValueError) as e:
-            # The env's module cannot be found or imported: one line, no traceback (a ValueError
+        except (ImportError, UnknownFamily) as e:
+            # The env's module cannot be found or imported: one line, no traceback (an error
             # from inside a module that did load is the module's own bug and keeps its traceback).
-            if isinstance(e, ValueError) and "unknown environment family" not in str(e):
-                raise
             print(f"lmac: {who}: {e} (python: {sys.executable})", file=sys.stderr, flush=True)
             return 2
         for u in units:

@@ -26,7 +26,8 @@ import sys
 
 import numpy as np
 
-from .core import Batch, EnvUnavailable, Schema, VecEnv
+from .core import Batch, EnvUnavailable, Schema, VecEnv, schema_path
+from .registry import UnknownFamily, make
 
 # The schema field each axis of a batch array is sized by (axis 0 is the env).
 AXES = {"obs": ("num_envs", "n_agents", "obs_dim"), "state": ("num_envs", "state_dim"),
@@ -271,9 +272,6 @@ def check_env(env: VecEnv, steps: int = 3, seed: int = 0) -> None:
 def check(name: str, schema_file=None, num_envs: int = 2, steps: int = 3) -> Schema:
     """Build ``name``'s env (``num_envs`` copies: two, so the env axis is never mistaken for
     another) and check it against its schema file; the file the env loaded must be that file."""
-    from .core import schema_path
-    from .registry import make
-
     path = schema_path(name) if schema_file is None else schema_file
     want = Schema.load(path)
     env = make(name, num_envs, seed=0)
@@ -373,16 +371,16 @@ def main(argv=None) -> int:
         except (SizeMismatch, OSError) as e:
             bad += 1
             print(f"lmac: {e}", file=sys.stderr)
-        except ValueError as e:  # the env refused its schema itself (lbf, pz) or the name
+        except UnknownFamily:
+            # A typo in the family or a module not on the servers' path: the run would fail the
+            # same way, so --check fails now, naming the schema that asks for it.
             bad += 1
-            if "unknown environment family" in str(e):
-                # A typo in the family or a module not on the servers' path: the run would fail
-                # the same way, so --check fails now, naming the schema that asks for it.
-                from .core import schema_path
-                family = name.partition(":")[0]
-                e = (f"{schema_path(name)}: no module makes family {family!r} under {sys.executable}: "
-                     f"put the folder holding {family.replace('.', '/')}.py on PYTHONPATH, install it, "
-                     "or rename the schema's folder to the module's dotted path")
+            family = name.partition(":")[0]
+            print(f"lmac: {schema_path(name)}: no module makes family {family!r} under {sys.executable}: "
+                  f"put the folder holding {family.replace('.', '/')}.py on PYTHONPATH, install it, "
+                  "or rename the schema's folder to the module's dotted path", file=sys.stderr)
+        except ValueError as e:  # the env refused its schema itself (lbf, pz)
+            bad += 1
             print(f"lmac: {e}", file=sys.stderr)
     return 1 if bad else 0
 

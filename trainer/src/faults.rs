@@ -270,13 +270,55 @@ fn judge(kills: &mut [Kill], resumed: Option<u64>, dir: &Path) -> bool {
     if resumed.is_some() && !continued {
         return false;
     }
+    record_resume(kills, resumed, continued);
+    true
+}
+
+/// Write on `kills` what the resume after them did.
+fn record_resume(kills: &mut [Kill], resumed: Option<u64>, continued: bool) {
     for k in kills {
         k.resumed_t_env = resumed;
         k.steps_lost = resumed.map(|r| k.reached_t_env.saturating_sub(r));
         k.resume_continued = continued;
         k.checkpoint_load_failed = resumed.is_none();
     }
-    true
+}
+
+/// Wait (up to 90 s) until none of `pids` is alive.
+fn wait_gone(pids: impl Iterator<Item = i32> + Clone) {
+    let t0 = Instant::now();
+    while pids.clone().any(alive) && t0.elapsed() < Duration::from_secs(90) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+impl Kill {
+    /// A kill whose resume is not judged yet.
+    fn new(mode: ChaosMode, victim: Role, after_s: f64, detect_s: Option<f64>, reached_t_env: u64, shm_left: Vec<String>) -> Kill {
+        Kill {
+            mode,
+            save_step: None,
+            slow_to_stop: Vec::new(),
+            victim,
+            after_s,
+            detect_s,
+            reached_t_env,
+            resumed_t_env: None,
+            steps_lost: None,
+            resume_continued: false,
+            checkpoint_load_failed: false,
+            shm_left,
+        }
+    }
+}
+
+/// Counts and figures over some kills, for the report's breakdowns.
+fn kill_stats(of: &[&Kill]) -> serde_json::Value {
+    let d: Vec<f64> = of.iter().filter_map(|k| k.detect_s).collect();
+    serde_json::json!({
+        "kills": of.len(), "detect_p50_s": quantile(&d, 0.5), "detect_max_s": d.iter().cloned().fold(f64::NAN, f64::max),
+        "steps_lost_max": of.iter().filter_map(|k| k.steps_lost).max(),
+    })
 }
 
 /// What `lmac chaos` is asked to do.
@@ -459,28 +501,12 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
             // Read after the wait, which drains the rest of the run's stderr.
             let aborted = run.first_line_after(t_start, |l| l.contains(fault::ENV));
             let detect_s = aborted.and_then(|t| run.first_line_after(t, |l| l.contains("died")).map(|d| d.duration_since(t).as_secs_f64()));
-            let t0 = Instant::now();
-            while seen.iter().any(|p| alive(p.pid)) && t0.elapsed() < Duration::from_secs(90) {
-                std::thread::sleep(Duration::from_millis(20));
-            }
+            wait_gone(seen.iter().map(|p| p.pid));
             if judge(&mut kills[pending..], resumed_at(&run.text()), &dir) {
                 pending = kills.len();
             }
-            let shm_left = leftovers(&run_id);
-            let kill = Kill {
-                mode,
-                save_step: if aborted.is_some() { save_step } else { None },
-                slow_to_stop: Vec::new(),
-                victim: Role::Trainer,
-                after_s: t_start.elapsed().as_secs_f64(),
-                detect_s,
-                reached_t_env: reached,
-                resumed_t_env: None,
-                steps_lost: None,
-                resume_continued: false,
-                checkpoint_load_failed: false,
-                shm_left,
-            };
+            let mut kill = Kill::new(mode, Role::Trainer, t_start.elapsed().as_secs_f64(), detect_s, reached, leftovers(&run_id));
+            kill.save_step = if aborted.is_some() { save_step } else { None };
             progress(k, &kill);
             kills.push(kill);
             seed_dir = Some(dir);
@@ -532,25 +558,9 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
                 .or((mode == ChaosMode::Startup).then_some(exited))
         };
         // Orphans of a killed parent reap themselves; wait until nothing of the run is alive.
-        let t0 = Instant::now();
-        while children.iter().any(|&p| alive(p)) && t0.elapsed() < Duration::from_secs(90) {
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let shm_left = leftovers(&run_id);
-        let kill = Kill {
-            mode,
-            save_step: None,
-            slow_to_stop,
-            victim: victim.role,
-            after_s: wait,
-            detect_s,
-            reached_t_env: reached,
-            resumed_t_env: None,
-            steps_lost: None,
-            resume_continued: false,
-            checkpoint_load_failed: false,
-            shm_left,
-        };
+        wait_gone(children.iter().copied());
+        let mut kill = Kill::new(mode, victim.role, wait, detect_s, reached, leftovers(&run_id));
+        kill.slow_to_stop = slow_to_stop;
         progress(k, &kill);
         kills.push(kill);
         seed_dir = Some(dir);
@@ -579,12 +589,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         }
         unsafe { libc::kill(run.child.id() as i32, libc::SIGINT) };
         let _ = run.wait(Duration::from_secs(90));
-        for k in &mut kills[pending..] {
-            k.resumed_t_env = resumed;
-            k.steps_lost = resumed.map(|r| k.reached_t_env.saturating_sub(r));
-            k.resume_continued = continued;
-            k.checkpoint_load_failed = resumed.is_none();
-        }
+        record_resume(&mut kills[pending..], resumed, continued);
     }
     let t = seed_dir.as_ref().map(|d| metrics_t_env(d)).unwrap_or_default();
     let detect: Vec<f64> = kills.iter().filter_map(|k| k.detect_s).collect();
@@ -592,11 +597,9 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
     let mut by_victim = Vec::new();
     for role in [Role::Parent, Role::EnvServer, Role::ProtocolRunner, Role::Trainer] {
         let of: Vec<&Kill> = kills.iter().filter(|k| k.victim == role).collect();
-        let d: Vec<f64> = of.iter().filter_map(|k| k.detect_s).collect();
-        by_victim.push(serde_json::json!({
-            "victim": role.name(), "kills": of.len(), "detect_p50_s": quantile(&d, 0.5), "detect_max_s": d.iter().cloned().fold(f64::NAN, f64::max),
-            "steps_lost_max": of.iter().filter_map(|k| k.steps_lost).max(),
-        }));
+        let mut v = kill_stats(&of);
+        v["victim"] = role.name().into();
+        by_victim.push(v);
     }
     let mut by_mode = Vec::new();
     for mode in [ChaosMode::Running, ChaosMode::Save, ChaosMode::Startup] {
@@ -604,14 +607,12 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         if of.is_empty() {
             continue;
         }
-        let d: Vec<f64> = of.iter().filter_map(|k| k.detect_s).collect();
-        by_mode.push(serde_json::json!({
-            "mode": mode.name(), "kills": of.len(), "detect_p50_s": quantile(&d, 0.5), "detect_max_s": d.iter().cloned().fold(f64::NAN, f64::max),
-            "resumes_continued": of.iter().filter(|k| k.resume_continued).count(),
-            "checkpoint_load_failures": of.iter().filter(|k| k.checkpoint_load_failed).count(),
-            "steps_lost_max": of.iter().filter_map(|k| k.steps_lost).max(),
-            "save_steps": of.iter().filter_map(|k| k.save_step).collect::<std::collections::BTreeSet<_>>().len(),
-        }));
+        let mut v = kill_stats(&of);
+        v["mode"] = mode.name().into();
+        v["resumes_continued"] = of.iter().filter(|k| k.resume_continued).count().into();
+        v["checkpoint_load_failures"] = of.iter().filter(|k| k.checkpoint_load_failed).count().into();
+        v["save_steps"] = of.iter().filter_map(|k| k.save_step).collect::<std::collections::BTreeSet<_>>().len().into();
+        by_mode.push(v);
     }
     Ok(ChaosReport {
         env: o.env.clone(),
