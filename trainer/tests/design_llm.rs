@@ -38,6 +38,8 @@ enum Reply {
     Hang(Duration),
     /// 307 Temporary Redirect (method and body kept) to this URL.
     Redirect(String),
+    /// 200 whose body is closed half-way (Content-Length promises more than is sent).
+    CutBody,
 }
 
 #[derive(Debug, Clone)]
@@ -138,6 +140,15 @@ fn serve(stream: TcpStream, requests: Arc<Mutex<Vec<Captured>>>, script: Arc<Mut
         ),
         Some(Reply::Status(code, retry, body)) => (code, retry.map_or(String::new(), |r| format!("Retry-After: {r}\r\n")), body),
         Some(Reply::Redirect(to)) => (307, format!("Location: {to}\r\n"), String::new()),
+        Some(Reply::CutBody) => {
+            let mut out = stream;
+            let _ = write!(
+                out,
+                "HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 500\r\nConnection: close\r\n\r\n{{\"choices\": ["
+            );
+            let _ = out.flush();
+            return;
+        }
         Some(Reply::Hang(d)) => {
             std::thread::sleep(d);
             return;
@@ -384,9 +395,12 @@ fn three_phases_with_corrections_retries_recording_and_replay() {
         ]
     );
 
-    // Recordings: one file per distinct request (the retried ones once), no key anywhere.
+    // Recordings: one file per distinct request (the retried ones once) beside the writers'
+    // lock, no key anywhere.
     let files = files_under(&rec_dir);
-    assert_eq!(files.len(), 9, "{files:?}");
+    let recordings = files.iter().filter(|f| f.extension().is_some_and(|e| e == "json")).count();
+    assert_eq!(recordings, 9, "{files:?}");
+    assert_eq!(files.len(), 10, "{files:?}");
     for f in &files {
         let text = std::fs::read_to_string(f).unwrap();
         assert!(!text.contains(KEY) && !text.contains("sk-test"), "{} holds the key", f.display());
@@ -661,4 +675,57 @@ fn structured_output_follows_the_provider_and_can_be_turned_off() {
     let g = LlmConfig::from_spec("gemini:gemini-2.5-pro", None).unwrap();
     assert_eq!(g.endpoint(), "https://generativelanguage.googleapis.com/v1beta/openai/chat/completions");
     assert_eq!(g.api_key_env.as_deref(), Some("GEMINI_API_KEY"));
+}
+
+/// A reply that stopped at the token limit is an error naming the limit and how to raise it (not
+/// a malformed protocol to correct, which would be cut again and paid again), for both wire
+/// formats; it is recorded, and its replay says the same.
+#[test]
+fn a_reply_cut_at_the_token_limit_is_an_error_naming_the_limit_and_replays_the_same() {
+    let cut = |spec: &str| {
+        if spec.starts_with("anthropic") {
+            serde_json::json!({"type": "message", "model": "m", "content": [{"type": "text", "text": "{\"messages\": [{\"send"}],
+                "stop_reason": "max_tokens"})
+        } else {
+            serde_json::json!({"model": "m", "choices": [{"message": {"content": "{\"messages\": [{\"send"}, "finish_reason": "length"}]})
+        }
+        .to_string()
+    };
+    for spec in ["openai:m", "anthropic:m"] {
+        let server = Server::start(vec![Reply::Status(200, None, cut(spec))]);
+        let rec = temp_dir("cut");
+        let mut cfg = config(spec, &server.url);
+        cfg.mode = LlmMode::ReplayOrLive;
+        cfg.record_dir = Some(rec.clone());
+        let mut c = HttpLlm::new(cfg.clone()).unwrap();
+        c.set_max_tokens(7);
+        let e = c.complete(&[ChatMessage::user("design")]).unwrap_err();
+        assert!(matches!(&e, LlmError::Truncated { limit: Some(7), .. }), "{spec}: {e}");
+        let text = e.to_string();
+        assert!(text.contains("max_tokens 7") && text.contains("--llm-max-tokens") && text.contains("[{\"send"), "{spec}: {text}");
+        assert_eq!(server.requests().len(), 1, "{spec}: a cut reply is not asked again");
+        // Recorded (it was paid for), and the replay is the same error, with no server.
+        cfg.mode = LlmMode::Replay;
+        let mut replay = HttpLlm::new(cfg).unwrap();
+        replay.set_max_tokens(7);
+        let again = replay.complete(&[ChatMessage::user("design")]).unwrap_err();
+        assert!(matches!(again, LlmError::Truncated { .. }), "{spec}: replay gave {again}");
+        let _ = std::fs::remove_dir_all(rec);
+    }
+    // A whole reply ("stop", "end_turn") is not affected: every other test here gets one.
+}
+
+/// A 2xx whose body is lost in transit is asked again (one dropped connection should not end a
+/// design), and the error says that the lost reply may have been billed.
+#[test]
+fn a_success_whose_body_is_lost_is_retried_and_says_it_may_have_been_paid() {
+    let server = Server::start(vec![Reply::CutBody, Reply::Chat("whole".into())]);
+    let mut c = HttpLlm::new(config("openai:m", &server.url)).unwrap();
+    assert_eq!(c.complete(&[ChatMessage::user("hi")]).unwrap(), "whole");
+    assert_eq!(server.requests().len(), 2);
+    let server = Server::start(vec![Reply::CutBody, Reply::CutBody, Reply::CutBody]);
+    let mut c = HttpLlm::new(config("openai:m", &server.url)).unwrap();
+    let e = c.complete(&[ChatMessage::user("hi")]).unwrap_err();
+    let text = e.to_string();
+    assert!(matches!(e, LlmError::Transport { attempts: 3, .. }) && text.contains("answered 200") && text.contains("billed"), "{text}");
 }

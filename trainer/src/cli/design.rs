@@ -37,6 +37,10 @@ pub(crate) struct DesignArgs {
     /// (Anthropic, or a server that rejects it). Default: by provider.
     #[arg(long, value_name = "MODE")]
     pub(crate) structured_output: Option<lmac_trainer::design::llm::StructuredOutput>,
+    /// The most tokens an LLM reply may have (default: the provider's; Anthropic 8192). A reply
+    /// cut off at the limit is an error naming it, not a malformed protocol.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
+    pub(crate) llm_max_tokens: Option<u32>,
     /// Corrections the LLM gets per reply (invalid JSON, validation errors) before the design fails.
     #[arg(long, default_value_t = 3)]
     pub(crate) max_retries: usize,
@@ -150,6 +154,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             max_retries: a.max_retries,
             api_key_env: a.api_key_env.clone(),
             structured: a.structured_output,
+            max_tokens: a.llm_max_tokens,
             ..Default::default()
         };
         Box::new(LlmDesigner::from_spec(&a.llm, a.base_url.as_deref(), mode, Some(rec), options)?)

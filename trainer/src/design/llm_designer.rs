@@ -29,11 +29,14 @@ pub struct LlmDesignerOptions {
     /// How the protocol's JSON Schema goes with a generation request (None: the provider's
     /// default, see [`StructuredOutput`]); the CLI's `--structured-output`.
     pub structured: Option<StructuredOutput>,
+    /// The reply token limit sent with every request (None: the provider's default, see
+    /// [`super::llm::LlmConfig::max_tokens`]); the CLI's `--llm-max-tokens`.
+    pub max_tokens: Option<u32>,
 }
 
 impl Default for LlmDesignerOptions {
     fn default() -> Self {
-        LlmDesignerOptions { max_retries: 3, meta_max_chars: 60_000, api_key_env: None, structured: None }
+        LlmDesignerOptions { max_retries: 3, meta_max_chars: 60_000, api_key_env: None, structured: None, max_tokens: None }
     }
 }
 
@@ -71,6 +74,9 @@ impl LlmDesigner {
         let mut client = super::llm::client_from_spec(spec, base_url, options.api_key_env.as_deref(), mode, record_dir)?;
         if let Some(s) = options.structured {
             client.set_structured(s);
+        }
+        if let Some(n) = options.max_tokens {
+            client.set_max_tokens(n);
         }
         Ok(Self::with_templates(Box::new(client), Templates::from_env()?, options))
     }

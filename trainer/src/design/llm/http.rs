@@ -4,8 +4,8 @@
 //! backoff or the server's Retry-After; a response body is read up to [`MAX_BODY_BYTES`].
 
 use super::{
-    excerpt, parse_response, resolve_key, wire, ApiKey, CanonicalRequest, ChatMessage, LlmClient, LlmConfig, LlmError, LlmMode,
-    RecordedResponse, Recorder, Role, StructuredOutput,
+    excerpt, finish_reason_is_truncation, parse_response, resolve_key, wire, ApiKey, CanonicalRequest, ChatMessage, LlmClient, LlmConfig,
+    LlmError, LlmMode, RecordedResponse, Recorder, Role, StructuredOutput,
 };
 use std::time::{Duration, Instant};
 
@@ -75,6 +75,11 @@ impl HttpLlm {
 
     pub fn config(&self) -> &LlmConfig {
         &self.cfg
+    }
+
+    /// Limit each reply to this many tokens (see [`LlmConfig::max_tokens`]).
+    pub fn set_max_tokens(&mut self, n: u32) {
+        self.cfg.max_tokens = Some(n);
     }
 
     /// Send a reply's JSON Schema this way (see [`StructuredOutput`]).
@@ -159,11 +164,19 @@ impl HttpLlm {
                         Err(BodyError::Read(e)) => {
                             let timed_out = e.kind() == std::io::ErrorKind::TimedOut
                                 || e.get_ref().and_then(|i| i.downcast_ref::<reqwest::Error>()).is_some_and(|r| r.is_timeout());
-                            let problem = if timed_out {
+                            let mut problem = if timed_out {
                                 format!("timed out after {:.1}s reading the response", self.cfg.timeout.as_secs_f64())
                             } else {
                                 format!("failed reading the response: {e}")
                             };
+                            // Retried all the same (a design should not die of one dropped
+                            // connection), but the user should know what it may cost.
+                            if status.is_success() {
+                                problem.push_str(&format!(
+                                    " (the server had answered {}: that reply was lost in transit and may have been billed)",
+                                    status.as_u16()
+                                ));
+                            }
                             let e = LlmError::Transport {
                                 endpoint: endpoint.clone(),
                                 problem: self.redact(&problem),
@@ -250,8 +263,8 @@ impl HttpLlm {
         let req = self.canonical(messages, schema);
         if self.cfg.mode != LlmMode::Live {
             let rec = self.recorder.as_mut().expect("checked at construction");
-            if let Some(text) = rec.next_recorded(&req)? {
-                return Ok(text);
+            if let Some(resp) = rec.next_recorded(&req)? {
+                return self.whole_reply(resp);
             }
             if self.cfg.mode == LlmMode::Replay {
                 let (recorded, used) = rec.occurrences(&req);
@@ -271,11 +284,28 @@ impl HttpLlm {
             }
         }
         let resp = self.ask(messages, req.response_schema.as_ref())?;
-        let text = resp.text.clone();
+        // Recorded even when cut off: it was paid for, and a replay then says the same.
         if let Some(rec) = self.recorder.as_mut() {
-            rec.append(&req, resp)?;
+            rec.append(&req, resp.clone())?;
         }
-        Ok(text)
+        self.whole_reply(resp)
+    }
+
+    /// The reply's text, unless it stopped at the token limit.
+    fn whole_reply(&self, resp: RecordedResponse) -> Result<String, LlmError> {
+        match resp.finish_reason.as_deref() {
+            Some(reason) if finish_reason_is_truncation(reason) => {
+                let t = resp.text.trim_end();
+                let cut = t.char_indices().rev().nth(199).map_or(0, |(i, _)| i);
+                Err(LlmError::Truncated {
+                    endpoint: resp.endpoint,
+                    finish_reason: reason.to_string(),
+                    limit: self.cfg.max_tokens,
+                    tail: format!("{}{}", if cut > 0 { "..." } else { "" }, &t[cut..]),
+                })
+            }
+            _ => Ok(resp.text),
+        }
     }
 }
 

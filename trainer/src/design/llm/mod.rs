@@ -77,6 +77,10 @@ pub enum LlmError {
     Transport { endpoint: String, problem: String, attempts: u32, timed_out: bool },
     #[error("{endpoint}: unusable response: {problem}; body begins: {body}")]
     Response { endpoint: String, problem: String, body: String },
+    /// The reply stopped at the token limit: a cut reply is not a protocol, and asking again with
+    /// the same limit would be cut again (and paid again). It is recorded, so a replay says the same.
+    #[error("{endpoint}: the reply was cut off at the token limit (finish reason {finish_reason:?}, max_tokens {}): raise the limit (`lmac design --llm-max-tokens N`); the reply ends: {tail}", limit.map_or("not sent: the server's default".to_string(), |m| m.to_string()))]
+    Truncated { endpoint: String, finish_reason: String, limit: Option<u32>, tail: String },
     #[error("replay from {dir}: {problem}")]
     ReplayMiss { dir: PathBuf, key: String, problem: String },
     #[error("recording {path}: {problem}")]
@@ -159,6 +163,13 @@ impl std::str::FromStr for LlmMode {
             _ => Err(format!("unknown LLM mode {s:?}: use live, replay or replay-or-live")),
         }
     }
+}
+
+/// Whether a finish reason says the reply hit the token limit: `length` (OpenAI-compatible
+/// servers: OpenAI, Gemini, vLLM, llama.cpp, Ollama), `max_tokens` and
+/// `model_context_window_exceeded` (Anthropic).
+pub fn finish_reason_is_truncation(reason: &str) -> bool {
+    matches!(reason, "length" | "max_tokens" | "model_context_window_exceeded")
 }
 
 /// The text trimmed, cut after `n` characters (saying how long it was): for error texts.

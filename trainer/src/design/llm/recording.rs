@@ -100,17 +100,15 @@ impl Recorder {
 
     /// The recorded response for this request's next occurrence in the session, if recorded;
     /// advances the occurrence counter only when it answers.
-    pub fn next_recorded(&mut self, req: &CanonicalRequest) -> Result<Option<String>, LlmError> {
+    pub fn next_recorded(&mut self, req: &CanonicalRequest) -> Result<Option<RecordedResponse>, LlmError> {
         let key = req.key();
         let n = self.seen.get(&key).copied().unwrap_or(0);
-        let Some(rec) = self.load(&key)? else { return Ok(None) };
-        match rec.responses.get(n) {
-            Some(r) => {
-                self.seen.insert(key, n + 1);
-                Ok(Some(r.text.clone()))
-            }
-            None => Ok(None),
+        let Some(mut rec) = self.load(&key)? else { return Ok(None) };
+        if n >= rec.responses.len() {
+            return Ok(None);
         }
+        self.seen.insert(key, n + 1);
+        Ok(Some(rec.responses.swap_remove(n)))
     }
 
     /// How many times the request was recorded, and how many of those this session used.
@@ -120,20 +118,33 @@ impl Recorder {
         (recorded, self.seen.get(&key).copied().unwrap_or(0))
     }
 
-    /// Append a response (atomically: written to a temporary file, then renamed).
+    /// Append a response (atomically: written to a temporary file, then renamed), under an
+    /// exclusive lock on the directory's `.lock` file: designs running side by side (processes or
+    /// threads) that record into one directory each read, extend and replace a recording in turn,
+    /// so no paid response is lost to a concurrent writer.
     pub fn append(&mut self, req: &CanonicalRequest, resp: RecordedResponse) -> Result<(), LlmError> {
         let key = req.key();
         let path = self.path(&key);
         std::fs::create_dir_all(&self.dir)
             .map_err(|e| LlmError::Recording { path: self.dir.clone(), problem: format!("cannot create the directory: {e}") })?;
+        let lock_path = self.dir.join(".lock");
+        let lock = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&lock_path)
+            .and_then(|f| f.lock().map(|_| f))
+            .map_err(|e| LlmError::Recording { path: lock_path.clone(), problem: format!("cannot lock: {e}") })?;
         let mut rec = self.load(&key)?.unwrap_or_else(|| Recording { key: key.clone(), request: req.clone(), responses: Vec::new() });
         rec.responses.push(resp);
         let n = rec.responses.len();
         let text = serde_json::to_string_pretty(&rec).expect("a recording serializes");
-        let tmp = self.dir.join(format!(".{key}.json.tmp{}", std::process::id()));
+        // Unique per process and per writer; the lock already keeps writers apart.
+        let tmp = self.dir.join(format!(".{key}.json.tmp{}-{:p}", std::process::id(), self as *const Self));
         std::fs::write(&tmp, text).map_err(|e| LlmError::Recording { path: tmp.clone(), problem: format!("cannot write: {e}") })?;
         std::fs::rename(&tmp, &path)
             .map_err(|e| LlmError::Recording { path: path.clone(), problem: format!("cannot rename {} into place: {e}", tmp.display()) })?;
+        drop(lock);
         // This answer is the session's occurrence n-1 of the request.
         self.seen.insert(key, n);
         Ok(())
@@ -164,5 +175,48 @@ mod tests {
         assert_ne!(r.key(), r3.key());
         assert!(!serde_json::to_string(&r).unwrap().contains("response_schema"));
         assert_eq!(r.key().len(), 64);
+    }
+
+    /// Designs recording into one directory side by side (threads here; processes take the same
+    /// lock) lose no response: each append reads, extends and replaces the file in turn.
+    #[test]
+    fn concurrent_appends_to_one_recording_keep_every_response() {
+        let dir = std::env::temp_dir().join(format!("lmac-recording-race-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let req = CanonicalRequest {
+            provider: Provider::OpenAi,
+            model: "m".into(),
+            temperature: 0.6,
+            max_tokens: None,
+            messages: vec![ChatMessage::user("the same question")],
+            response_schema: None,
+        };
+        let (writers, each) = (4, 25);
+        std::thread::scope(|s| {
+            for w in 0..writers {
+                let (dir, req) = (dir.clone(), req.clone());
+                s.spawn(move || {
+                    let mut r = Recorder::new(dir);
+                    for i in 0..each {
+                        let resp = RecordedResponse {
+                            text: format!("{w}-{i}"),
+                            endpoint: "e".into(),
+                            served_model: None,
+                            usage: serde_json::Value::Null,
+                            finish_reason: None,
+                            elapsed_ms: 0,
+                            unix_time: 0,
+                        };
+                        r.append(&req, resp).unwrap();
+                    }
+                });
+            }
+        });
+        let rec = Recorder::new(&dir).load(&req.key()).unwrap().unwrap();
+        let mut texts: Vec<String> = rec.responses.iter().map(|r| r.text.clone()).collect();
+        texts.sort();
+        texts.dedup();
+        assert_eq!(texts.len(), writers * each, "responses lost to concurrent writers");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
