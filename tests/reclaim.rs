@@ -56,7 +56,7 @@ fn kill_group(child: &mut Child) {
 /// The iceoryx2 services of run `run` (`lmac/<run>/...`), dead or alive.
 fn services_of(run: &str) -> Vec<String> {
     let mut v = Vec::new();
-    let _ = ipc::Service::list(Config::global_config(), |s| {
+    let _ = ipc::Service::list(&lmac_shm_schema::ring::ring_config(), |s| {
         let name = s.static_details.name().to_string();
         if name.starts_with(&format!("lmac/{run}/")) {
             v.push(name);

@@ -116,16 +116,97 @@ pub fn run_of_node(name: &str) -> Option<&str> {
     is_run_node(run, name).then_some(run)
 }
 
-/// The iceoryx2 configuration of lmac's nodes: the global one, except that creating or dropping a
-/// node does not clean up every dead node on the machine (iceoryx2's default), which would remove
-/// other applications' stale resources too. This run's dead nodes are cleaned by
-/// [`Port::check_peers`] and [`cleanup_dead_nodes`]; opening a service still cleans the dead
-/// nodes attached to that service, which are all participants of this run's services.
-pub(crate) fn ring_config() -> Config {
+/// The iceoryx2 configuration of lmac's nodes: the global one in a namespace of this user's own
+/// (see [`private_namespace`]), and creating or dropping a node does not clean up every dead node
+/// it can see (iceoryx2's default). This run's dead nodes are cleaned by [`Port::check_peers`] and
+/// [`cleanup_dead_nodes`]; opening a service still cleans the dead nodes attached to that
+/// service, which are all participants of this run's services.
+pub fn ring_config() -> Config {
     let mut config = Config::global_config().clone();
     config.global.node.cleanup_dead_nodes_on_creation = false;
     config.global.node.cleanup_dead_nodes_on_destruction = false;
+    let uid = current_uid();
+    // Both are short ASCII, far below iceoryx2's name limits.
+    config.global.set_root_path(&Path::new(private_root(uid).as_bytes()).expect("a valid root path"));
+    config.global.prefix = FileName::new(namespace_prefix(uid).as_bytes()).expect("a valid file-name prefix");
     config
+}
+
+fn current_uid() -> u32 {
+    // SAFETY: getuid has no preconditions and cannot fail.
+    unsafe { libc::getuid() }
+}
+
+/// The directory of this user's lmac iceoryx2 files (node and service descriptions, event
+/// sockets): iceoryx2's default, `/tmp/iceoryx2/`, is one directory for every user and
+/// application on the machine, so the first to create it decides who may use it.
+fn private_root(uid: u32) -> String {
+    format!("/tmp/lmac-iox2-{uid}/")
+}
+
+/// The prefix of this user's lmac files in /dev/shm.
+fn namespace_prefix(uid: u32) -> String {
+    format!("iox2_lmac{uid}_")
+}
+
+/// Make sure lmac's iceoryx2 namespace belongs to this user alone, before a node is created in
+/// it: the root directory is created 0700, or if it exists it must be a real directory (not a
+/// symlink) owned by this user that nobody else can write; and iceoryx2's node-id counter in
+/// /dev/shm, which it creates world-writable (0666) whatever the config says, is made 0600 once it
+/// exists (another user's file there is refused).
+/// Called by [`Port::new`] before and after its node is created; an error names the path and what
+/// is wrong with it.
+pub fn private_namespace() -> Result<(), RingError> {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    let uid = current_uid();
+    let refuse = |path: &std::path::Path, problem: String| {
+        RingError::Usage(format!(
+            "{}: {problem}; lmac keeps its iceoryx2 files there and uses it only when it is this user's alone (uid {uid})",
+            path.display()
+        ))
+    };
+    let root = std::path::PathBuf::from(private_root(uid));
+    ensure_private_dir(&root, uid).map_err(|problem| refuse(&root, problem))?;
+    let prefix = namespace_prefix(uid);
+    let Ok(entries) = std::fs::read_dir("/dev/shm") else { return Ok(()) };
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if !(name.starts_with(&prefix) && name.ends_with(".global_mgmt")) {
+            continue;
+        }
+        let path = e.path();
+        let Ok(md) = std::fs::symlink_metadata(&path) else { continue };
+        if md.uid() != uid || !md.file_type().is_file() {
+            return Err(refuse(&path, format!("belongs to uid {} (or is not a file)", md.uid())));
+        }
+        if md.mode() & 0o077 != 0 {
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600))
+                .map_err(|e| refuse(&path, format!("cannot make it private: {e}")))?;
+        }
+    }
+    Ok(())
+}
+
+/// Create `dir` 0700, or accept it if it is a real directory (not a symlink) owned by `uid` that
+/// nobody else can write; else say what is wrong.
+fn ensure_private_dir(dir: &std::path::Path, uid: u32) -> Result<(), String> {
+    use std::os::unix::fs::{DirBuilderExt, MetadataExt};
+    match std::fs::DirBuilder::new().mode(0o700).create(dir) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+        Err(e) => return Err(format!("cannot create it: {e}")),
+    }
+    let md = std::fs::symlink_metadata(dir).map_err(|e| format!("cannot read it: {e}"))?;
+    if !md.file_type().is_dir() {
+        return Err("is not a directory (a symlink or a file someone put there)".into());
+    }
+    if md.uid() != uid {
+        return Err(format!("belongs to uid {}", md.uid()));
+    }
+    if md.mode() & 0o022 != 0 {
+        return Err(format!("others may write to it (mode {:o})", md.mode() & 0o777));
+    }
+    Ok(())
 }
 
 type SlotService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, SlotMsg, ()>;
@@ -204,12 +285,15 @@ impl Port {
         set_log_level(LogLevel::Error);
         let run = spec.run.clone();
         let me = node_name(&run, spec.role, spec.member);
+        private_namespace()?;
         let node = NodeBuilder::new()
             .config(&ring_config())
             .name(&NodeName::new(&me).map_err(ipc("node name"))?)
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
             .map_err(ipc("node"))?;
+        // The node-id counter exists now (the first node creates it).
+        private_namespace()?;
         let svc = |s: usize, to: &str| format!("lmac/{run}/s{s}/to_{to}");
         let wake_env = |s: usize| format!("lmac/{run}/wake/env{s}");
         let wake_runner = format!("lmac/{run}/wake/runner");
@@ -597,4 +681,36 @@ pub fn cleanup_dead_nodes(run: &str) -> usize {
         CallbackProgression::Continue
     });
     n
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::PermissionsExt;
+
+    /// Issue 30: iceoryx2's default root, /tmp/iceoryx2, is one directory for every user; lmac's
+    /// own is used only when it is this user's alone.
+    #[test]
+    fn the_namespace_root_is_used_only_when_it_is_private() {
+        let uid = current_uid();
+        let base = std::env::temp_dir().join(format!("lmac-private-dir-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&base);
+        std::fs::create_dir_all(&base).unwrap();
+        // Created 0700 when missing; accepted again.
+        let fresh = base.join("fresh");
+        ensure_private_dir(&fresh, uid).unwrap();
+        assert_eq!(std::fs::metadata(&fresh).unwrap().permissions().mode() & 0o777, 0o700);
+        ensure_private_dir(&fresh, uid).unwrap();
+        // A symlink planted in its place (to a directory of the planter's choosing) is refused.
+        let link = base.join("link");
+        std::os::unix::fs::symlink(&fresh, &link).unwrap();
+        assert!(ensure_private_dir(&link, uid).unwrap_err().contains("not a directory"));
+        // A directory others may write to is refused; so is someone else's.
+        let open = base.join("open");
+        std::fs::create_dir(&open).unwrap();
+        std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o777)).unwrap();
+        assert!(ensure_private_dir(&open, uid).unwrap_err().contains("others may write"));
+        assert!(ensure_private_dir(&fresh, uid.wrapping_add(4242)).unwrap_err().contains("belongs to uid"));
+        let _ = std::fs::remove_dir_all(&base);
+    }
 }

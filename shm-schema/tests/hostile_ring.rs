@@ -5,7 +5,7 @@
 //! run or application on the same machine (real processes killed with SIGKILL).
 use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
-use lmac_shm_schema::ring::{cleanup_dead_nodes, is_run_node, node_name, Port, RingError, RingSpec, SlotMsg, KIND_SLOT};
+use lmac_shm_schema::ring::{cleanup_dead_nodes, is_run_node, node_name, ring_config, Port, RingError, RingSpec, SlotMsg, KIND_SLOT};
 use lmac_shm_schema::Stage;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::process::{Child, Command, Stdio};
@@ -52,13 +52,10 @@ fn sender_child(spec: &str) {
     let mut it = spec.split(' ');
     let (run, member, n_slots, msgs) = (it.next().unwrap(), it.next().unwrap(), it.next().unwrap(), it.next().unwrap());
     let n_slots: usize = n_slots.parse().unwrap();
-    // No machine-wide clean-up of dead nodes on creation or drop (iceoryx2's default): the
-    // clean-up test running beside this one keeps dead foreign nodes that must stay listed.
-    let mut config = Config::global_config().clone();
-    config.global.node.cleanup_dead_nodes_on_creation = false;
-    config.global.node.cleanup_dead_nodes_on_destruction = false;
+    // lmac's own namespace and settings (no clean-up of every dead node on creation or drop: the
+    // clean-up test running beside this one keeps dead nodes that must stay listed).
     let node = NodeBuilder::new()
-        .config(&config)
+        .config(&ring_config())
         .name(&NodeName::new(&format!("lmac-{run}-env{member}")).unwrap())
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<ipc::Service>()
@@ -154,10 +151,13 @@ fn run_nodes_are_recognised_exactly() {
 }
 
 /// Child of `cleanup_leaves_other_applications_dead_nodes_alone`: create a node named as given
-/// (iceoryx2's default config, as another application would), say so, and sleep until killed.
+/// (lmac's namespace for an lmac name, iceoryx2's default config as another application would
+/// otherwise), say so, and sleep until killed.
 fn sleeper_child(name: &str) {
     set_log_level(LogLevel::Error);
+    let config = if name.starts_with("lmac-") { ring_config() } else { Config::global_config().clone() };
     let _node = NodeBuilder::new()
+        .config(&config)
         .name(&NodeName::new(name).unwrap())
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<ipc::Service>()
@@ -167,10 +167,18 @@ fn sleeper_child(name: &str) {
     std::thread::sleep(Duration::from_secs(60));
 }
 
-/// State of every node named in `names`: Some(true) alive, Some(false) dead, None not listed.
+/// State of every node named in `names` (in lmac's namespace and iceoryx2's default one):
+/// Some(true) alive, Some(false) dead, None not listed.
 fn states(names: &[String]) -> Vec<Option<bool>> {
     let mut out = vec![None; names.len()];
-    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+    for config in [ring_config(), Config::global_config().clone()] {
+        list_states(&config, names, &mut out);
+    }
+    out
+}
+
+fn list_states(config: &Config, names: &[String], out: &mut [Option<bool>]) {
+    let _ = Node::<ipc::Service>::list(config, |state| {
         let (alive, details) = match &state {
             NodeState::Alive(v) => (true, v.details().clone()),
             NodeState::Dead(v) => (false, v.details().clone()),
@@ -183,7 +191,6 @@ fn states(names: &[String]) -> Vec<Option<bool>> {
         }
         CallbackProgression::Continue
     });
-    out
 }
 
 #[test]
@@ -223,15 +230,44 @@ fn cleanup_leaves_other_applications_dead_nodes_alone() {
     drop(port);
     let after = states(&names);
     // Remove the foreign dead nodes we made before asserting, so a failure leaves nothing behind.
-    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
-        if let NodeState::Dead(v) = state {
-            if v.details().as_ref().is_some_and(|d| names[..2].contains(&d.name().to_string())) {
-                let _ = v.try_remove_stale_resources();
+    for config in [ring_config(), Config::global_config().clone()] {
+        let _ = Node::<ipc::Service>::list(&config, |state| {
+            if let NodeState::Dead(v) = state {
+                if v.details().as_ref().is_some_and(|d| names[..2].contains(&d.name().to_string())) {
+                    let _ = v.try_remove_stale_resources();
+                }
             }
-        }
-        CallbackProgression::Continue
-    });
+            CallbackProgression::Continue
+        });
+    }
     assert_eq!(after[..2], [Some(false), Some(false)], "another application's / run's dead nodes must be left alone");
     assert_eq!(after[2..], [None, None], "this run's dead nodes are cleaned up");
     assert!(cleaned <= 2, "cleaned {cleaned} nodes, only ours may be");
+}
+
+/// Issue 30: lmac's iceoryx2 files live in a namespace of this user's own: a root directory that
+/// is 0700, and iceoryx2's node-id counter in /dev/shm (which iceoryx2 creates 0666) made 0600.
+#[test]
+fn the_ring_lives_in_a_namespace_of_this_users_own() {
+    use std::os::unix::fs::MetadataExt;
+    set_log_level(LogLevel::Error);
+    let run = unique_run("ns");
+    let port = Port::new(RingSpec { run, n_members: 1, n_slots: 2, role: Stage::Trainer, member: 0 }).unwrap();
+    let uid = unsafe { libc::getuid() };
+    let root = std::fs::symlink_metadata(format!("/tmp/lmac-iox2-{uid}")).unwrap();
+    assert!(root.is_dir() && root.uid() == uid && root.mode() & 0o777 == 0o700, "root mode {:o}", root.mode());
+    let counters: Vec<_> = std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .flatten()
+        .filter(|e| {
+            let n = e.file_name().to_string_lossy().into_owned();
+            n.starts_with(&format!("iox2_lmac{uid}_")) && n.ends_with(".global_mgmt")
+        })
+        .map(|e| (e.file_name(), e.metadata().unwrap()))
+        .collect();
+    assert!(!counters.is_empty(), "the node-id counter is in the namespace");
+    for (name, md) in counters {
+        assert_eq!((md.uid(), md.mode() & 0o777), (uid, 0o600), "{name:?}");
+    }
+    drop(port);
 }
