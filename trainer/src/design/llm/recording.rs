@@ -133,7 +133,16 @@ impl Recorder {
             .truncate(false)
             .write(true)
             .open(&lock_path)
-            .and_then(|f| f.lock().map(|_| f))
+            .and_then(|f| {
+                use std::os::unix::io::AsRawFd;
+                // flock (not File::lock: the workspace's rust-version is 1.85); released when
+                // `lock` is dropped or the process dies.
+                // SAFETY: flock on a descriptor this function owns.
+                match unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX) } {
+                    0 => Ok(f),
+                    _ => Err(std::io::Error::last_os_error()),
+                }
+            })
             .map_err(|e| LlmError::Recording { path: lock_path.clone(), problem: format!("cannot lock: {e}") })?;
         let mut rec = self.load(&key)?.unwrap_or_else(|| Recording { key: key.clone(), request: req.clone(), responses: Vec::new() });
         rec.responses.push(resp);
