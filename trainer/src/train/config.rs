@@ -93,8 +93,7 @@ impl Default for RunSection {
     }
 }
 
-/// Most env steps a run, or an interval of one, may ask for (2^48, about 2.8e14).
-pub const MAX_ENV_STEPS: u64 = 1 << 48;
+pub use crate::learn::MAX_ENV_STEPS;
 /// Most environments per env server process.
 const MAX_ENVS: usize = 1 << 16;
 /// Most env server processes of one run.

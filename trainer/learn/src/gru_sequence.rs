@@ -1,0 +1,520 @@
+//! A GRU unrolled over a whole sequence as one burn operation (issue 16).
+//!
+//! The agent's update is small matrices over sequential steps, so its cost was per-operation
+//! overhead, not arithmetic: a plain burn unroll makes about fifteen tensor operations per
+//! step forward and as many backward, each allocating. Here the time-independent parts (the
+//! first layer and the GRU's input projection) run once over all steps as ordinary burn ops,
+//! and only the recurrence is this one custom operation: forward and its backward through time
+//! are plain loops over host slices with one `gemm` call per step, registered with burn's
+//! autodiff as a single node (`#[backend_extension]`, hand-written `Backward`).
+//!
+//! Conventions are torch's `GRUCell` with burn's row layout (weights [in, out], gates r, z, n):
+//! `gh = h W_hh + b_hh`, `r = sigmoid(gi_r + gh_r)`, `z = sigmoid(gi_z + gh_z)`,
+//! `n = tanh(gi_n + r * gh_n)`, `h' = n + z (h - n)`, from `h_0 = 0`. `gi = x W_ih + b_ih` is
+//! the caller's. Tested against the step-by-step burn cell (values and gradients to 1e-5).
+// burn marks its ndarray backend deprecated; the `ndarray` feature still selects it.
+#![cfg_attr(feature = "ndarray", allow(deprecated))]
+
+use std::sync::Arc;
+
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::Autodiff;
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
+use burn::tensor::{Tensor, TensorData};
+
+use super::host_kernel::{host, matmul, sigmoid, tanh_approx, with_simd};
+
+/// The recurrence as a backend operation: gi [T, N, 3H], w_hh [H, 3H], b_hh [3H] -> h [T, N, H];
+/// `gru_sequence_carry` adds res [T, N, H] to each step's new state before it is carried on.
+#[backend_extension(Flex: cfg(feature = "flex"), NdArray: cfg(feature = "ndarray"), Autodiff)]
+pub trait GruSequenceBackend: Backend {
+    fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self>;
+    fn gru_sequence_carry(
+        gi: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+        res: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
+}
+
+/// The hidden states of the GRU over time: `gi` [T, N, 3H] (input projections of all steps,
+/// bias included), `w_hh` [H, 3H], `b_hh` [3H] -> [T, N, H]. Differentiable in all three.
+pub fn gru_sequence(gi: Tensor<3>, w_hh: Tensor<2>, b_hh: Tensor<1>) -> Tensor<3> {
+    Tensor::from_dispatch(<Dispatch as GruSequenceBackend>::gru_sequence(gi.into_dispatch(), w_hh.into_dispatch(), b_hh.into_dispatch()))
+}
+
+/// The carried states of a GRU whose every new state gets `res` added before it is carried to
+/// the next step: c_t = GRUCell(gi_t, c_{t-1}) + res_t from c_{-1} = 0, [T, N, H]. The LMAC
+/// encoder of the released code carries h + x this way (`meta.py`). Differentiable in all four.
+pub fn gru_sequence_carry(gi: Tensor<3>, w_hh: Tensor<2>, b_hh: Tensor<1>, res: Tensor<3>) -> Tensor<3> {
+    Tensor::from_dispatch(<Dispatch as GruSequenceBackend>::gru_sequence_carry(
+        gi.into_dispatch(),
+        w_hh.into_dispatch(),
+        b_hh.into_dispatch(),
+        res.into_dispatch(),
+    ))
+}
+
+#[cfg(feature = "flex")]
+impl GruSequenceBackend for burn::backend::Flex {
+    fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
+        forward_on::<Self>(gi, w_hh, b_hh, None, false).0
+    }
+    fn gru_sequence_carry(
+        gi: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+        res: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        forward_on::<Self>(gi, w_hh, b_hh, Some(res), false).0
+    }
+}
+
+#[cfg(feature = "ndarray")]
+impl GruSequenceBackend for burn::backend::NdArray {
+    fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
+        forward_on::<Self>(gi, w_hh, b_hh, None, false).0
+    }
+    fn gru_sequence_carry(
+        gi: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+        res: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        forward_on::<Self>(gi, w_hh, b_hh, Some(res), false).0
+    }
+}
+
+impl<B: Backend + GruSequenceBackend, C: CheckpointStrategy> GruSequenceBackend for Autodiff<B, C> {
+    fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
+        match GruSequenceBackward.prepare::<C>([gi.node(), w_hh.node(), b_hh.node()]).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => {
+                let (out, saved) = forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), None, true);
+                prep.finish(saved.expect("saved activations"), out)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), None, false).0)
+            }
+        }
+    }
+
+    fn gru_sequence_carry(
+        gi: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+        res: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        match GruCarryBackward.prepare::<C>([gi.node(), w_hh.node(), b_hh.node(), res.node()]).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => {
+                let (out, saved) =
+                    forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), Some(res.into_primitive()), true);
+                prep.finish(saved.expect("saved activations"), out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(
+                forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), Some(res.into_primitive()), false).0,
+            ),
+        }
+    }
+}
+
+#[derive(Debug)]
+struct GruSequenceBackward;
+
+impl<B: Backend> Backward<B, 3> for GruSequenceBackward {
+    type State = Arc<Saved>;
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+        let [node_gi, node_w, node_b] = ops.parents;
+        let grad = grads.consume::<B>(&ops.node);
+        let device = grad.device();
+        let saved = ops.state;
+        let d_h = host::<B>(grad);
+        let g = saved.backward(&d_h);
+        let (t, n, h) = (saved.steps, saved.rows, saved.hidden);
+        if let Some(node) = node_gi {
+            grads.register::<B>(node.id, B::float_from_data(TensorData::new(g.gi, [t, n, 3 * h]), &device));
+        }
+        if let Some(node) = node_w {
+            grads.register::<B>(node.id, B::float_from_data(TensorData::new(g.w_hh, [h, 3 * h]), &device));
+        }
+        if let Some(node) = node_b {
+            grads.register::<B>(node.id, B::float_from_data(TensorData::new(g.b_hh, [3 * h]), &device));
+        }
+    }
+}
+
+#[derive(Debug)]
+struct GruCarryBackward;
+
+impl<B: Backend> Backward<B, 4> for GruCarryBackward {
+    type State = Arc<Saved>;
+
+    fn backward(self, ops: Ops<Self::State, 4>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+        let [node_gi, node_w, node_b, node_res] = ops.parents;
+        let grad = grads.consume::<B>(&ops.node);
+        let device = grad.device();
+        let saved = ops.state;
+        let g = saved.backward(&host::<B>(grad));
+        let (t, n, h) = (saved.steps, saved.rows, saved.hidden);
+        let parts = [
+            (node_gi, g.gi, vec![t, n, 3 * h]),
+            (node_w, g.w_hh, vec![h, 3 * h]),
+            (node_b, g.b_hh, vec![3 * h]),
+            (node_res, g.res, vec![t, n, h]),
+        ];
+        for (node, values, shape) in parts {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, B::float_from_data(TensorData::new(values, shape), &device));
+            }
+        }
+    }
+}
+
+/// Run the forward on backend `B`'s tensors through the host kernel; with `save`, also keep
+/// what the backward needs.
+fn forward_on<B: Backend>(
+    gi: FloatTensor<B>,
+    w_hh: FloatTensor<B>,
+    b_hh: FloatTensor<B>,
+    res: Option<FloatTensor<B>>,
+    save: bool,
+) -> (FloatTensor<B>, Option<Arc<Saved>>) {
+    let device = gi.device();
+    let dims = gi.shape().dims::<3>();
+    let [t, n, h3] = dims;
+    let (w_dims, b_dims) = (w_hh.shape().dims::<2>(), b_hh.shape().dims::<1>());
+    assert!(
+        h3 % 3 == 0 && w_dims == [h3 / 3, h3] && b_dims == [h3],
+        "gru_sequence: gi {dims:?}, w_hh {w_dims:?}, b_hh {b_dims:?} do not fit [T, N, 3H], [H, 3H], [3H]"
+    );
+    let res = res.map(|r| {
+        let r_dims = r.shape().dims::<3>();
+        assert!(r_dims == [t, n, h3 / 3], "gru_sequence_carry: res {r_dims:?} does not fit [T, N, H] = {:?}", [t, n, h3 / 3]);
+        host::<B>(r)
+    });
+    let saved = Saved::forward_carry(&host::<B>(gi), host::<B>(w_hh), &host::<B>(b_hh), res.as_deref(), t, n, h3 / 3, save);
+    let shape = [t, n, h3 / 3];
+    if save {
+        (B::float_from_data(TensorData::new(saved.hs.clone(), shape), &device), Some(Arc::new(saved)))
+    } else {
+        (B::float_from_data(TensorData::new(saved.hs, shape), &device), None)
+    }
+}
+
+/// The forward's results and what its backward reads: hidden states and gate activations of
+/// every step ([T, N, H] each, row-major), and the recurrent weights.
+#[derive(Debug, Clone)]
+pub struct Saved {
+    steps: usize,
+    rows: usize,
+    hidden: usize,
+    w_hh: Vec<f32>,
+    hs: Vec<f32>,
+    r: Vec<f32>,
+    z: Vec<f32>,
+    n: Vec<f32>,
+    /// The hidden projection's candidate part `gh_n` (bias included), which `r` multiplies.
+    gh_n: Vec<f32>,
+    /// Whether each step's state had a residual added (`gru_sequence_carry`).
+    carry: bool,
+}
+
+/// Gradients of the inputs (`res` empty without a residual).
+pub struct SequenceGrads {
+    pub gi: Vec<f32>,
+    pub w_hh: Vec<f32>,
+    pub b_hh: Vec<f32>,
+    pub res: Vec<f32>,
+}
+
+/// One step's gates for all rows: gi, gh [N, 3H], prev [N, H] -> h' (out) and the saved
+/// activations r, z, n and gh_n [N, H].
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn gates_forward(
+    h: usize,
+    gi: &[f32],
+    gh: &[f32],
+    prev: &[f32],
+    out: &mut [f32],
+    r: &mut [f32],
+    z: &mut [f32],
+    c: &mut [f32],
+    ghn: &mut [f32],
+) {
+    let h3 = 3 * h;
+    for i in 0..out.len() / h {
+        let (gi, gh) = (&gi[i * h3..(i + 1) * h3], &gh[i * h3..(i + 1) * h3]);
+        let (gi_r, gi_z, gi_n) = (&gi[..h], &gi[h..2 * h], &gi[2 * h..h3]);
+        let (gh_r, gh_z, gh_n) = (&gh[..h], &gh[h..2 * h], &gh[2 * h..h3]);
+        let rows = i * h..(i + 1) * h;
+        let (prev, out) = (&prev[rows.clone()], &mut out[rows.clone()]);
+        let (r, z, c, ghn) = (&mut r[rows.clone()], &mut z[rows.clone()], &mut c[rows.clone()], &mut ghn[rows]);
+        for j in 0..h {
+            let rj = sigmoid(gi_r[j] + gh_r[j]);
+            let zj = sigmoid(gi_z[j] + gh_z[j]);
+            let cj = tanh_approx(gi_n[j] + rj * gh_n[j]);
+            out[j] = cj + zj * (prev[j] - cj);
+            r[j] = rj;
+            z[j] = zj;
+            c[j] = cj;
+            ghn[j] = gh_n[j];
+        }
+    }
+}
+
+/// One step backward for all rows: dh = d_out + d_next [N, H] -> d(gi), d(gh) [N, 3H] and the
+/// direct part of dh_{t-1} (d_prev = dh * z; the caller adds d(gh) W_hh^T).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn gates_backward(
+    h: usize,
+    d_out: &[f32],
+    d_next: &[f32],
+    (r, z, c, ghn): (&[f32], &[f32], &[f32], &[f32]),
+    prev: &[f32],
+    d_prev: &mut [f32],
+    d_gi: &mut [f32],
+    d_gh: &mut [f32],
+) {
+    let h3 = 3 * h;
+    for i in 0..d_out.len() / h {
+        let o = i * h;
+        let (d_out, d_next, prev, d_prev) = (&d_out[o..][..h], &d_next[o..][..h], &prev[o..][..h], &mut d_prev[o..][..h]);
+        let (r, z, c, ghn) = (&r[o..][..h], &z[o..][..h], &c[o..][..h], &ghn[o..][..h]);
+        let (d_gi, d_gh) = (&mut d_gi[i * h3..][..h3], &mut d_gh[i * h3..][..h3]);
+        let (d_gi_r, rest) = d_gi.split_at_mut(h);
+        let (d_gi_z, d_gi_n) = rest.split_at_mut(h);
+        let (d_gh_r, rest) = d_gh.split_at_mut(h);
+        let (d_gh_z, d_gh_n) = rest.split_at_mut(h);
+        let (d_gi_r, d_gi_z, d_gi_n) = (&mut d_gi_r[..h], &mut d_gi_z[..h], &mut d_gi_n[..h]);
+        let (d_gh_r, d_gh_z, d_gh_n) = (&mut d_gh_r[..h], &mut d_gh_z[..h], &mut d_gh_n[..h]);
+        for j in 0..h {
+            let dh = d_out[j] + d_next[j];
+            let (rj, zj, cj) = (r[j], z[j], c[j]);
+            let d_c = dh * (1.0 - zj) * (1.0 - cj * cj);
+            let d_z = dh * (prev[j] - cj) * zj * (1.0 - zj);
+            let d_r = d_c * ghn[j] * rj * (1.0 - rj);
+            d_prev[j] = dh * zj;
+            d_gi_r[j] = d_r;
+            d_gi_z[j] = d_z;
+            d_gi_n[j] = d_c;
+            d_gh_r[j] = d_r;
+            d_gh_z[j] = d_z;
+            d_gh_n[j] = d_c * rj;
+        }
+    }
+}
+
+impl Saved {
+    /// Unroll from h_0 = 0. `gi` [T, N, 3H], `w_hh` [H, 3H], `b_hh` [3H]. Without `keep`, the
+    /// gate activations are not stored (inference, the target network).
+    pub fn forward(gi: &[f32], w_hh: Vec<f32>, b_hh: &[f32], t: usize, n: usize, h: usize, keep: bool) -> Saved {
+        Self::forward_carry(gi, w_hh, b_hh, None, t, n, h, keep)
+    }
+
+    /// [`forward`](Self::forward) with `res` [T, N, H] added to each step's new state before it
+    /// is carried on (and returned).
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_carry(gi: &[f32], w_hh: Vec<f32>, b_hh: &[f32], res: Option<&[f32]>, t: usize, n: usize, h: usize, keep: bool) -> Saved {
+        let h3 = 3 * h;
+        assert_eq!(gi.len(), t * n * h3, "gru_sequence: gi length");
+        let step = n * h;
+        let mut hs = vec![0.0f32; t * step];
+        let keep_len = if keep { t * step } else { 0 };
+        let (mut r_all, mut z_all, mut n_all, mut ghn_all) =
+            (vec![0.0f32; keep_len], vec![0.0f32; keep_len], vec![0.0f32; keep_len], vec![0.0f32; keep_len]);
+        let mut gh = vec![0.0f32; n * h3];
+        // without `keep`, one step's worth of scratch for the activations
+        let mut scratch = if keep { Vec::new() } else { vec![0.0f32; 4 * step] };
+        let zeros = vec![0.0f32; step];
+        for ti in 0..t {
+            // gh = h_{t-1} W_hh + b_hh (h_{-1} = 0: just the bias)
+            for row in gh.chunks_exact_mut(h3) {
+                row.copy_from_slice(b_hh);
+            }
+            let (done, rest) = hs.split_at_mut(ti * step);
+            let prev = if ti > 0 { &done[(ti - 1) * step..] } else { &zeros[..] };
+            if ti > 0 {
+                matmul(n, h3, h, &mut gh, h3, true, prev, (h, 1), &w_hh, (h3, 1));
+            }
+            let out = &mut rest[..step];
+            let gi_t = &gi[ti * n * h3..(ti + 1) * n * h3];
+            let keep_at = ti * step..(ti + 1) * step;
+            let (r, z, c, ghn) = if keep {
+                (&mut r_all[keep_at.clone()], &mut z_all[keep_at.clone()], &mut n_all[keep_at.clone()], &mut ghn_all[keep_at])
+            } else {
+                let (a, rest) = scratch.split_at_mut(step);
+                let (b, rest) = rest.split_at_mut(step);
+                let (c, d) = rest.split_at_mut(step);
+                (a, b, c, d)
+            };
+            with_simd!(gates_forward(h, gi_t, &gh, &prev[..step], out, r, z, c, ghn));
+            if let Some(res) = res {
+                for (o, x) in out.iter_mut().zip(&res[ti * step..(ti + 1) * step]) {
+                    *o += x;
+                }
+            }
+        }
+        Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all, carry: res.is_some() }
+    }
+
+    /// Backpropagation through time of `d_hs` = dL/dh_t for every step [T, N, H].
+    pub fn backward(&self, d_hs: &[f32]) -> SequenceGrads {
+        let (t, n, h) = (self.steps, self.rows, self.hidden);
+        let (h3, step) = (3 * h, n * h);
+        assert_eq!(d_hs.len(), t * step, "gru_sequence: gradient length");
+        assert_eq!(self.r.len(), t * step, "gru_sequence: backward needs a forward run with keep");
+        let mut d_gi = vec![0.0f32; t * n * h3];
+        // d(gh) of every step, kept for the weight gradient (one matmul over all steps at the end)
+        let mut d_gh = vec![0.0f32; t * n * h3];
+        let mut d_next = vec![0.0f32; step]; // dL/dh_{t} arriving from step t + 1
+        let zeros = vec![0.0f32; step];
+        let mut d_prev = vec![0.0f32; step];
+        // With a residual, dL/d(res_t) is the whole gradient arriving at the carried state c_t.
+        let mut d_res = vec![0.0f32; if self.carry { t * step } else { 0 }];
+        for ti in (0..t).rev() {
+            let at = ti * step..(ti + 1) * step;
+            if self.carry {
+                for ((r, a), b) in d_res[at.clone()].iter_mut().zip(&d_hs[at.clone()]).zip(&d_next) {
+                    *r = a + b;
+                }
+            }
+            let prev = if ti > 0 { &self.hs[(ti - 1) * step..ti * step] } else { &zeros[..] };
+            let saved = (&self.r[at.clone()], &self.z[at.clone()], &self.n[at.clone()], &self.gh_n[at.clone()]);
+            let g_at = ti * n * h3..(ti + 1) * n * h3;
+            let (d_gi_t, d_gh_t) = (&mut d_gi[g_at.clone()], &mut d_gh[g_at.clone()]);
+            with_simd!(gates_backward(h, &d_hs[at], &d_next, saved, prev, &mut d_prev, d_gi_t, d_gh_t));
+            // dh_{t-1} += d(gh_t) W_hh^T  (W_hh [H, 3H] read transposed)
+            if ti > 0 {
+                matmul(n, h, h3, &mut d_prev, h, true, &d_gh[g_at], (h3, 1), &self.w_hh, (1, h3));
+            }
+            std::mem::swap(&mut d_next, &mut d_prev);
+        }
+        // dW_hh = sum_t h_{t-1}^T d(gh_t) over t >= 1 (h_{-1} = 0): one [H, (T-1) N] x [(T-1) N, 3H].
+        let mut d_w = vec![0.0f32; h * h3];
+        let k = (t.saturating_sub(1)) * n;
+        matmul(h, h3, k, &mut d_w, h3, false, &self.hs, (1, h), &d_gh[n * h3..], (h3, 1));
+        let mut d_b = vec![0.0f32; h3];
+        for row in d_gh.chunks_exact(h3) {
+            for (acc, v) in d_b.iter_mut().zip(row) {
+                *acc += v;
+            }
+        }
+        SequenceGrads { gi: d_gi, w_hh: d_w, b_hh: d_b, res: d_res }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::agent::FusedGru;
+    use crate::LearnRng;
+    use burn::module::Module;
+    use burn::tensor::Device;
+
+    fn random(rng: &mut LearnRng, shape: [usize; 2], device: &Device) -> Tensor<2> {
+        let v: Vec<f32> = (0..shape[0] * shape[1]).map(|_| rng.uniform() * 4.0 - 2.0).collect();
+        Tensor::from_data(TensorData::new(v, shape), device)
+    }
+
+    fn max_diff(a: Tensor<2>, b: Tensor<2>) -> f32 {
+        (a - b).abs().max().into_scalar::<f32>()
+    }
+
+    /// The fused recurrence against the step-by-step burn cell: hidden states and the gradients
+    /// of every parameter and of the inputs, to 1e-5, on the autodiff and the plain device.
+    #[test]
+    fn matches_the_step_by_step_cell() {
+        let (t, n, hd) = (7, 5, 6);
+        let dev = Device::default().autodiff();
+        let mut rng = LearnRng::seed_from(3);
+        let gru = FusedGru::new(&mut rng, hd, hd, &dev);
+        let xs: Vec<Tensor<2>> = (0..t).map(|_| random(&mut rng, [n, hd], &dev).require_grad()).collect();
+        let weights = random(&mut rng, [t * n, hd], &dev);
+
+        // reference: the cell step by step
+        let mut h = Tensor::zeros([n, hd], &dev);
+        let mut hs = Vec::new();
+        for x in &xs {
+            h = gru.forward(x.clone(), h);
+            hs.push(h.clone());
+        }
+        let reference = Tensor::cat(hs, 0);
+        let ref_grads = (reference.clone() * weights.clone()).sum().backward();
+
+        // fused
+        let gi = gru.input.forward(Tensor::cat(xs.clone(), 0)).reshape([t, n, 3 * hd]);
+        let bias = gru.hidden.bias.as_ref().expect("bias").val();
+        let fused = gru_sequence(gi, gru.hidden.weight.val(), bias.clone()).reshape([t * n, hd]);
+        assert!(max_diff(reference.clone().inner(), fused.clone().inner()) < 1e-5);
+        let grads = (fused * weights).sum().backward();
+
+        let w_in = &gru.input.weight;
+        let w_hh = &gru.hidden.weight;
+        for (name, a, b) in
+            [("w_hh", w_hh.val().grad(&ref_grads), w_hh.val().grad(&grads)), ("w_ih", w_in.val().grad(&ref_grads), w_in.val().grad(&grads))]
+        {
+            let d = max_diff(a.expect("reference gradient"), b.expect("fused gradient"));
+            assert!(d < 1e-5, "{name}: gradients differ by {d}");
+        }
+        let (a, b) = (bias.grad(&ref_grads).expect("bias gradient"), bias.grad(&grads).expect("fused bias gradient"));
+        let d = (a - b).abs().max().into_scalar::<f32>();
+        assert!(d < 1e-5, "b_hh: gradients differ by {d}");
+        for (i, x) in xs.iter().enumerate() {
+            let d = max_diff(x.grad(&ref_grads).expect("x gradient"), x.grad(&grads).expect("fused x gradient"));
+            assert!(d < 1e-5, "input of step {i}: gradients differ by {d}");
+        }
+
+        // no autodiff: the same values
+        let plain = gru.valid();
+        let gi = plain.input.forward(Tensor::cat(xs.iter().map(|x| x.clone().inner()).collect(), 0)).reshape([t, n, 3 * hd]);
+        let bias = plain.hidden.bias.as_ref().expect("bias").val();
+        let out = gru_sequence(gi, plain.hidden.weight.val(), bias).reshape([t * n, hd]);
+        assert!(max_diff(reference.inner(), out) < 1e-5);
+    }
+
+    /// The carried form c_t = GRU(x_t, c_{t-1}) + x_t against the cell stepped by hand, values
+    /// and gradients (the residual's included) to 1e-5.
+    #[test]
+    fn the_carried_residual_matches_the_step_by_step_cell() {
+        let (t, n, hd) = (6, 4, 5);
+        let dev = Device::default().autodiff();
+        let mut rng = LearnRng::seed_from(9);
+        let gru = FusedGru::new(&mut rng, hd, hd, &dev);
+        let xs: Vec<Tensor<2>> = (0..t).map(|_| random(&mut rng, [n, hd], &dev).require_grad()).collect();
+        let weights = random(&mut rng, [t * n, hd], &dev);
+        let mut c = Tensor::zeros([n, hd], &dev);
+        let mut cs = Vec::new();
+        for x in &xs {
+            c = gru.forward(x.clone(), c) + x.clone();
+            cs.push(c.clone());
+        }
+        let reference = Tensor::cat(cs, 0);
+        let ref_grads = (reference.clone() * weights.clone()).sum().backward();
+        let fused = gru.sequence_carry(Tensor::cat(xs.clone(), 0), t).reshape([t * n, hd]);
+        assert!(max_diff(reference.inner(), fused.clone().inner()) < 1e-5);
+        let grads = (fused * weights).sum().backward();
+        let w_hh = &gru.hidden.weight;
+        let d = max_diff(w_hh.val().grad(&ref_grads).expect("reference"), w_hh.val().grad(&grads).expect("fused"));
+        assert!(d < 1e-5, "w_hh: gradients differ by {d}");
+        for (i, x) in xs.iter().enumerate() {
+            let d = max_diff(x.grad(&ref_grads).expect("x gradient"), x.grad(&grads).expect("fused x gradient"));
+            assert!(d < 1e-5, "input of step {i} (through the GRU and the residual): gradients differ by {d}");
+        }
+    }
+
+    /// One step and zero rows are valid sequences.
+    #[test]
+    fn edge_shapes() {
+        let dev = Device::default();
+        let one = gru_sequence(Tensor::ones([1, 3, 6], &dev), Tensor::ones([2, 6], &dev), Tensor::zeros([6], &dev));
+        assert_eq!(one.dims(), [1, 3, 2]);
+        let empty = gru_sequence(Tensor::ones([4, 0, 6], &dev), Tensor::ones([2, 6], &dev), Tensor::zeros([6], &dev));
+        assert_eq!(empty.dims(), [4, 0, 2]);
+    }
+}

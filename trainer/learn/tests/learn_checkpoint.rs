@@ -1,0 +1,351 @@
+//! Checkpoint round trip (identical Q-values, counters, epsilon, and the same next update after
+//! resuming), non-finite loss detection, and config errors that name the field.
+
+use burn::tensor::Device;
+use lmac_learn::episode::{Episode, EpisodeDims};
+use lmac_learn::{Controller, LearnConfig, LearnError, LearnRng, Learner, MixerKind, OptimizerKind};
+
+const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 5, state_dim: 7, n_actions: 4 };
+
+fn random_episode(rng: &mut LearnRng, len: usize, terminated: bool) -> Episode {
+    let d = DIMS;
+    let mut ep = Episode::with_capacity(&d, len);
+    for _ in 0..len {
+        for _ in 0..d.n_agents * d.obs_width {
+            ep.obs.push(rng.uniform() * 2.0 - 1.0);
+        }
+        for _ in 0..d.state_dim {
+            ep.state.push(rng.uniform());
+        }
+        for ag in 0..d.n_agents {
+            let mut av = vec![0u8; d.n_actions];
+            av[0] = 1;
+            for a in 1..d.n_actions {
+                av[a] = (rng.uniform() < 0.7) as u8;
+            }
+            let choices: Vec<usize> = (0..d.n_actions).filter(|&a| av[a] == 1).collect();
+            ep.actions.push(choices[rng.below(choices.len())] as i32);
+            ep.avail.extend_from_slice(&av);
+            let _ = ag;
+        }
+        ep.reward.push(rng.uniform());
+        ep.len += 1;
+    }
+    ep.terminated = terminated;
+    ep.truncated = !terminated;
+    ep
+}
+
+fn q_values(learner: &Learner, obs_seed: u64) -> Vec<f32> {
+    let mut ctl = Controller::new(learner, 2);
+    let mut rng = LearnRng::seed_from(obs_seed);
+    let mut out = Vec::new();
+    let mut last = vec![-1; 2 * DIMS.n_agents];
+    for t in 0..3 {
+        let obs: Vec<f32> = (0..2 * DIMS.n_agents * DIMS.obs_width).map(|_| rng.uniform()).collect();
+        out.extend_from_slice(ctl.q_values(&obs, None, &last, &[t == 0, t == 0]));
+        last = (0..2 * DIMS.n_agents).map(|i| (i % DIMS.n_actions) as i32).collect();
+    }
+    out
+}
+
+fn run_round_trip(mixer: MixerKind, optimizer: OptimizerKind) {
+    let cfg = LearnConfig { mixer, optimizer, batch_size: 4, buffer_size: 16, seed: 3, qplex_num_kernel: 2, ..LearnConfig::default() };
+    let mut learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+    let mut rng = LearnRng::seed_from(11);
+    for i in 0..20 {
+        learner.add_episode(random_episode(&mut rng, 3 + i % 4, i % 3 != 0)).unwrap();
+    }
+    for _ in 0..3 {
+        learner.train_step().unwrap();
+    }
+    let dir = std::env::temp_dir().join(format!("lmac-learn-ckpt-{}-{mixer:?}-{optimizer:?}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    learner.save_checkpoint(&dir, true).unwrap();
+    // A second save over the first one must also succeed (atomic replace).
+    learner.save_checkpoint(&dir, true).unwrap();
+    let mut loaded = Learner::load_checkpoint(&dir, Device::default()).unwrap();
+
+    assert_eq!(loaded.counters(), learner.counters());
+    assert_eq!(loaded.epsilon(), learner.epsilon());
+    assert_eq!(loaded.config(), learner.config());
+    assert_eq!(loaded.buffer().len(), learner.buffer().len());
+    assert_eq!(q_values(&loaded, 5), q_values(&learner, 5), "online Q-values differ after load");
+
+    // Resuming continues the same curve: the next updates match.
+    for step in 0..2 {
+        let a = learner.train_step().unwrap();
+        let b = loaded.train_step().unwrap();
+        assert!((a.loss - b.loss).abs() <= 1e-5 * a.loss.abs().max(1.0), "{mixer:?} step {step}: loss {} vs {}", a.loss, b.loss);
+    }
+    assert_eq!(q_values(&loaded, 9), q_values(&learner, 9));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn checkpoint_round_trip_qmix() {
+    run_round_trip(MixerKind::Qmix, OptimizerKind::Adam);
+}
+
+#[test]
+fn checkpoint_round_trip_qplex_adam_and_vdn_rmsprop() {
+    run_round_trip(MixerKind::Qplex, OptimizerKind::Adam);
+    run_round_trip(MixerKind::Vdn, OptimizerKind::Rmsprop);
+}
+
+#[test]
+fn non_finite_loss_names_the_step() {
+    let cfg = LearnConfig { batch_size: 2, buffer_size: 4, ..LearnConfig::default() };
+    let mut learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+    let mut rng = LearnRng::seed_from(1);
+    for _ in 0..2 {
+        let mut ep = random_episode(&mut rng, 3, true);
+        ep.reward[1] = f32::NAN;
+        learner.add_episode(ep).unwrap();
+    }
+    match learner.train_step() {
+        Err(e @ LearnError::NonFinite { update: 1, .. }) => {
+            let msg = e.to_string();
+            assert!(msg.contains("loss") && msg.contains("update 1"), "{msg}");
+        }
+        other => panic!("expected a non-finite loss error, got {other:?}"),
+    }
+}
+
+#[test]
+fn config_errors_name_the_field() {
+    let e = LearnConfig { batch_size: 0, ..LearnConfig::default() }.validate().unwrap_err();
+    assert_eq!(e.field, "batch_size");
+    assert!(e.to_string().contains("batch_size"));
+    let e = LearnConfig { gamma: 1.5, ..LearnConfig::default() }.validate().unwrap_err();
+    assert_eq!(e.field, "gamma");
+    let e = LearnConfig { hypernet_layers: 3, ..LearnConfig::default() }.validate().unwrap_err();
+    assert_eq!(e.field, "hypernet_layers");
+    let e = LearnConfig::from_toml_str("lr = -0.1").unwrap_err();
+    assert!(e.to_string().contains("`lr`"), "{e}");
+    let e = LearnConfig::from_toml_str("mixing_embed = 32").unwrap_err();
+    assert!(e.to_string().contains("mixing_embed"), "{e}");
+    let e = LearnConfig::from_toml_str("mixer = \"qmx\"").unwrap_err();
+    assert!(e.to_string().contains("mixer"), "{e}");
+    let ok = LearnConfig::from_toml_str("mixer = \"qplex\"\nbatch_size = 16").unwrap();
+    assert_eq!(ok.mixer, MixerKind::Qplex);
+    assert_eq!(ok.batch_size, 16);
+    // Learner::new validates too.
+    let bad = LearnConfig { grad_norm_clip: 0.0, ..LearnConfig::default() };
+    match Learner::new(DIMS, bad, Device::default()) {
+        Err(LearnError::Config(e)) => assert_eq!(e.field, "grad_norm_clip"),
+        other => panic!("expected a config error, got {:?}", other.err()),
+    }
+    // Table C.3 defaults.
+    let d = LearnConfig::default();
+    assert_eq!((d.buffer_size, d.batch_size, d.target_update_interval_episodes), (5000, 32, 200));
+    assert_eq!((d.gamma, d.lr, d.mixing_embed_dim, d.grad_norm_clip), (0.99, 5e-4, 32, 10.0));
+    assert_eq!((d.epsilon_start, d.epsilon_finish, d.epsilon_anneal_steps), (1.0, 0.05, 50_000));
+    assert!((d.epsilon_at(25_000) - 0.525).abs() < 1e-6);
+}
+
+#[test]
+fn batches_pad_and_mask() {
+    use lmac_learn::{Batch, InputLayout};
+    let cfg = LearnConfig::default();
+    let layout = InputLayout::new(DIMS, &cfg);
+    let mut rng = LearnRng::seed_from(4);
+    let a = random_episode(&mut rng, 2, true);
+    let b = random_episode(&mut rng, 4, false);
+    let batch = Batch::from_episodes(&[&a, &b], &DIMS, &layout);
+    assert_eq!((batch.b, batch.t), (2, 4));
+    // time-major [t, b]
+    assert_eq!(batch.mask, vec![1., 1., 1., 1., 0., 1., 0., 0.]);
+    assert_eq!(batch.terminated, vec![0., 0., 1., 0., 0., 0., 0., 0.]);
+    assert_eq!(batch.has_next, vec![1., 1., 0., 1., 0., 1., 0., 0.]);
+    // padded steps of episode a (t = 2, 3): every action available, zero inputs.
+    let (n, na, iw) = (DIMS.n_agents, DIMS.n_actions, layout.width());
+    for t in 2..4 {
+        let row = (t * 2) * n; // b = 0
+        assert!(batch.avail[row * na..(row + n) * na].iter().all(|&x| x == 1));
+        assert!(batch.inputs[row * iw..(row + n) * iw].iter().all(|&x| x == 0.0));
+    }
+    // last-action one-hot at t = 1 of episode b (b = 1) is its action at t = 0.
+    let off = DIMS.obs_width; // agent_sees_state is off: obs | last action | id
+    for ag in 0..n {
+        let row = (2 + 1) * n + ag;
+        let one_hot = &batch.inputs[row * iw + off..row * iw + off + na];
+        let act = b.actions[ag] as usize;
+        assert_eq!(one_hot.iter().position(|&x| x == 1.0), Some(act));
+        assert_eq!(batch.inputs[row * iw + off + na + ag], 1.0, "agent id one-hot");
+    }
+
+    // A masked transition (the truncated last step) does not change the loss.
+    let cfg = LearnConfig { batch_size: 2, buffer_size: 2, ..LearnConfig::default() };
+    let learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+    let (l1, _) = learner.td_loss(&batch).unwrap();
+    let mut b2 = b.clone();
+    *b2.reward.last_mut().unwrap() += 1e6;
+    let batch2 = Batch::from_episodes(&[&a, &b2], &DIMS, &layout);
+    let (l2, _) = learner.td_loss(&batch2).unwrap();
+    let (l1, l2): (f32, f32) = (l1.into_scalar(), l2.into_scalar());
+    assert_eq!(l1, l2);
+    // ... while an unmasked one does.
+    let mut a2 = a.clone();
+    a2.reward[1] += 1.0;
+    let batch3 = Batch::from_episodes(&[&a2, &b], &DIMS, &layout);
+    let l3: f32 = learner.td_loss(&batch3).unwrap().0.into_scalar();
+    assert_ne!(l1, l3);
+}
+
+#[test]
+fn parallel_target_gives_the_same_updates() {
+    let mut losses = Vec::new();
+    for parallel_target in [false, true] {
+        let cfg = LearnConfig { batch_size: 4, buffer_size: 8, parallel_target, ..LearnConfig::default() };
+        let mut learner = Learner::new(DIMS, cfg, Device::default()).unwrap();
+        let mut rng = LearnRng::seed_from(8);
+        for i in 0..8 {
+            learner.add_episode(random_episode(&mut rng, 2 + i % 3, i % 2 == 0)).unwrap();
+        }
+        losses.push((0..3).map(|_| learner.train_step().unwrap().loss).collect::<Vec<_>>());
+    }
+    assert_eq!(losses[0], losses[1]);
+}
+
+/// A learner whose `t_env` grows with every `step` call (one 3-step episode each), so each save
+/// is told apart by its counters.
+fn small_learner() -> (Learner, LearnRng) {
+    let cfg = LearnConfig { batch_size: 2, buffer_size: 8, seed: 5, ..LearnConfig::default() };
+    (Learner::new(DIMS, cfg, Device::default()).unwrap(), LearnRng::seed_from(17))
+}
+
+fn step(learner: &mut Learner, rng: &mut LearnRng) -> u64 {
+    learner.add_episode(random_episode(rng, 3, true)).unwrap();
+    learner.counters().t_env
+}
+
+/// Issue 30, item 3: the save is stopped (as a crash would stop it: nothing after the step is
+/// done, nothing cleaned up) at every step, then the run resumes from what it finds and its next
+/// save is stopped at every step again: all combinations. After both crashes a complete
+/// checkpoint loads, never older than the one the second segment resumed from, and a resume
+/// from it saves and loads again.
+#[test]
+fn two_crashes_at_any_steps_of_the_save_never_lose_the_checkpoint() {
+    use lmac_learn::checkpoint::{checkpoint_exists, fault, locate};
+    let base = std::env::temp_dir().join(format!("lmac-ckpt-crash-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&base);
+    let mut stopped = std::collections::BTreeSet::new();
+    for (i, &first) in fault::STEPS.iter().enumerate() {
+        for (j, &second) in fault::STEPS.iter().enumerate() {
+            let case = format!("crash at {first:?}, resume, crash at {second:?}");
+            let parent = base.join(format!("{i}-{j}"));
+            std::fs::create_dir_all(&parent).unwrap();
+            let dir = parent.join("checkpoint");
+            let (mut learner, mut rng) = small_learner();
+            let t0 = step(&mut learner, &mut rng);
+            learner.save_checkpoint(&dir, true).unwrap();
+            let t1 = step(&mut learner, &mut rng);
+            // A step that is not on this save's path (e.g. removing an `.old` there is none of)
+            // lets the save complete.
+            fault::stop_at(Some(first));
+            if learner.save_checkpoint(&dir, true).is_err() {
+                stopped.insert(first);
+            }
+            fault::stop_at(None);
+
+            // The first resume: a complete checkpoint, the old one or the new one.
+            assert!(
+                checkpoint_exists(&dir),
+                "{case}: {:?}",
+                std::fs::read_dir(&parent).unwrap().flatten().map(|e| e.file_name()).collect::<Vec<_>>()
+            );
+            let mut resumed = Learner::load_checkpoint(&dir, Device::default()).unwrap_or_else(|e| panic!("{case}: first resume: {e}"));
+            let r1 = resumed.counters().t_env;
+            assert!(r1 == t0 || r1 == t1, "{case}: resumed at {r1}, saved {t0} and {t1}");
+            let t2 = step(&mut resumed, &mut rng);
+            fault::stop_at(Some(second));
+            if resumed.save_checkpoint(&dir, true).is_err() {
+                stopped.insert(second);
+            }
+            fault::stop_at(None);
+
+            // The second resume.
+            let where_ = locate(&dir).unwrap_or_else(|| panic!("{case}: no checkpoint survived"));
+            let mut again = Learner::load_checkpoint(&dir, Device::default())
+                .unwrap_or_else(|e| panic!("{case}: second resume from {}: {e}", where_.display()));
+            let r2 = again.counters().t_env;
+            assert!(r2 == r1 || r2 == t2, "{case}: resumed at {r2}, expected {r1} (the first resume's) or {t2} (the save stopped)");
+            // And the run goes on: a save that completes is what the next resume reads.
+            let t3 = step(&mut again, &mut rng);
+            again.save_checkpoint(&dir, true).unwrap_or_else(|e| panic!("{case}: a full save after two crashes: {e}"));
+            assert_eq!(Learner::load_checkpoint(&dir, Device::default()).unwrap().counters().t_env, t3, "{case}");
+            let left: Vec<_> =
+                std::fs::read_dir(&parent).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+            assert_eq!(left, ["checkpoint"], "{case}: a completed save leaves only the checkpoint");
+            std::fs::remove_dir_all(&parent).unwrap();
+        }
+    }
+    let never: Vec<_> = fault::STEPS.iter().filter(|s| !stopped.contains(*s)).collect();
+    assert!(never.is_empty(), "every step of the save was crashed at in some case; never: {never:?}");
+    let _ = std::fs::remove_dir_all(&base);
+}
+
+/// A checkpoint moved to `<dir>.tmp` (the end state of two crashes in the old protocol) is used
+/// when its manifest verifies; one with a corrupt file is not, and loading a corrupt checkpoint
+/// names the file.
+#[test]
+fn a_complete_tmp_is_used_and_a_corrupt_file_is_named() {
+    use lmac_learn::checkpoint::{checkpoint_exists, locate};
+    let parent = std::env::temp_dir().join(format!("lmac-ckpt-tmp-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&parent);
+    std::fs::create_dir_all(&parent).unwrap();
+    let dir = parent.join("checkpoint");
+    let tmp = parent.join("checkpoint.tmp");
+    let (mut learner, mut rng) = small_learner();
+    let t = step(&mut learner, &mut rng);
+    learner.save_checkpoint(&dir, true).unwrap();
+    std::fs::rename(&dir, &tmp).unwrap();
+    assert_eq!(locate(&dir), Some(tmp.clone()));
+    assert_eq!(Learner::load_checkpoint(&dir, Device::default()).unwrap().counters().t_env, t);
+
+    // Flipped bytes in the network: the manifest no longer matches, so `.tmp` is not complete.
+    let net = tmp.join("net.bpk");
+    let mut bytes = std::fs::read(&net).unwrap();
+    let mid = bytes.len() / 2;
+    for b in &mut bytes[mid..mid + 16] {
+        *b ^= 0xff;
+    }
+    std::fs::write(&net, &bytes).unwrap();
+    assert!(!checkpoint_exists(&dir), "a .tmp that fails its manifest is not a checkpoint");
+    // As `<dir>` it is loaded, and the load names the corrupt file.
+    std::fs::rename(&tmp, &dir).unwrap();
+    let e = Learner::load_checkpoint(&dir, Device::default()).err().expect("a corrupt file is refused").to_string();
+    assert!(e.contains("net.bpk") && e.contains("CRC-32C"), "{e}");
+    std::fs::remove_dir_all(&parent).unwrap();
+}
+
+/// Issue 30: a checkpoint's `state.json` is bytes from outside. A checkpoint without a manifest
+/// (written before manifests, so nothing checks its sums) whose counters say t_env = 2^64-1
+/// would mark the run finished, and a 60000-wide GRU in its config would abort the process
+/// building it: both are refused, naming the file and the field.
+#[test]
+fn state_json_out_of_range_is_refused_naming_the_field() {
+    let parent = std::env::temp_dir().join(format!("lmac-ckpt-range-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&parent);
+    std::fs::create_dir_all(&parent).unwrap();
+    let dir = parent.join("checkpoint");
+    let (mut learner, mut rng) = small_learner();
+    step(&mut learner, &mut rng);
+    learner.save_checkpoint(&dir, false).unwrap();
+    std::fs::remove_file(dir.join("manifest.json")).unwrap();
+    let state = dir.join("state.json");
+    let original: serde_json::Value = serde_json::from_slice(&std::fs::read(&state).unwrap()).unwrap();
+    for (section, field, value) in
+        [("counters", "t_env", serde_json::json!(u64::MAX)), ("config", "rnn_hidden_dim", serde_json::json!(60000))]
+    {
+        let mut v = original.clone();
+        v[section][field] = value;
+        std::fs::write(&state, serde_json::to_vec(&v).unwrap()).unwrap();
+        let e = Learner::load_checkpoint(&dir, Device::default()).err().expect("refused").to_string();
+        assert!(e.contains("state.json") && e.contains(field), "{field}: {e}");
+    }
+    std::fs::write(&state, serde_json::to_vec(&original).unwrap()).unwrap();
+    assert!(Learner::load_checkpoint(&dir, Device::default()).is_ok(), "the untouched state loads");
+    std::fs::remove_dir_all(&parent).unwrap();
+}
