@@ -12,3 +12,4 @@ pub mod safe_fs;
 pub mod supervisor;
 pub mod tensorboard;
 pub mod train;
+pub mod workflow;

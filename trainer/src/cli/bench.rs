@@ -1,11 +1,11 @@
 //! `lmac bench`: the pipeline against raw stepping, and the learner's cost.
 
-use super::train::train_dirs;
-use super::{interrupt_flag, parse_steps, pipeline_report, PipelineOpts};
+use super::{parse_steps, PipelineOpts};
 use anyhow::{bail, Context, Result};
 use clap::Subcommand;
 use lmac_shm_schema::schema::load_env;
 use lmac_trainer::supervisor;
+use lmac_trainer::workflow::{interrupt_flag, pipeline_report, train_dirs, Pipeline};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
@@ -137,6 +137,7 @@ pub(crate) struct Alternations {
 /// block run right after it on the same machine. Several env servers: separate raw and pipeline
 /// runs, alternated (their raw baseline is one process stepping all their environments).
 pub(crate) fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Result<i32> {
+    let p = p.pipeline();
     let interrupted = interrupt_flag();
     let repeat = repeat.max(1);
     let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
@@ -189,7 +190,7 @@ pub(crate) fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Resu
 }
 
 /// Per-block raw and pipeline rates from one env server alternating blocks of both.
-pub(crate) fn bench_interleaved(p: &PipelineOpts, repeat: usize, interrupted: Arc<AtomicBool>) -> Result<Alternations> {
+pub(crate) fn bench_interleaved(p: &Pipeline, repeat: usize, interrupted: Arc<AtomicBool>) -> Result<Alternations> {
     const WARMUP: u64 = 20; // batched steps each side takes before the first block
     let block = p.steps.div_ceil((p.envs * repeat) as u64).max(1);
     // The env server writes its timings here: a private directory, not a guessable name in /tmp.
@@ -238,7 +239,7 @@ pub(crate) fn bench_interleaved(p: &PipelineOpts, repeat: usize, interrupted: Ar
 }
 
 /// Separate raw and pipeline runs, alternated so a change of machine load hits both alike.
-pub(crate) fn bench_separate_runs(p: &PipelineOpts, repeat: usize, interrupted: Arc<AtomicBool>) -> Result<Alternations> {
+pub(crate) fn bench_separate_runs(p: &Pipeline, repeat: usize, interrupted: Arc<AtomicBool>) -> Result<Alternations> {
     let batched = (p.steps / (p.envs * p.servers) as u64).max(1);
     let (mut raws, mut pipes, mut trainer_us) = (Vec::new(), Vec::new(), Vec::new());
     for _ in 0..repeat {
@@ -334,7 +335,7 @@ pub(crate) fn bench_train(
         let last = lmac_trainer::train::read_metrics(&d)?.pop().context("no metrics written")?;
         let (t_env, wall, updates_done) = (last.t_env as f64, last.wall_s, last.updates);
         let train_rate = t_env / wall.max(1e-9);
-        let p = PipelineOpts {
+        let p = Pipeline {
             env: env.into(),
             envs: n / servers,
             servers,

@@ -1,9 +1,9 @@
 //! `lmac design`: the three-phase protocol design loop.
 
-use super::train::train_dirs;
-use super::{interrupt_flag, parse_steps};
+use super::parse_steps;
 use anyhow::{Context, Result};
 use clap::Args;
+use lmac_trainer::workflow::{interrupt_flag, plot};
 
 #[derive(Args)]
 pub(crate) struct DesignArgs {
@@ -112,7 +112,7 @@ pub(crate) fn design(a: DesignArgs) -> Result<i32> {
 pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::atomic::AtomicBool>) -> Result<std::path::PathBuf> {
     use lmac_trainer::design::llm::LlmMode;
     use lmac_trainer::design::llm_designer::{LlmDesigner, LlmDesignerOptions};
-    use lmac_trainer::design::meta::{self, MetaConfig};
+    use lmac_trainer::design::meta::MetaConfig;
     use lmac_trainer::design::offline::{OfflineConfig, OfflineDesigner};
     use lmac_trainer::design::run::{run_design, DesignOptions};
     use lmac_trainer::design::Designer;
@@ -159,11 +159,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
         };
         Box::new(LlmDesigner::from_spec(&a.llm, a.base_url.as_deref(), mode, Some(rec), options)?)
     };
-    let train = |dir: &std::path::Path| train_dirs(&[dir.to_path_buf()], interrupted.clone());
-    let evaluate = |ctx: &lmac_trainer::design::DesignContext, phases: &[lmac_protocol_runner::protocol::ValidatedProtocol]| {
-        meta::evaluate_all(ctx, phases, &meta_cfg)
-    };
-    let dir = run_design(&opts, designer.as_mut(), &train, &evaluate)?;
-    super::plot("plot_design", &dir);
+    let dir = run_design(&opts, designer.as_mut(), &meta_cfg, interrupted)?;
+    plot("plot_design", &dir);
     Ok(dir)
 }

@@ -1,16 +1,11 @@
 //! `lmac evaluate`: greedy test episodes of trained runs (their last checkpoints) through the
 //! pipeline, optionally with the method's test-time settings changed, e.g. NDQ's message cuts.
 
-use super::train::seed_dirs;
-use super::{interrupt_flag, pipeline_report, PipelineOpts};
-/// The seed offset of a final evaluation's environments (training's are `seed + t_env`).
-pub(crate) const EVAL_SEED_OFFSET: u64 = 1_000_003;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use lmac_trainer::train::evaluate::{EvalResult, EvalSpec};
 use lmac_trainer::train::TrainConfig;
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
+use lmac_trainer::workflow::{evaluate_run, interrupt_flag, seed_dirs, EVAL_SEED_OFFSET};
 
 pub(crate) const EVALUATE_AFTER_HELP: &str = "\
 Each run is evaluated from its last checkpoint with the environments, protocol and settings of its
@@ -64,33 +59,6 @@ fn settings(set: &[String]) -> Result<Vec<toml::Table>> {
         tables = next;
     }
     Ok(tables)
-}
-
-/// One evaluation of the run in `d` through the pipeline. The spec and its result stay with
-/// the run: `<seed dir>/evaluations/<name>.json` and `<name>.result.json`.
-pub(crate) fn evaluate_run(
-    d: &std::path::Path,
-    cfg: &TrainConfig,
-    spec: &EvalSpec,
-    name: &str,
-    seed_offset: u64,
-    interrupted: Arc<AtomicBool>,
-) -> Result<EvalResult> {
-    let spec_path = d.join("evaluations").join(format!("{name}.json"));
-    std::fs::create_dir_all(d.join("evaluations"))?;
-    std::fs::write(&spec_path, serde_json::to_vec(spec)?)?;
-    let p = PipelineOpts::for_run(cfg, cfg.learn.seed + seed_offset)?;
-    let extra = vec![
-        "--train-dir".to_string(),
-        std::fs::canonicalize(d)?.display().to_string(),
-        "--evaluate".into(),
-        spec_path.display().to_string(),
-        "--warmup".into(),
-        "1".into(),
-    ];
-    pipeline_report(&p, extra, vec![], interrupted).with_context(|| format!("evaluating {}", d.display()))?;
-    let out = EvalSpec::result_path(&spec_path);
-    Ok(serde_json::from_slice(&std::fs::read(&out).with_context(|| format!("reading {}", out.display()))?)?)
 }
 
 pub(crate) fn evaluate(a: EvaluateArgs) -> Result<i32> {

@@ -5,13 +5,12 @@
 //! checkpoints.
 
 use super::design::{design_dir, DesignArgs};
-use super::interrupt_flag;
 use super::parse_steps;
-use super::train::train_dirs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use lmac_trainer::stats::{mean, variance};
 use lmac_trainer::train::{read_metrics, TrainConfig};
+use lmac_trainer::workflow::{interrupt_flag, plot, train_dirs};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -229,7 +228,8 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
         ));
     }
     std::fs::write(dir.join("comparison.csv"), csv)?;
-    super::plot_experiment(&dir);
+    // The curves and, with the k ablations, the phase plot.
+    plot("plot_experiment", &dir);
     println!("{table}");
     println!("written: {}/comparison.{{md,csv,json}} and the plots", dir.display());
     Ok(0)

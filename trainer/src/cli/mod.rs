@@ -1,5 +1,6 @@
-//! What the commands share: the pipeline options, starting a pipeline run and reading its
-//! report, step and duration parsing, Ctrl-C.
+//! The commands. What they share here: the pipeline options and step and duration parsing; the
+//! workflow they drive (starting pipelines, training and evaluating run directories) is the
+//! library's [`lmac_trainer::workflow`].
 
 pub(crate) mod bench;
 pub(crate) mod bench_learner;
@@ -15,13 +16,8 @@ pub(crate) mod report;
 pub(crate) mod run;
 pub(crate) mod train;
 
-use anyhow::{bail, Result};
 use clap::Args;
-use lmac_shm_schema::schema::load_env;
-use lmac_trainer::pipeline::TrainerReport;
-use lmac_trainer::supervisor::{self, RunPlan};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use lmac_trainer::workflow::Pipeline;
 
 #[derive(Args, Clone)]
 pub(crate) struct PipelineOpts {
@@ -77,87 +73,18 @@ pub(crate) fn parse_duration(s: &str) -> Result<f64, String> {
 }
 
 impl PipelineOpts {
-    /// The pipeline of a training run's config (its env, environments, servers and protocol),
-    /// with the env servers seeded from `seed`; it runs until the trainer child ends it.
-    pub(crate) fn for_run(cfg: &lmac_trainer::train::TrainConfig, seed: u64) -> Result<Self> {
-        Ok(PipelineOpts {
-            env: cfg.run.env.clone(),
-            envs: cfg.run.envs,
-            servers: cfg.run.servers,
-            // 0 = the default for the environment's schema (pipeline_report applies it).
-            sub_batches: (cfg.run.sub_batches != 0).then_some(cfg.run.sub_batches),
-            slots: 4,
-            protocol: cfg.protocol()?,
-            steps: u64::MAX / 4,
-            seed,
-            startup_timeout: 60.0,
-        })
+    /// The pipeline these options describe.
+    pub(crate) fn pipeline(&self) -> Pipeline {
+        Pipeline {
+            env: self.env.clone(),
+            envs: self.envs,
+            servers: self.servers,
+            sub_batches: self.sub_batches,
+            slots: self.slots,
+            protocol: self.protocol.clone(),
+            steps: self.steps,
+            seed: self.seed,
+            startup_timeout: self.startup_timeout,
+        }
     }
-}
-
-pub(crate) fn interrupt_flag() -> Arc<AtomicBool> {
-    let flag = Arc::new(AtomicBool::new(false));
-    let f = flag.clone();
-    let _ = ctrlc::set_handler(move || f.store(true, Ordering::SeqCst));
-    flag
-}
-
-/// Start the processes of one pipeline run and return the trainer's report. `extra` goes to the
-/// trainer, `env_extra` to the env servers.
-pub(crate) fn pipeline_report(
-    p: &PipelineOpts,
-    extra: Vec<String>,
-    env_extra: Vec<String>,
-    interrupted: Arc<AtomicBool>,
-) -> Result<TrainerReport> {
-    let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
-    let plan = lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?;
-    if plan.msg_dim() > schema.message_columns {
-        bail!(
-            "protocol {} writes {} message columns but {} allows {} (its message_columns budget)",
-            p.protocol,
-            plan.msg_dim(),
-            p.env,
-            schema.message_columns
-        );
-    }
-    if p.envs == 0 || p.servers == 0 || p.slots == 0 {
-        bail!("--envs, --servers and --slots must be at least 1");
-    }
-    let sub_batches = p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(&schema, p.envs));
-    if sub_batches == 0 || p.envs % sub_batches != 0 {
-        bail!("--sub-batches {sub_batches} must be at least 1 and divide --envs {}", p.envs);
-    }
-    let rp = RunPlan {
-        run: lmac_trainer::run_dir::run_id(),
-        env: p.env.clone(),
-        servers: p.servers,
-        envs_per_server: p.envs,
-        sub_batches,
-        slots: p.slots,
-        msg_dim: plan.msg_dim(),
-        protocol: p.protocol.clone(),
-        seed: p.seed,
-        startup_timeout_s: p.startup_timeout,
-        trainer_args: [vec!["--steps".into(), p.steps.to_string()], extra].concat(),
-        env_server_args: env_extra,
-    };
-    Ok(supervisor::run_pipeline(&rp, interrupted)?.report)
-}
-
-/// Draw a run's or a design's figures with one of the reporting package's matplotlib modules
-/// (`python -m lmac_report.<module> DIR`, the project's Python); a failure is reported, not fatal.
-pub(crate) fn plot(module: &str, dir: &std::path::Path) {
-    let out = supervisor::python_command().and_then(|mut c| Ok(c.arg("-m").arg(format!("lmac_report.{module}")).arg(dir).output()?));
-    match out {
-        Ok(o) if o.status.success() => print!("{}", String::from_utf8_lossy(&o.stdout)),
-        Ok(o) => eprintln!("lmac: lmac_report.{module} failed: {}", String::from_utf8_lossy(&o.stderr)),
-        Err(e) => eprintln!("lmac: lmac_report.{module} failed: {e}"),
-    }
-}
-
-/// The curves of an experiment and, with the k ablations, its phase plot
-/// (`lmac_report.plot_experiment`).
-pub(crate) fn plot_experiment(dir: &std::path::Path) {
-    plot("plot_experiment", dir);
 }

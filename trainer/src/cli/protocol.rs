@@ -182,10 +182,9 @@ fn measure(
     cfg.discriminator.validate()?;
     let ctx = DesignContext { env_name: env, schema: &schema, env: &penv, dataset: Some(&data), seed };
     let (fixed, source) = if dims.is_empty() { run::fixed_dims(&phases[0]) } else { (dims, "--dims") };
-    let evaluate = |c: &DesignContext, p: &[lmac_protocol_runner::protocol::ValidatedProtocol]| meta::evaluate_all(c, p, &cfg);
     let mut evaluations = Vec::new();
     for k in 0..phases.len() {
-        let (_, ev) = run::evaluate_phase(&ctx, &phases[..=k], &fixed, &evaluate, &out.join(format!("phase{k}")))?;
+        let (_, ev) = run::evaluate_phase(&ctx, &phases[..=k], &fixed, &cfg, &out.join(format!("phase{k}")))?;
         evaluations.push(ev);
     }
     let summary = serde_json::json!({
@@ -203,7 +202,7 @@ fn measure(
     for e in &evaluations {
         println!("phases 0..={} ({} message columns), fixed dims {}", e.phase, e.message_columns, e.fixed_dims.summary_line());
     }
-    super::plot("plot_design", out);
+    lmac_trainer::workflow::plot("plot_design", out);
     println!("written: {}/summary.json, recovery.png, phase<k>/{{meta,recovery}}.json", out.display());
     Ok(0)
 }

@@ -1,8 +1,9 @@
 //! `lmac run`: the pipeline with a random policy (throughput, invariant checks).
 
-use super::{interrupt_flag, pipeline_report, PipelineOpts};
+use super::PipelineOpts;
 use anyhow::{Context, Result};
 use clap::Args;
+use lmac_trainer::workflow::{interrupt_flag, pipeline_report};
 
 #[derive(Args)]
 pub(crate) struct RunArgs {
@@ -33,7 +34,7 @@ pub(crate) fn run(a: RunArgs) -> Result<i32> {
                 .to_string(),
         );
     }
-    let report = pipeline_report(&a.p, extra, vec![], interrupt_flag())?;
+    let report = pipeline_report(&a.p.pipeline(), extra, vec![], interrupt_flag())?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {

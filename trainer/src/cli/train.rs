@@ -1,11 +1,10 @@
 //! `lmac train`: resolve the configs, create or resume the run directories, train each seed
 //! through the pipeline, plot.
 
-use super::{interrupt_flag, parse_steps, pipeline_report, PipelineOpts};
-use anyhow::{bail, Context, Result};
+use super::parse_steps;
+use anyhow::{Context, Result};
 use clap::Args;
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
+use lmac_trainer::workflow::{interrupt_flag, plot, seed_dirs, train_dirs_holding};
 
 pub(crate) const TRAIN_AFTER_HELP: &str = "\
 Update ratio: by default the learner does run.updates_per_episode = 0.125 gradient updates (of
@@ -131,119 +130,6 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
     };
     eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
     train_dirs_holding(&dirs, held, interrupted)?;
-    super::plot("plot_runs", &group);
+    plot("plot_runs", &group);
     Ok(0)
-}
-
-/// Train each run directory (a resolved `config.toml` inside) in turn through the pipeline.
-/// The seed directories of `r` (one seed's directory, or a group holding seeds) and their group.
-pub(crate) fn seed_dirs(r: &std::path::Path) -> Result<(std::path::PathBuf, Vec<std::path::PathBuf>)> {
-    if r.join("config.toml").exists() {
-        return Ok((r.parent().unwrap_or(r).to_path_buf(), vec![r.to_path_buf()]));
-    }
-    let mut d: Vec<_> = std::fs::read_dir(r)
-        .with_context(|| format!("reading {}", r.display()))?
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.join("config.toml").exists())
-        .collect();
-    d.sort();
-    if d.is_empty() {
-        bail!("{} holds no run (no config.toml in it or its subfolders)", r.display());
-    }
-    Ok((r.to_path_buf(), d))
-}
-
-pub(crate) fn train_dirs(dirs: &[std::path::PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
-    train_dirs_holding(dirs, Vec::new(), interrupted)
-}
-
-/// [`train_dirs`] with the locks of some directories already taken (`held[i]` is that of
-/// `dirs[i]`; missing or None: taken here).
-fn train_dirs_holding(
-    dirs: &[std::path::PathBuf],
-    mut held: Vec<Option<lmac_trainer::run_dir::RunLock>>,
-    interrupted: Arc<AtomicBool>,
-) -> Result<()> {
-    use lmac_trainer::train::TrainConfig;
-    for (i, d) in dirs.iter().enumerate() {
-        // One lmac at a time per run directory: a second one would interleave checkpoints and
-        // metrics. The lock goes with the process (also when it is killed).
-        let _lock = match held.get_mut(i).and_then(Option::take) {
-            Some(l) => l,
-            None => lmac_trainer::run_dir::lock(d)?,
-        };
-        let cfg = TrainConfig::load(d)?;
-        cfg.check()?;
-        // Where the run stands: a checkpoint's step, or 0 for a fresh start.
-        let ck = lmac_trainer::train::checkpoint_dir(d);
-        use lmac_trainer::learn::checkpoint::{checkpoint_exists, peek_checkpoint};
-        let done_t_env = if checkpoint_exists(&ck) {
-            peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("{}: {e}", d.display()))?.counters.t_env
-        } else {
-            // Said here, before any process starts (the trainer checks it again).
-            lmac_trainer::train::refuse_restart_over_metrics(d)?;
-            0
-        };
-        let dataset_done = cfg.run.dataset_episodes == 0 || lmac_trainer::train::dataset_dir(d).exists();
-        if done_t_env >= cfg.run.steps && dataset_done {
-            eprintln!("lmac: {} seed {}: already finished (t_env {done_t_env} of {})", d.display(), cfg.learn.seed, cfg.run.steps);
-            final_evaluation(d, &cfg, interrupted.clone())?;
-            continue;
-        }
-        eprintln!("lmac: {} {} seed {} -> {}", cfg.run.env, cfg.run.algo, cfg.learn.seed, d.display());
-        // A resumed segment's environments start from other seeds than the first segment's (else
-        // it would replay the same episodes).
-        let p = PipelineOpts::for_run(&cfg, cfg.learn.seed + done_t_env)?;
-        let extra = vec![
-            "--train-dir".to_string(),
-            std::fs::canonicalize(d)?.display().to_string(),
-            "--progress".into(),
-            "--warmup".into(),
-            "1".into(),
-        ];
-        pipeline_report(&p, extra, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
-        final_evaluation(d, &cfg, interrupted.clone())?;
-    }
-    Ok(())
-}
-
-/// A finished run's `marl_eval.json`, with its absolute metrics: the best test phase's
-/// checkpoint evaluated greedily over `run.final_eval_episodes` episodes (10 x the test phase
-/// by default). Done once; a rerun of a finished run finds the file and skips it. An evaluation
-/// that fails (a dead env server, a checkpoint whose network the run's settings no longer
-/// describe) is reported and leaves the file unwritten, so a rerun tries again; the training
-/// itself is finished and intact, and the seeds after it go on. Ctrl-C still stops everything.
-fn final_evaluation(d: &std::path::Path, cfg: &lmac_trainer::train::TrainConfig, interrupted: Arc<AtomicBool>) -> Result<()> {
-    match write_final_evaluation(d, cfg, interrupted.clone()) {
-        Err(e) if !interrupted.load(std::sync::atomic::Ordering::SeqCst) => {
-            eprintln!(
-                "lmac: warning: {}: the final evaluation failed, marl_eval.json not written (a rerun tries again): {e:#}",
-                d.display()
-            );
-            Ok(())
-        }
-        other => other,
-    }
-}
-
-fn write_final_evaluation(d: &std::path::Path, cfg: &lmac_trainer::train::TrainConfig, interrupted: Arc<AtomicBool>) -> Result<()> {
-    use lmac_trainer::train::evaluate::EvalSpec;
-    if d.join("marl_eval.json").exists() {
-        return Ok(());
-    }
-    let episodes = cfg.run.final_eval_episodes.unwrap_or(10 * cfg.run.test_episodes);
-    let result = if episodes == 0 {
-        None
-    } else {
-        eprintln!("lmac: {} seed {}: final evaluation of the best checkpoint, {episodes} greedy episodes", cfg.run.env, cfg.learn.seed);
-        let spec = EvalSpec { episodes, method: toml::Table::new(), best: true };
-        let r = super::evaluate::evaluate_run(d, cfg, &spec, "final", super::evaluate::EVAL_SEED_OFFSET, interrupted)?;
-        eprintln!(
-            "lmac: {} seed {}: final evaluation ({} checkpoint, t_env {}): return {:.3}, win rate {:.3}",
-            cfg.run.env, cfg.learn.seed, r.checkpoint, r.t_env, r.mean_return, r.win_rate
-        );
-        Some(r)
-    };
-    lmac_trainer::train::marl_eval::write_marl_eval(d, cfg, result.as_ref())
 }

@@ -20,7 +20,7 @@
 //!                           recovery.png plots the fixed-dim trend (the paper's Figure 3)
 //! ```
 
-use super::meta::Evaluation;
+use super::meta::{evaluate_all, Evaluation, MetaConfig};
 use super::meta_info::{RecoverySummary, SetTrend, Verdict};
 use super::{DesignContext, Designer, PhaseProtocol};
 use crate::dataset::Dataset;
@@ -55,13 +55,6 @@ pub struct DesignOptions {
     /// verdict says so either way); off keeps the paper's three phases.
     pub drop_unhelpful_phases: bool,
 }
-
-/// How the design runs the pipeline: train the run directory (a `config.toml` inside) through
-/// the real processes. Given by the CLI, which owns the process supervision.
-pub type TrainRun<'a> = &'a dyn Fn(&Path) -> Result<()>;
-
-/// How a phase's protocol is evaluated on B: the meta-information and every dim (see `meta`).
-pub type Evaluate<'a> = &'a dyn Fn(&DesignContext, &[ValidatedProtocol]) -> Result<Evaluation>;
 
 /// One phase's line of `summary.json` (read by `lmac_report.plot_design`). The target dims change from
 /// phase to phase (they steer the designer); the trend is read on `fixed_dims` and `all_dims`.
@@ -104,11 +97,12 @@ pub fn evaluate_phase(
     ctx: &DesignContext,
     phases: &[ValidatedProtocol],
     fixed: &[usize],
-    evaluate: Evaluate,
+    meta_cfg: &MetaConfig,
     phase_dir: &Path,
 ) -> Result<(super::meta_info::MetaInfo, PhaseEvaluation)> {
     let k = phases.len().saturating_sub(1);
-    let Evaluation { meta, dims } = evaluate(ctx, phases).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
+    let Evaluation { meta, dims } =
+        evaluate_all(ctx, phases, meta_cfg).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
     std::fs::create_dir_all(phase_dir).with_context(|| format!("creating {}", phase_dir.display()))?;
     write(&phase_dir.join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
     let recovery = serde_json::json!({ "alpha": ctx.schema.alpha, "dims": dims });
@@ -157,8 +151,15 @@ fn save_phase(dir: &Path, k: usize, p: &PhaseProtocol, ctx: &DesignContext) -> R
     Ok(file)
 }
 
-/// Run the design: phases, dataset, discriminators, feedback. Returns the design directory.
-pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: TrainRun, evaluate: Evaluate) -> Result<PathBuf> {
+/// Run the design: phases, dataset (collected through the pipeline's real processes unless
+/// given), discriminators with `meta_cfg`, feedback. Returns the design directory. Ctrl-C
+/// (`interrupted`) stops the collection run cleanly.
+pub fn run_design(
+    opts: &DesignOptions,
+    designer: &mut dyn Designer,
+    meta_cfg: &MetaConfig,
+    interrupted: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> Result<PathBuf> {
     if opts.phases == 0 {
         bail!("--phases: at least 1");
     }
@@ -219,7 +220,7 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
             cfg.check()?;
             write(&run_dir.join("config.toml"), &toml::to_string_pretty(&cfg)?)?;
             eprintln!("lmac: collecting the dataset: QMIX for {} env steps, then {} episodes", opts.pretrain_steps, opts.dataset_episodes);
-            train(&run_dir).context("collecting the dataset")?;
+            crate::workflow::train_dirs(std::slice::from_ref(&run_dir), interrupted).context("collecting the dataset")?;
             crate::train::dataset_dir(&run_dir)
         }
     };
@@ -251,7 +252,7 @@ pub fn run_design(opts: &DesignOptions, designer: &mut dyn Designer, train: Trai
     let mut kept: Option<(super::meta_info::MetaInfo, PhaseEvaluation)> = None;
     for k in 0..opts.phases {
         let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
-        let (mut meta, mut ev) = evaluate_phase(&ctx, &validated, &fixed, evaluate, &dir.join(format!("phase{k}")))?;
+        let (mut meta, mut ev) = evaluate_phase(&ctx, &validated, &fixed, meta_cfg, &dir.join(format!("phase{k}")))?;
         meta.verdicts.push(format!("phases 0..={k}: {}", ev.verdict.text));
         if let (true, Some((kept_meta, kept_ev))) = (k > 0, &kept) {
             let added = ev.message_columns.saturating_sub(kept_ev.message_columns);
