@@ -9,6 +9,7 @@
 
 use lmac_protocol_runner::plan::{MessagePlan, StepView};
 use lmac_protocol_runner::protocol::{self, compile_plan, MessageLayout, ProtocolEnv, ProtocolPlan, ValidatedProtocol};
+use lmac_trainer::stats::median;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -84,12 +85,6 @@ fn time(plan: &mut ProtocolPlan, n: usize, od: usize, na: usize, steps: usize, r
             t.elapsed().as_nanos() as f64 / steps as f64
         })
         .collect()
-}
-
-fn median(v: &[f64]) -> f64 {
-    let mut v = v.to_vec();
-    v.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    v[v.len() / 2]
 }
 
 fn main() {

@@ -1,5 +1,5 @@
-//! The few statistics several parts of lmac need, each written once: mean and population
-//! variance of a list, and per-column moments of row-major data (standardising discriminator
+//! The few statistics several parts of lmac need, each written once: mean, population variance
+//! and median of a list, and per-column moments of row-major data (standardising discriminator
 //! inputs and targets, correlations in the offline designer).
 
 /// Mean (0 for an empty list).
@@ -11,6 +11,13 @@ pub fn mean(v: &[f64]) -> f64 {
 pub fn variance(v: &[f64]) -> f64 {
     let m = mean(v);
     v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Median (the upper one of an even count; 0 for an empty list); NaNs sort last.
+pub fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    v.get(v.len() / 2).copied().unwrap_or(0.0)
 }
 
 /// Per-column mean and population standard deviation of rows of `width` values.

@@ -4,6 +4,7 @@ use super::{parse_steps, PipelineOpts};
 use anyhow::{bail, Context, Result};
 use clap::Subcommand;
 use lmac_shm_schema::schema::load_env;
+use lmac_trainer::stats::median;
 use lmac_trainer::supervisor;
 use lmac_trainer::workflow::{interrupt_flag, pipeline_report, train_dirs, Pipeline};
 use std::sync::atomic::AtomicBool;
@@ -113,15 +114,6 @@ pub(crate) enum BenchCmd {
     },
 }
 
-pub(crate) fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    if v.is_empty() {
-        0.0
-    } else {
-        v[v.len() / 2]
-    }
-}
-
 /// What `repeat` alternations of raw stepping and the pipeline measured.
 pub(crate) struct Alternations {
     raws: Vec<f64>,
@@ -148,7 +140,7 @@ pub(crate) fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Resu
     // same steps in every alternation); the ratio is the median over alternations, each a pair
     // measured back to back, which keeps one disturbed alternation from moving it.
     let overall = |rates: &[f64]| rates.len() as f64 / rates.iter().map(|r| 1.0 / r).sum::<f64>();
-    let (raw_rate, pipe_rate, ratio) = (overall(&m.raws), overall(&m.pipes), median(ratios.clone()));
+    let (raw_rate, pipe_rate, ratio) = (overall(&m.raws), overall(&m.pipes), median(&ratios));
     let (lo, hi) = ratios.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &r| (lo.min(r), hi.max(r)));
     let v = serde_json::json!({
         "env": p.env, "envs_total": p.envs * p.servers, "servers": p.servers, "protocol": p.protocol.to_string(),
@@ -259,7 +251,7 @@ pub(crate) fn bench_separate_runs(p: &Pipeline, repeat: usize, interrupted: Arc<
         pipes.push(pipe.env_steps_per_s);
         trainer_us.push(pipe.trainer_us_per_slot);
     }
-    Ok(Alternations { raws, pipes, trainer_us: median(trainer_us), method: "separate runs", split: None })
+    Ok(Alternations { raws, pipes, trainer_us: median(&trainer_us), method: "separate runs", split: None })
 }
 
 pub(crate) fn bench_train(

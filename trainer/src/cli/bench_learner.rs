@@ -13,7 +13,7 @@ use std::path::PathBuf;
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::time::Instant;
 
-use super::bench::median;
+use lmac_trainer::stats::median;
 
 /// The update's shape: batch of episodes, steps, agents, agent input width (observation, last
 /// action and id), actions, state.
@@ -358,7 +358,7 @@ fn profile_update(learner: &mut Learner, k: usize) -> Result<Vec<(&'static str, 
         learner.train_on(&batch)?;
         phases[6].1.push(ms(t0));
     }
-    Ok(phases.into_iter().map(|(p, v)| (p, median(v))).collect())
+    Ok(phases.into_iter().map(|(p, v)| (p, median(&v))).collect())
 }
 
 pub(crate) struct LearnerBenchOpts {
@@ -411,12 +411,12 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
         }
         let (mut f_rounds, mut s_rounds, mut t_rounds) = (Vec::new(), Vec::new(), Vec::new());
         for round in 0..o.rounds {
-            f_rounds.push(median(time_updates(&mut fused, o.updates)?));
+            f_rounds.push(median(&time_updates(&mut fused, o.updates)?));
             if let Some(s) = stepwise.as_mut() {
-                s_rounds.push(median(time_updates(s, o.updates)?));
+                s_rounds.push(median(&time_updates(s, o.updates)?));
             }
             if let Some(t) = torch.as_mut() {
-                t_rounds.push(median(t.run(o.updates)?));
+                t_rounds.push(median(&t.run(o.updates)?));
             }
             eprintln!(
                 "lmac: {} round {}: lmac {:.1} ms{}{}",
@@ -431,7 +431,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
             if rounds.is_empty() {
                 continue;
             }
-            let m = median(rounds.clone());
+            let m = median(&rounds);
             figures.push(Figure {
                 name: name.into(),
                 mixer: mixer_name(mixer).into(),
