@@ -65,7 +65,7 @@ if want train; then
   log "bench train (flex backend)"
   "$LMAC" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json >"$OUT/train_flex.json"
   log "bench train (ndarray backend: lmac built once more with --features ndarray, kept as lmac-ndarray)"
-  cargo build --release -q --bin lmac -p lmac-trainer --no-default-features --features ndarray
+  cargo build --release -q --bin lmac -p lmac --no-default-features --features ndarray
   cp "$ROOT/target/release/lmac" "$ROOT/target/release/lmac-ndarray"
   cargo build --release -q --bin lmac  # the default (flex) binary again
   "$ROOT/target/release/lmac-ndarray" bench train --env lbf:8x8-2p-2f-s1-coop --envs 8,32 --steps 40000 --json \

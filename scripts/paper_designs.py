@@ -9,7 +9,7 @@ can check a field against their code in one place. Rerun it after changing a des
 
     python3 scripts/paper_designs.py            # rewrites protocols/paper/<env>/...
 
-What each field reads is checked by trainer/tests/paper_designs.rs against a table written by
+What each field reads is checked by trainer/cli/tests/paper_designs.rs against a table written by
 hand from their code, not from this file.
 """
 

@@ -5,8 +5,8 @@
 
 use iceoryx2::prelude::*;
 use lmac_e2e::harness::{lmac, lmac_shm_files, wait_for};
+use lmac_run::faults::{alive, pipeline_children, Role};
 use lmac_shm_schema::leftovers::{survey, Kind};
-use lmac_trainer::faults::{alive, pipeline_children, Role};
 use std::os::unix::process::CommandExt;
 use std::process::{Child, Stdio};
 use std::sync::Mutex;

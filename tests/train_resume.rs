@@ -4,7 +4,7 @@
 //! Runs the release `lmac` binary built by `scripts/setup.sh` (or `$LMAC_BIN`).
 
 use lmac_e2e::harness::{lmac, lmac_shm_files, wait_for};
-use lmac_trainer::faults::{metrics_t_env, pipeline_children, Role};
+use lmac_run::faults::{metrics_t_env, pipeline_children, Role};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Stdio};
 use std::sync::Mutex;

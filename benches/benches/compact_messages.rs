@@ -9,7 +9,7 @@
 
 use lmac_protocol_runner::plan::{MessagePlan, StepView};
 use lmac_protocol_runner::protocol::{self, compile_plan, MessageLayout, ProtocolEnv, ProtocolPlan, ValidatedProtocol};
-use lmac_trainer::stats::median;
+use lmac_run::stats::median;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 

@@ -2,14 +2,14 @@
 //! reference size: 32 episodes x 50 steps x 3 agents, GRU 64, mixing embed 32 (LMAC: 10 of the
 //! 30 observation columns are messages, all 48 state dims reconstructed); plus one batched
 //! acting step for 8 envs.
-//! Needs in benches/Cargo.toml: `lmac-trainer.workspace = true` under [dependencies] and
+//! Needs in benches/Cargo.toml: `lmac-run.workspace = true` under [dependencies] and
 //! `[[bench]] name = "learner" harness = false`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use lmac_trainer::episode::{Episode, EpisodeDims};
-use lmac_trainer::learn::methods::lmac::{EncoderKind, LmacConfig, LmacSettings};
-use lmac_trainer::learn::Device;
-use lmac_trainer::learn::{AgentConfig, Controller, LearnConfig, LearnRng, Learner, MixerKind};
+use lmac_run::episode::{Episode, EpisodeDims};
+use lmac_run::learn::methods::lmac::{EncoderKind, LmacConfig, LmacSettings};
+use lmac_run::learn::Device;
+use lmac_run::learn::{AgentConfig, Controller, LearnConfig, LearnRng, Learner, MixerKind};
 
 const DIMS: EpisodeDims = EpisodeDims { n_agents: 3, obs_width: 30, state_dim: 48, n_actions: 9 };
 
@@ -29,7 +29,7 @@ fn filled(mixer: MixerKind, agent: AgentConfig) -> Learner {
 }
 
 fn bench_update(c: &mut Criterion) {
-    lmac_trainer::tune_allocator();
+    lmac_run::tune_allocator();
     let mut g = c.benchmark_group("learner_update_32x50x3");
     g.sample_size(10);
     for mixer in [MixerKind::Qmix, MixerKind::Vdn, MixerKind::Qplex] {
@@ -61,8 +61,8 @@ fn bench_act(c: &mut Criterion) {
 /// at the agent-row counts of the two reference shapes: LBF 8x8 (32 x 2 agents, 25 steps) and
 /// 1o_10b_vs_1r (32 x 11 agents, 50 steps), hidden 64.
 fn bench_gru_sequence(c: &mut Criterion) {
-    lmac_trainer::tune_allocator();
-    use lmac_trainer::learn::gru_sequence::Saved;
+    lmac_run::tune_allocator();
+    use lmac_run::learn::gru_sequence::Saved;
     let mut g = c.benchmark_group("gru_sequence");
     g.sample_size(10);
     for (name, t, n) in [("lbf8x8", 25, 64), ("1o10b", 50, 352)] {
@@ -83,8 +83,8 @@ fn bench_gru_sequence(c: &mut Criterion) {
 /// 1o_10b_vs_1r's agent rows (32 x 11 agents, 50 steps) with the default width 64 in 4 heads
 /// and a window of 10.
 fn bench_window_attention(c: &mut Criterion) {
-    lmac_trainer::tune_allocator();
-    use lmac_trainer::learn::window_attention::Saved;
+    lmac_run::tune_allocator();
+    use lmac_run::learn::window_attention::Saved;
     let mut g = c.benchmark_group("window_attention");
     g.sample_size(10);
     let (t, n, heads, d, w) = (50, 352, 4, 16, 10);

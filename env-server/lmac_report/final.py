@@ -1,7 +1,7 @@
 """The one rule for a training run's final figure when it has no final evaluation: the mean of
 its last FINAL_TEST_PHASES test phases (one phase is only `run.test_episodes` greedy episodes, so
 a single phase is noisy), and its peak, the best mean of that many consecutive phases. `lmac
-experiment`'s comparison table (trainer/src/cli/experiment.rs, FINAL_TESTS) uses the same
+experiment`'s comparison table (trainer/cli/src/cli/experiment.rs, FINAL_TESTS) uses the same
 number."""
 
 FINAL_TEST_PHASES = 5

@@ -268,7 +268,7 @@ def test_skip_bad_reports_the_rest(tmp_path):
 
 
 def test_lmac_report_passes_arguments_output_and_exit_code(tmp_path):
-    """`lmac report` (trainer/src/cli/report.rs) runs `python -m lmac_report` with its arguments."""
+    """`lmac report` (trainer/cli/src/cli/report.rs) runs `python -m lmac_report` with its arguments."""
     found = [p for p in (ROOT / "target/release/lmac", ROOT / "target/debug/lmac") if p.is_file()]
     if not found:
         pytest.skip("no lmac binary built (cargo build --release --bin lmac)")

@@ -16,15 +16,15 @@
 
 use super::mutate::*;
 use super::{scratch_dir, Case, Rng, Target};
+use lmac_design::llm::{parse_response, Provider};
+use lmac_design::llm_designer::parse_feedback;
 use lmac_protocol_runner::plan::{MessagePlan, StepView};
 use lmac_protocol_runner::protocol::{self, ProtocolEnv};
+use lmac_run::dataset::{Dataset, DatasetHeader, Trajectory};
+use lmac_run::episode::{Episode, EpisodeDims};
+use lmac_run::learn::{Device, LearnConfig, LearnRng, Learner};
+use lmac_run::train::TrainConfig;
 use lmac_shm_schema::EnvSchema;
-use lmac_trainer::dataset::{Dataset, DatasetHeader, Trajectory};
-use lmac_trainer::design::llm::{parse_response, Provider};
-use lmac_trainer::design::llm_designer::parse_feedback;
-use lmac_trainer::episode::{Episode, EpisodeDims};
-use lmac_trainer::learn::{Device, LearnConfig, LearnRng, Learner};
-use lmac_trainer::train::TrainConfig;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
@@ -483,8 +483,8 @@ impl Target for LlmReplyTarget {
             note.push_str(&format!(", body {}", mutate_bytes(r, &mut b)));
         }
         // The client reads at most MAX_BODY_BYTES of a response; it never parses more.
-        if b.len() as u64 > lmac_trainer::design::llm::MAX_BODY_BYTES {
-            b.truncate(lmac_trainer::design::llm::MAX_BODY_BYTES as usize);
+        if b.len() as u64 > lmac_design::llm::MAX_BODY_BYTES {
+            b.truncate(lmac_design::llm::MAX_BODY_BYTES as usize);
             note.push_str(", cut to the body limit");
         }
         let mut case = Case::text("body.json", b, note);

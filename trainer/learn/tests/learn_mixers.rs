@@ -110,7 +110,7 @@ fn agent_unroll_and_step_agree() {
 
 /// Timing of one learner update at the DESIGN.md reference size (32 episodes x 50 steps x
 /// 3 agents, GRU 64, mixer 32). Run with
-/// `cargo test --release -p lmac-trainer --test learn_mixers -- --ignored --nocapture`.
+/// `cargo test --release -p lmac-learn --test learn_mixers -- --ignored --nocapture`.
 #[test]
 #[ignore]
 fn time_one_update() {

@@ -1,0 +1,502 @@
+//! `lmac bench learner`: the cost of one learner update on a fixed shape, lmac's fused
+//! recurrence against burn's per-step cell and (with `--against torch`) against the PyTorch
+//! implementation of pymarl's QLearner in `benches/torch/qlearner.py`, alternating in one run,
+//! with each figure's FLOP count and achieved GFLOP/s next to the machine's single-core sgemm.
+
+use anyhow::{bail, Context, Result};
+use lmac_run::episode::{Episode, EpisodeDims};
+use lmac_run::learn::methods::{self, MethodContext};
+use lmac_run::learn::{AgentConfig, Device, LearnConfig, LearnRng, Learner, MixerKind};
+use serde::Serialize;
+use std::io::{BufRead, BufReader, Write};
+use std::path::PathBuf;
+use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
+use std::time::Instant;
+
+use lmac_run::stats::median;
+
+/// The update's shape: batch of episodes, steps, agents, agent input width (observation, last
+/// action and id), actions, state.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub(crate) struct Shape {
+    pub batch: usize,
+    pub steps: usize,
+    pub agents: usize,
+    pub input: usize,
+    pub actions: usize,
+    pub state: usize,
+    pub hidden: usize,
+}
+
+impl Shape {
+    /// Named shapes: `lbf8x8` (the reference: LBF 8x8 with the default QMIX settings)
+    /// and `1o10b` (smaclite 1o_10b_vs_1r with its designed protocol's messages).
+    pub(crate) fn named(name: &str) -> Result<Shape> {
+        Ok(match name {
+            "lbf8x8" => Shape { batch: 32, steps: 25, agents: 2, input: 37, actions: 6, state: 300, hidden: 64 },
+            "1o10b" => Shape { batch: 32, steps: 50, agents: 11, input: 108, actions: 16, state: 148, hidden: 64 },
+            other => bail!("unknown shape {other:?} (lbf8x8, 1o10b, or give --batch/--steps/... yourself)"),
+        })
+    }
+
+    fn dims(&self) -> Result<EpisodeDims> {
+        let obs = self.input.checked_sub(self.actions + self.agents).filter(|&o| o > 0).with_context(|| {
+            format!(
+                "input width {} must exceed actions + agents ({}): it holds obs, last action and id",
+                self.input,
+                self.actions + self.agents
+            )
+        })?;
+        Ok(EpisodeDims { n_agents: self.agents, obs_width: obs, state_dim: self.state, n_actions: self.actions })
+    }
+
+    /// Multiply-add FLOPs of one update (2 per multiply-add; elementwise work not counted):
+    /// online forward, its backward (weight and input gradients, no input gradient for the first
+    /// layer) and the target network's forward, agents and mixer, for lmac's default settings.
+    pub(crate) fn update_flops(&self, mixer: MixerKind, cfg: &LearnConfig) -> f64 {
+        let (h, a, n, s) = (self.hidden as f64, self.actions as f64, self.agents as f64, self.state as f64);
+        let agent_rows = (self.batch * self.steps * self.agents) as f64;
+        let mix_rows = (self.batch * self.steps) as f64;
+        let first = 2.0 * self.input as f64 * h;
+        let rest = 2.0 * h * 3.0 * h * 2.0 + 2.0 * h * a;
+        let (mixer_first, mixer_rest) = match mixer {
+            MixerKind::Vdn => (0.0, 0.0),
+            MixerKind::Qmix => {
+                let (e, he) = (cfg.mixing_embed_dim as f64, cfg.hypernet_embed as f64);
+                // first layers read the state: w1, w_final (hypernets), b1, V
+                let first = 2.0 * s * (he + he + e + e);
+                let rest = 2.0 * he * e * n + 2.0 * he * e + 2.0 * e + 2.0 * n * e + 2.0 * e;
+                (first, rest)
+            }
+            MixerKind::Qplex => {
+                let (he, k, ae) = (cfg.hypernet_embed as f64, cfg.qplex_num_kernel as f64, cfg.qplex_adv_hypernet_embed as f64);
+                let first = 2.0 * s * (he + he) + 2.0 * k * ae * (s + s + s + n * a);
+                let rest = 2.0 * he * n * 2.0 + 2.0 * k * (ae * ae + ae) + 2.0 * k * (ae * ae + ae * n) * 2.0;
+                (first, rest)
+            }
+        };
+        let fwd = agent_rows * (first + rest) + mix_rows * (mixer_first + mixer_rest);
+        let bwd_no_input_grad = agent_rows * first + mix_rows * mixer_first;
+        // forward + backward (2x forward, minus the first layers' input gradients) + target
+        fwd + (2.0 * fwd - bwd_no_input_grad) + fwd
+    }
+
+    /// [`update_flops`](Self::update_flops) of an LMAC update (`cfg`: its resolved settings): the
+    /// plain agent's count with the agent's first layer reading [own row | z] instead of the
+    /// row, plus per agent-row the module: embedding, encoder (window: q, k, v, attention over W
+    /// entries, output; gru-gate: the GRU and the gate), and in the online network only the
+    /// decoder and the cycle encoder. The window's attention (scores and weighted values) is
+    /// counted though it is not a matmul. The target network runs embedding, encoder and agent.
+    pub(crate) fn lmac_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, lmac: &lmac_run::learn::methods::lmac::LmacConfig) -> f64 {
+        use lmac_run::learn::methods::lmac::{AuxLayout, EncoderKind};
+        let s = &lmac.settings;
+        let rows = (self.batch * self.steps * self.agents) as f64;
+        let (e, l, att, hd, dc) =
+            (s.embed_dim as f64, s.latent_dim as f64, s.attention_dim as f64, s.decoder_hidden as f64, lmac.critical_dims.len() as f64);
+        let input = self.input as f64;
+        let agent_in = input - if s.raw_messages { 0.0 } else { lmac.msg_cols as f64 } + l;
+        // the plain agent's count, with its first layer's width changed
+        let plain = Shape { input: agent_in as usize, ..*self }.update_flops(mixer, cfg);
+        let embed_first = 2.0 * input * e;
+        let embed_rest = 2.0 * e * e;
+        let encoder = match s.encoder {
+            EncoderKind::Window => 3.0 * 2.0 * e * att + 2.0 * 2.0 * (s.window.min(self.steps) as f64) * att + 2.0 * att * l,
+            EncoderKind::GruGate => 2.0 * e * 3.0 * e * 2.0 + 2.0 * 2.0 * e * att + 2.0 * e * l,
+        };
+        let cycle_mid = if s.aux_layout == AuxLayout::Released { 2.0 * hd * hd } else { 0.0 };
+        let heads = 2.0 * l * hd + 2.0 * hd * hd + 2.0 * 2.0 * hd * dc + 2.0 * 2.0 * dc * hd + cycle_mid + 2.0 * hd * l;
+        let module_fwd = rows * (embed_first + embed_rest + encoder);
+        // online forward + backward (no input gradient for the embedding's first layer) + target
+        plain + module_fwd + rows * heads + (2.0 * (module_fwd + rows * heads) - rows * embed_first) + module_fwd
+    }
+}
+
+/// The FLOPs one update of `method` (None: the plain agent) counts, where a count is written
+/// (the plain agent, qmix-state and LMAC; the other methods' extra networks are not counted yet).
+fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Option<&MethodUnderTest>) -> Option<f64> {
+    match method.map(|m| (&m.agent, m.name.as_str())) {
+        None | Some((AgentConfig::Rnn, _)) => {
+            let state_in = if method.is_some_and(|m| m.agent_sees_state) { shape.state } else { 0 };
+            Some(Shape { input: shape.input + state_in, ..*shape }.update_flops(mixer, cfg))
+        }
+        Some((AgentConfig::Lmac(l), _)) => Some(shape.lmac_update_flops(mixer, cfg, l)),
+        Some(_) => None,
+    }
+}
+
+/// A method's agent network in place of the plain RNN agent (`--algo`): its configured agent
+/// and what it fixes of the learner.
+pub(crate) struct MethodUnderTest {
+    pub name: String,
+    pub agent: AgentConfig,
+    pub mixer: Option<MixerKind>,
+    pub agent_sees_state: bool,
+    /// The command-line description, for the report.
+    pub settings: serde_json::Value,
+}
+
+impl MethodUnderTest {
+    /// `name` configured as `lmac train` would (`[method]` settings parsed by the same code),
+    /// for an input whose last `messages` observation columns are messages and whose first
+    /// `critical` state dims (default all) are task-critical.
+    pub(crate) fn new(name: &str, messages: usize, critical: Option<usize>, settings: &[String], shape: &Shape) -> Result<Self> {
+        let spec = methods::method(name).map_err(|e| anyhow::anyhow!("--algo: {e}"))?;
+        let obs = shape.dims()?.obs_width;
+        if messages >= obs {
+            bail!("--messages {messages}: the observation has {obs} columns (--input minus actions and agents)");
+        }
+        let critical = critical.unwrap_or(shape.state);
+        if critical == 0 || critical > shape.state {
+            bail!("--critical {critical}: must be 1..={} (the state's dims)", shape.state);
+        }
+        let mut table = toml::Table::new();
+        for kv in settings {
+            let (key, value) =
+                kv.split_once('=').with_context(|| format!("--method {kv:?}: expected KEY=VALUE, e.g. encoder='\"window\"'"))?;
+            table.insert(key.trim().to_string(), lmac_run::train::config::override_value(value));
+        }
+        let ctx = MethodContext { msg_cols: messages, alpha: 0.05, critical_dims: (0..critical).collect(), state_dim: shape.state };
+        let agent = (spec.configure)(&table, &ctx).map_err(|e| anyhow::anyhow!("--method: {name}: {e}"))?;
+        let described = serde_json::json!({"algo": name, "messages": messages, "critical_dims": critical, "method": settings});
+        Ok(MethodUnderTest { name: name.into(), agent, mixer: spec.mixer, agent_sees_state: spec.agent_sees_state, settings: described })
+    }
+}
+
+/// What one implementation measured: per-update milliseconds of every round (GFLOP/s where the
+/// method's FLOPs are counted: see `update_flops`).
+#[derive(Debug, Serialize)]
+pub(crate) struct Figure {
+    pub name: String,
+    pub mixer: String,
+    pub rounds_ms: Vec<f64>,
+    pub median_ms: f64,
+    pub gflops: Option<f64>,
+}
+
+fn mixer_name(m: MixerKind) -> &'static str {
+    match m {
+        MixerKind::Vdn => "vdn",
+        MixerKind::Qmix => "qmix",
+        MixerKind::Qplex => "qplex",
+    }
+}
+
+/// A learner (the plain RNN agent, or `method`'s) filled with synthetic full-length episodes of
+/// `shape`.
+fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool, method: Option<&MethodUnderTest>) -> Result<Learner> {
+    let mut cfg = LearnConfig { mixer, rnn_hidden_dim: shape.hidden, batch_size: shape.batch, fused_gru: fused, ..LearnConfig::default() };
+    let dims = shape.dims()?;
+    let agent = match method {
+        Some(m) => {
+            cfg.agent_sees_state |= m.agent_sees_state;
+            m.agent.clone()
+        }
+        None => AgentConfig::Rnn,
+    };
+    let mut learner = Learner::with_agent(dims, cfg, agent, Device::default())?;
+    let mut rng = LearnRng::seed_from(0);
+    for _ in 0..shape.batch * 2 {
+        learner.add_episode(Episode::synthetic(&dims, shape.steps, &mut rng, false))?;
+    }
+    Ok(learner)
+}
+
+/// The PyTorch anchor as a child process in `--serve` mode.
+struct Torch {
+    child: Child,
+    stdin: ChildStdin,
+    stdout: BufReader<ChildStdout>,
+    version: String,
+}
+
+impl Torch {
+    fn start(python: &PathBuf, script: &PathBuf, shape: &Shape, mixer: MixerKind, threads: usize) -> Result<Torch> {
+        let mut cmd = Command::new(python);
+        cmd.arg(script).arg("--serve").arg("--mixer").arg(mixer_name(mixer));
+        for (flag, v) in [
+            ("--batch", shape.batch),
+            ("--steps", shape.steps),
+            ("--agents", shape.agents),
+            ("--input", shape.input),
+            ("--actions", shape.actions),
+            ("--state", shape.state),
+            ("--hidden", shape.hidden),
+            ("--threads", threads),
+        ] {
+            cmd.arg(flag).arg(v.to_string());
+        }
+        let mut child = cmd
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .with_context(|| format!("starting {} {} (run benches/torch/setup.sh first)", python.display(), script.display()))?;
+        let stdin = child.stdin.take().context("torch child stdin")?;
+        let mut stdout = BufReader::new(child.stdout.take().context("torch child stdout")?);
+        let ready = read_json(&mut stdout)?;
+        if ready.get("ready").and_then(|v| v.as_bool()) != Some(true) {
+            bail!("the torch anchor did not report ready: {ready}");
+        }
+        let version = ready.get("version").and_then(|v| v.as_str()).unwrap_or("?").to_string();
+        Ok(Torch { child, stdin, stdout, version })
+    }
+
+    /// Run `k` updates; their milliseconds.
+    fn run(&mut self, k: usize) -> Result<Vec<f64>> {
+        writeln!(self.stdin, "run {k}")?;
+        self.stdin.flush()?;
+        let v = read_json(&mut self.stdout)?;
+        let ms = v.get("ms").and_then(|m| m.as_array()).with_context(|| format!("torch anchor replied {v}"))?;
+        Ok(ms.iter().filter_map(|x| x.as_f64()).collect())
+    }
+}
+
+impl Drop for Torch {
+    fn drop(&mut self) {
+        let _ = writeln!(self.stdin, "quit");
+        let _ = self.stdin.flush();
+        let _ = self.child.wait();
+    }
+}
+
+fn read_json(r: &mut impl BufRead) -> Result<serde_json::Value> {
+    let mut line = String::new();
+    if r.read_line(&mut line)? == 0 {
+        bail!("the torch anchor exited (see its error output above)");
+    }
+    serde_json::from_str(line.trim()).with_context(|| format!("the torch anchor printed {line:?}, not JSON"))
+}
+
+/// Milliseconds of each of `k` updates.
+fn time_updates(learner: &mut Learner, k: usize) -> Result<Vec<f64>> {
+    let mut out = Vec::with_capacity(k);
+    for _ in 0..k {
+        let t0 = Instant::now();
+        learner.train_step()?;
+        out.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok(out)
+}
+
+/// Single-thread sgemm throughput through burn's backend (512^3, best of 20): the ceiling the
+/// GFLOP/s figures are read against. Measured before and after the updates; the report keeps
+/// the higher (a loaded machine only lowers it).
+fn sgemm_gflops() -> f64 {
+    use burn::tensor::{Distribution, Tensor};
+    let dev = Device::default();
+    let n = 512;
+    let a: Tensor<2> = Tensor::random([n, n], Distribution::Default, &dev);
+    let b: Tensor<2> = Tensor::random([n, n], Distribution::Default, &dev);
+    let mut best = f64::INFINITY;
+    for _ in 0..20 {
+        let t0 = Instant::now();
+        let c = a.clone().matmul(b.clone());
+        let _ = c.into_data();
+        best = best.min(t0.elapsed().as_secs_f64());
+    }
+    2.0 * (n * n * n) as f64 / best / 1e9
+}
+
+/// Where one lmac update's time goes (median ms of `k` updates per phase): sampling the batch,
+/// the target network's agent unroll, the online agents' forward, the rest of the loss (mixers,
+/// targets, method terms), the backward pass, and clip + optimizer step.
+fn profile_update(learner: &mut Learner, k: usize) -> Result<Vec<(&'static str, f64)>> {
+    use burn::tensor::{Tensor, TensorData};
+    let step_inputs = |batch: &lmac_run::learn::Batch, device: &Device| -> Vec<Tensor<2>> {
+        let (b, n, iw) = (batch.b, batch.n_agents, batch.input_dim);
+        (0..batch.t)
+            .map(|ti| {
+                Tensor::from_data(TensorData::new(batch.inputs[ti * b * n * iw..(ti + 1) * b * n * iw].to_vec(), [b * n, iw]), device)
+            })
+            .collect()
+    };
+    let ms = |t0: Instant| t0.elapsed().as_secs_f64() * 1e3;
+    let mut phases: Vec<(&'static str, Vec<f64>)> = [
+        "sample batch",
+        "target agents (forward)",
+        "online agents (forward)",
+        "mixers, targets, loss",
+        "backward",
+        "clip + optimizer",
+        "whole update",
+    ]
+    .into_iter()
+    .map(|p| (p, Vec::new()))
+    .collect();
+    for _ in 0..k {
+        let t0 = Instant::now();
+        let batch = learner.sample_batch();
+        phases[0].1.push(ms(t0));
+        let dev = learner.device().clone();
+        let t0 = Instant::now();
+        let (q, _) = learner.target_net().agent.unroll(step_inputs(&batch, &dev), None);
+        let _ = q.into_data();
+        phases[1].1.push(ms(t0));
+        let t0 = Instant::now();
+        let (q, _) = learner.online_net().agent.unroll(step_inputs(&batch, &dev.clone().autodiff()), None);
+        let _ = q.inner().into_data();
+        phases[2].1.push(ms(t0));
+        let t0 = Instant::now();
+        let (loss, _) = learner.td_loss(&batch)?;
+        let whole_loss = ms(t0);
+        let agents = phases[1].1.last().copied().unwrap_or(0.0) + phases[2].1.last().copied().unwrap_or(0.0);
+        phases[3].1.push((whole_loss - agents).max(0.0));
+        let t0 = Instant::now();
+        let _ = loss.backward();
+        let backward = ms(t0);
+        phases[4].1.push(backward);
+        let (loss, stats) = learner.td_loss(&batch)?;
+        let t0 = Instant::now();
+        learner.apply_loss(loss, stats)?;
+        phases[5].1.push((ms(t0) - backward).max(0.0));
+        let t0 = Instant::now();
+        learner.train_on(&batch)?;
+        phases[6].1.push(ms(t0));
+    }
+    Ok(phases.into_iter().map(|(p, v)| (p, median(&v))).collect())
+}
+
+pub(crate) struct LearnerBenchOpts {
+    pub shape: Shape,
+    pub mixers: Vec<MixerKind>,
+    pub method: Option<MethodUnderTest>,
+    pub against_torch: bool,
+    pub python: Option<PathBuf>,
+    pub rounds: usize,
+    pub updates: usize,
+    pub stepwise: bool,
+    pub profile: bool,
+    pub json: bool,
+    pub out: Option<PathBuf>,
+}
+
+pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
+    // One thread for lmac as for torch: burn's flex backend parallelizes large matmuls on rayon's
+    // global pool, which this sizes before its first use.
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        std::env::set_var("RAYON_NUM_THREADS", "1");
+    }
+    let threads: usize = std::env::var("RAYON_NUM_THREADS").ok().and_then(|v| v.parse().ok()).unwrap_or(1);
+    let root = lmac_run::supervisor::repo_root()?;
+    let script = root.join("benches/torch/qlearner.py");
+    let python = o.python.clone().unwrap_or_else(|| root.join("benches/torch/.venv/bin/python"));
+    let peak_before = sgemm_gflops();
+    let mut figures = Vec::new();
+    let mut torch_version = None;
+    let mut profiles = Vec::new();
+    let method = o.method.as_ref();
+    // An algorithm that names its backbone (qmix, vdn, qplex) runs on that one only.
+    let mixers = match method.and_then(|m| m.mixer) {
+        Some(fixed) => vec![fixed],
+        None => o.mixers.clone(),
+    };
+    for &mixer in &mixers {
+        let cfg = LearnConfig { mixer, ..LearnConfig::default() };
+        let flops = update_flops(&o.shape, mixer, &cfg, method);
+        let mut fused = filled_learner(&o.shape, mixer, true, method)?;
+        let mut stepwise = if o.stepwise { Some(filled_learner(&o.shape, mixer, false, method)?) } else { None };
+        let mut torch = if o.against_torch { Some(Torch::start(&python, &script, &o.shape, mixer, threads)?) } else { None };
+        if let Some(t) = &torch {
+            torch_version = Some(t.version.clone());
+        }
+        // warm-up (allocator, caches); torch warmed up before reporting ready
+        time_updates(&mut fused, 3)?;
+        if let Some(s) = stepwise.as_mut() {
+            time_updates(s, 3)?;
+        }
+        let (mut f_rounds, mut s_rounds, mut t_rounds) = (Vec::new(), Vec::new(), Vec::new());
+        for round in 0..o.rounds {
+            f_rounds.push(median(&time_updates(&mut fused, o.updates)?));
+            if let Some(s) = stepwise.as_mut() {
+                s_rounds.push(median(&time_updates(s, o.updates)?));
+            }
+            if let Some(t) = torch.as_mut() {
+                t_rounds.push(median(&t.run(o.updates)?));
+            }
+            eprintln!(
+                "lmac: {} round {}: lmac {:.1} ms{}{}",
+                mixer_name(mixer),
+                round + 1,
+                f_rounds[round],
+                s_rounds.get(round).map(|v| format!(", lmac stepwise {v:.1} ms")).unwrap_or_default(),
+                t_rounds.get(round).map(|v| format!(", torch {v:.1} ms")).unwrap_or_default()
+            );
+        }
+        for (name, rounds) in [("lmac", f_rounds), ("lmac-stepwise", s_rounds), ("torch", t_rounds)] {
+            if rounds.is_empty() {
+                continue;
+            }
+            let m = median(&rounds);
+            figures.push(Figure {
+                name: name.into(),
+                mixer: mixer_name(mixer).into(),
+                rounds_ms: rounds,
+                median_ms: m,
+                gflops: flops.map(|f| f / (m * 1e-3) / 1e9),
+            });
+        }
+        drop(torch);
+        if o.profile {
+            for (name, l) in [("lmac", Some(&mut fused)), ("lmac-stepwise", stepwise.as_mut())] {
+                let Some(l) = l else { continue };
+                let p = profile_update(l, o.updates)?;
+                for (phase, v) in &p {
+                    eprintln!("lmac: profile {} {name}: {phase}: {v:.2} ms", mixer_name(mixer));
+                }
+                profiles.push(serde_json::json!({"mixer": mixer_name(mixer), "implementation": name,
+                    "phases_ms": p.iter().map(|(k, v)| serde_json::json!({"phase": k, "ms": v})).collect::<Vec<_>>()}));
+            }
+        }
+    }
+    let peak = peak_before.max(sgemm_gflops());
+    eprintln!("lmac: single-thread sgemm through burn (512^3): {peak:.1} GFLOP/s");
+    let flops: Vec<_> = mixers
+        .iter()
+        .filter_map(|&m| {
+            let f = update_flops(&o.shape, m, &LearnConfig { mixer: m, ..LearnConfig::default() }, method)?;
+            Some(serde_json::json!({"mixer": mixer_name(m), "gflop_per_update": f / 1e9}))
+        })
+        .collect();
+    let report = serde_json::json!({
+        "shape": o.shape, "threads": threads, "rounds": o.rounds, "updates_per_round": o.updates,
+        "sgemm_gflops_single_thread": peak, "torch_version": torch_version, "flops": flops, "figures": figures, "profiles": profiles,
+        "method": method.map(|m| m.settings.clone()),
+    });
+    if let Some(path) = &o.out {
+        std::fs::write(path, serde_json::to_string_pretty(&report)?).with_context(|| format!("writing {}", path.display()))?;
+    }
+    if o.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(0);
+    }
+    let s = &o.shape;
+    println!(
+        "one update{}: {} episodes x {} steps x {} agents, input {}, {} actions, state {}, GRU {}; {} thread(s); median of {} rounds x {} updates",
+        method.map(|m| format!(" of {} ({})", m.name, m.settings)).unwrap_or_default(),
+        s.batch,
+        s.steps,
+        s.agents,
+        s.input,
+        s.actions,
+        s.state,
+        s.hidden,
+        threads,
+        o.rounds,
+        o.updates
+    );
+    println!("| mixer | implementation | ms per update | GFLOP/s | of sgemm {peak:.0} GFLOP/s | torch / this |");
+    println!("| --- | --- | --- | --- | --- | --- |");
+    for f in &figures {
+        let torch = figures.iter().find(|g| g.mixer == f.mixer && g.name == "torch").map(|g| g.median_ms);
+        println!(
+            "| {} | {} | {:.1} | {} | {} | {} |",
+            f.mixer,
+            f.name,
+            f.median_ms,
+            f.gflops.map(|g| format!("{g:.1}")).unwrap_or_else(|| "-".into()),
+            f.gflops.map(|g| format!("{:.0}%", 100.0 * g / peak)).unwrap_or_else(|| "-".into()),
+            torch.map(|t| format!("{:.2}", t / f.median_ms)).unwrap_or_else(|| "-".into())
+        );
+    }
+    Ok(0)
+}

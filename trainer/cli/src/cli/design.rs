@@ -1,0 +1,165 @@
+//! `lmac design`: the three-phase protocol design loop.
+
+use super::parse_steps;
+use anyhow::{Context, Result};
+use clap::Args;
+use lmac_run::workflow::{interrupt_flag, plot};
+
+#[derive(Args)]
+pub(crate) struct DesignArgs {
+    /// Environment, e.g. lbf:8x8-2p-2f-s1-coop.
+    #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
+    pub(crate) env: String,
+    /// Designer: `offline` (embedded, no network: builds each phase from the meta-information),
+    /// or an LLM: `openai:MODEL` (any OpenAI-compatible server: OpenAI, vLLM, llama.cpp,
+    /// Ollama; key from OPENAI_API_KEY), `anthropic:MODEL` (key from ANTHROPIC_API_KEY), `gemini:MODEL`
+    /// (Google's OpenAI-compatible endpoint; key from GEMINI_API_KEY).
+    #[arg(long, default_value = "offline")]
+    pub(crate) llm: String,
+    /// Base URL of an OpenAI-compatible server, e.g. http://127.0.0.1:8080/v1.
+    #[arg(long)]
+    pub(crate) base_url: Option<String>,
+    /// The environment variable holding the key for a --base-url server. Without it such a
+    /// server gets no key (OPENAI_API_KEY goes only to OpenAI's own API); a key is sent only
+    /// over https, or over http to this machine.
+    #[arg(long, value_name = "VAR")]
+    pub(crate) api_key_env: Option<String>,
+    /// live: ask the LLM (recording every exchange); replay: answer from the recordings only
+    /// (offline, exact); replay-or-live: recordings first, then the LLM.
+    #[arg(long, default_value = "live")]
+    pub(crate) llm_mode: String,
+    /// Where LLM exchanges are recorded and replayed from (default: <out>/llm-recordings).
+    #[arg(long)]
+    pub(crate) recordings: Option<std::path::PathBuf>,
+    /// How the protocol's JSON Schema goes with each generation request, so the reply is valid
+    /// JSON of the protocol language by construction: json-schema (OpenAI's response_format;
+    /// OpenAI, Gemini, vLLM, Ollama), json-object (llama.cpp's schema-to-grammar), off
+    /// (Anthropic, or a server that rejects it). Default: by provider.
+    #[arg(long, value_name = "MODE")]
+    pub(crate) structured_output: Option<lmac_design::llm::StructuredOutput>,
+    /// The most tokens an LLM reply may have (default: the provider's; Anthropic 8192). A reply
+    /// cut off at the limit is an error naming it, not a malformed protocol.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
+    pub(crate) llm_max_tokens: Option<u32>,
+    /// Corrections the LLM gets per reply (invalid JSON, validation errors) before the design fails.
+    #[arg(long, default_value_t = 3)]
+    pub(crate) max_retries: usize,
+    /// Env steps of the QMIX run whose epsilon-greedy policy collects the dataset (paper: 200k).
+    #[arg(long, default_value = "50k", value_parser = parse_steps)]
+    pub(crate) pretrain_steps: u64,
+    /// Episodes in the dataset (paper: 5000).
+    #[arg(long, default_value_t = 1000)]
+    pub(crate) dataset_episodes: usize,
+    /// Epsilon while collecting (default: the schedule's value at the end of the QMIX run).
+    #[arg(long)]
+    pub(crate) dataset_epsilon: Option<f32>,
+    /// Reuse a dataset directory (e.g. <design>/collect/dataset) instead of collecting one.
+    #[arg(long)]
+    pub(crate) dataset: Option<std::path::PathBuf>,
+    /// Environments per env server and env servers for the collection run.
+    #[arg(long, default_value_t = 16)]
+    pub(crate) envs: usize,
+    #[arg(long, default_value_t = 2)]
+    pub(crate) servers: usize,
+    /// Discriminator updates per training (paper: 1000 epochs x 10 iterations).
+    #[arg(long)]
+    pub(crate) disc_updates: Option<usize>,
+    /// Design phases (paper: 3).
+    #[arg(long, default_value_t = 3)]
+    pub(crate) phases: usize,
+    /// Which recovery "without messages" the designer is shown: `retrained` (a second
+    /// discriminator trained without messages) or `zeroed` (the paper's: the with-messages
+    /// discriminator given zeroed messages). Both are measured and written to recovery.json.
+    #[arg(long, default_value = "retrained")]
+    pub(crate) without: lmac_design::meta::NoMessages,
+    /// Drop a phase whose messages add nothing to the earlier phases' on the fixed dims (every
+    /// phase's verdict is printed and in summary.json either way; without this flag the final
+    /// protocol keeps all phases, as the paper's does)
+    #[arg(long)]
+    pub(crate) drop_unhelpful_phases: bool,
+    /// How the offline designer chooses phase 0's task-critical dims: `relevance` (what the
+    /// return depends on, from a value model fitted on the dataset, and agents recover poorly
+    /// without messages) or `recovery` (the hardest to recover, its first rule)
+    #[arg(long, default_value = "relevance")]
+    pub(crate) critical_by: lmac_design::offline::CriticalBy,
+    #[arg(long, default_value_t = 0)]
+    pub(crate) seed: u64,
+    /// Where design directories go.
+    #[arg(long, default_value = "designs")]
+    pub(crate) out: std::path::PathBuf,
+}
+
+impl DesignArgs {
+    /// The command's defaults (the offline designer) for `env`, writing under `out`.
+    pub(crate) fn defaults(env: &str, out: std::path::PathBuf) -> DesignArgs {
+        use clap::FromArgMatches;
+        let cmd = <DesignArgs as clap::Args>::augment_args(clap::Command::new("design"));
+        let mut a = DesignArgs::from_arg_matches(&cmd.get_matches_from(["design"])).expect("the defaults parse");
+        a.env = env.to_string();
+        a.out = out;
+        a
+    }
+}
+
+pub(crate) fn design(a: DesignArgs) -> Result<i32> {
+    let dir = design_dir(&a, interrupt_flag())?;
+    println!("design written to {}", dir.display());
+    println!("final protocol: {}", std::fs::read_to_string(dir.join("final_protocol.txt"))?.trim());
+    Ok(0)
+}
+
+/// Run the design loop `a` describes; returns its directory.
+pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::atomic::AtomicBool>) -> Result<std::path::PathBuf> {
+    use lmac_design::llm::LlmMode;
+    use lmac_design::llm_designer::{LlmDesigner, LlmDesignerOptions};
+    use lmac_design::meta::MetaConfig;
+    use lmac_design::offline::{OfflineConfig, OfflineDesigner};
+    use lmac_design::run::{run_design, DesignOptions};
+    use lmac_design::Designer;
+    let opts = DesignOptions {
+        env: a.env.clone(),
+        out: a.out.clone(),
+        seed: a.seed,
+        pretrain_steps: a.pretrain_steps,
+        dataset_episodes: a.dataset_episodes,
+        dataset_epsilon: a.dataset_epsilon,
+        envs: a.envs,
+        servers: a.servers,
+        dataset: a.dataset.clone(),
+        phases: a.phases,
+        without: a.without,
+        drop_unhelpful_phases: a.drop_unhelpful_phases,
+    };
+    // One discriminator configuration for the offline designer's phase-0 measurement and for
+    // every phase's meta-information.
+    let mut meta_cfg = MetaConfig::default();
+    if let Some(u) = a.disc_updates {
+        meta_cfg.discriminator.updates = u;
+    }
+    meta_cfg.without = a.without;
+    meta_cfg.discriminator.validate()?;
+    let mut designer: Box<dyn Designer> = if a.llm == "offline" {
+        let cfg = OfflineConfig {
+            discriminator: meta_cfg.discriminator.clone(),
+            phases: a.phases,
+            critical_by: a.critical_by,
+            ..Default::default()
+        };
+        Box::new(OfflineDesigner::new(cfg))
+    } else {
+        let mode: LlmMode = a.llm_mode.parse().map_err(anyhow::Error::msg)?;
+        let rec = a.recordings.clone().unwrap_or_else(|| a.out.join("llm-recordings"));
+        std::fs::create_dir_all(&rec).with_context(|| format!("creating {}", rec.display()))?;
+        let options = LlmDesignerOptions {
+            max_retries: a.max_retries,
+            api_key_env: a.api_key_env.clone(),
+            structured: a.structured_output,
+            max_tokens: a.llm_max_tokens,
+            ..Default::default()
+        };
+        Box::new(LlmDesigner::from_spec(&a.llm, a.base_url.as_deref(), mode, Some(rec), options)?)
+    };
+    let dir = run_design(&opts, designer.as_mut(), &meta_cfg, interrupted)?;
+    plot("plot_design", &dir);
+    Ok(dir)
+}

@@ -1,0 +1,339 @@
+//! `lmac experiment`: the paper's Algorithm 1 end to end. One protocol design (shared by every
+//! seed), then LMAC and the baselines trained with the same settings for every seed, then a
+//! comparison table and the curves. Rerunning the same command continues where it stopped: the
+//! design is reused once written, finished seeds are skipped, unfinished ones resume from their
+//! checkpoints.
+
+use super::design::{design_dir, DesignArgs};
+use super::parse_steps;
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use lmac_run::stats::{mean, variance};
+use lmac_run::train::{read_metrics, TrainConfig};
+use lmac_run::workflow::{interrupt_flag, plot, train_dirs};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+#[derive(Args)]
+pub(crate) struct ExperimentArgs {
+    /// Environment, e.g. lbf:8x8-2p-2f-s1-coop.
+    #[arg(long, default_value = "lbf:8x8-2p-2f-s1-coop")]
+    env: String,
+    /// Seeds, comma separated (one design for all of them).
+    #[arg(long, default_value = "0,1,2", value_delimiter = ',')]
+    seeds: Vec<u64>,
+    /// Env steps per training run, e.g. 1M, 200k.
+    #[arg(long, default_value = "1M", value_parser = parse_steps)]
+    steps: u64,
+    /// Algorithms to compare, comma separated (`lmac train --help` lists them); `--algos ''`
+    /// trains only the --ablations and --variant rows.
+    #[arg(long, default_value = "lmac,qmix,fullcomm,qmix-state", value_delimiter = ',')]
+    algos: Vec<String>,
+    /// Also train Table 1(a)'s rows: k = 0 and k = 1 (the design's first phases), LMAC without
+    /// the consistency loss and without the meta loss.
+    #[arg(long)]
+    ablations: bool,
+    /// An extra row: LABEL=ALGO with settings after commas, e.g.
+    /// --variant lmac-window=lmac,method.encoder="window" (repeatable).
+    #[arg(long = "variant", value_name = "LABEL=ALGO[,KEY=VALUE...]")]
+    variants: Vec<String>,
+    /// Protocol designer: offline, or an LLM as in `lmac design --llm`.
+    #[arg(long, default_value = "offline")]
+    llm: String,
+    /// Env steps of the QMIX run that collects the design's dataset.
+    #[arg(long, default_value = "50k", value_parser = parse_steps)]
+    design_steps: u64,
+    /// Episodes in the design's dataset.
+    #[arg(long, default_value_t = 1000)]
+    dataset_episodes: usize,
+    /// Discriminator updates per design phase (default: the designer's).
+    #[arg(long)]
+    disc_updates: Option<usize>,
+    /// Use this design directory instead of designing one; `paper`: the LMAC authors' design
+    /// for --env shipped in protocols/paper/ (an error naming the env when none is shipped).
+    #[arg(long)]
+    design: Option<PathBuf>,
+    /// Settings for every training run: --set learn.lr=0.001 --set run.envs=8
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// A preset for every training run (see `lmac train --preset`).
+    #[arg(long)]
+    preset: Option<String>,
+    /// Test return a run must reach for the "steps to threshold" columns (default: 80% of the
+    /// best final test return in the table).
+    #[arg(long)]
+    threshold: Option<f64>,
+    /// The experiment's directory (default: experiments/<env>).
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+/// What an experiment directory was made for: a rerun must ask for the same.
+#[derive(Serialize, Deserialize, PartialEq, Debug)]
+struct ExperimentSpec {
+    env: String,
+    steps: u64,
+    set: Vec<String>,
+    preset: Option<String>,
+}
+
+/// One row of the comparison: an algorithm (or an ablation) over its seeds.
+#[derive(Serialize, Clone, Debug)]
+pub(crate) struct Row {
+    pub label: String,
+    pub algo: String,
+    pub seeds: usize,
+    pub final_return_mean: f64,
+    pub final_return_std: f64,
+    pub final_win_rate_mean: Option<f64>,
+    pub final_win_rate_std: Option<f64>,
+    /// Seeds that reached the threshold, and their mean env steps and wall seconds to it.
+    pub reached: usize,
+    pub steps_to_threshold: Option<f64>,
+    pub wall_s_to_threshold: Option<f64>,
+    pub wall_s_total: f64,
+}
+
+/// The rows to train: (label, algo, extra overrides).
+fn variants(a: &ExperimentArgs) -> Result<Vec<(String, String, Vec<String>)>> {
+    let mut v: Vec<(String, String, Vec<String>)> =
+        a.algos.iter().filter(|al| !al.is_empty()).map(|al| (al.clone(), al.clone(), Vec::new())).collect();
+    if a.ablations {
+        for (label, o) in [
+            ("lmac-k0", "run.design_k=0"),
+            ("lmac-k1", "run.design_k=1"),
+            ("lmac-no-cons", "method.lambda_cons=0.0"),
+            ("lmac-no-meta", "method.lambda_meta=0.0"),
+        ] {
+            v.push((label.into(), "lmac".into(), vec![o.into()]));
+        }
+    }
+    for spec in &a.variants {
+        let (label, rest) = spec.split_once('=').with_context(|| format!("--variant {spec:?}: use LABEL=ALGO[,KEY=VALUE...]"))?;
+        let mut parts = rest.split(',');
+        let algo = parts.next().unwrap_or_default();
+        if label.is_empty() || label.contains(['/', '.']) || algo.is_empty() {
+            bail!("--variant {spec:?}: use LABEL=ALGO[,KEY=VALUE...] with a label that is a plain name");
+        }
+        v.push((label.into(), algo.into(), parts.map(str::to_string).collect()));
+    }
+    if v.is_empty() {
+        bail!("nothing to train: --algos is empty and there are no --ablations or --variant rows");
+    }
+    let mut labels: Vec<&str> = v.iter().map(|x| x.0.as_str()).collect();
+    labels.sort_unstable();
+    if let Some(w) = labels.windows(2).find(|w| w[0] == w[1]) {
+        bail!("two rows are called {:?}", w[0]);
+    }
+    Ok(v)
+}
+
+pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
+    let rows_to_train = variants(&a)?;
+    let interrupted = interrupt_flag();
+    let dir = a.out.clone().unwrap_or_else(|| PathBuf::from("experiments").join(a.env.replace(':', "_")));
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let _lock = lmac_run::run_dir::lock(&dir)?;
+    let spec = ExperimentSpec { env: a.env.clone(), steps: a.steps, set: a.set.clone(), preset: a.preset.clone() };
+    let spec_path = dir.join("experiment.json");
+    if spec_path.exists() {
+        let old: ExperimentSpec =
+            serde_json::from_slice(&std::fs::read(&spec_path)?).with_context(|| format!("reading {}", spec_path.display()))?;
+        if old != spec {
+            bail!("{} was made for {old:?}; this command asks for {spec:?}: give another --out", dir.display());
+        }
+    } else {
+        std::fs::write(&spec_path, serde_json::to_string_pretty(&spec)?)?;
+    }
+
+    // 1. The protocol design, once.
+    let needs_design = rows_to_train.iter().any(|(_, algo, _)| algo == "lmac");
+    let design = match (&a.design, needs_design) {
+        (Some(d), _) if d.as_os_str() == "paper" => {
+            let dir = lmac_run::train::resolve_paper_spec("paper", &a.env).context("--design paper")?;
+            Some(std::fs::canonicalize(&dir).with_context(|| format!("--design paper: {dir}"))?)
+        }
+        (Some(d), _) => Some(std::fs::canonicalize(d).with_context(|| format!("--design {}", d.display()))?),
+        (None, false) => None,
+        (None, true) => Some(shared_design(&a, &dir, interrupted.clone())?),
+    };
+
+    // 2. Every variant and seed, with the same settings.
+    let mut groups: Vec<(String, String, Vec<PathBuf>)> = Vec::new();
+    for (label, algo, extra) in rows_to_train {
+        let mut dirs = Vec::new();
+        for &seed in &a.seeds {
+            let d = dir.join("runs").join(&label).join(format!("seed{seed}"));
+            if !d.join("config.toml").exists() {
+                let mut o = lmac_run::train::preset_then(a.preset.as_deref(), &a.set)?;
+                o.push(format!("run.env={:?}", a.env));
+                o.push(format!("run.algo={algo:?}"));
+                o.push(format!("run.steps={}", a.steps));
+                o.push(format!("learn.seed={seed}"));
+                if algo == "lmac" {
+                    let design = design.as_ref().expect("a design for lmac");
+                    o.push(format!("run.protocol={:?}", design.display().to_string()));
+                }
+                o.extend(extra.iter().cloned());
+                let cfg = TrainConfig::resolve(None, &o).with_context(|| format!("the {label} runs"))?;
+                std::fs::create_dir_all(&d)?;
+                std::fs::write(d.join("config.toml"), toml::to_string_pretty(&cfg)?)?;
+            }
+            dirs.push(d);
+        }
+        groups.push((label, algo, dirs));
+    }
+    // Seed by seed, so an interrupted experiment has every variant of its first seeds.
+    let all: Vec<PathBuf> = (0..a.seeds.len()).flat_map(|k| groups.iter().map(move |g| g.2[k].clone())).collect();
+    eprintln!("lmac: experiment in {}: {} runs ({} variants x {} seeds)", dir.display(), all.len(), groups.len(), a.seeds.len());
+    train_dirs(&all, interrupted)?;
+
+    // 3. The table and the curves.
+    let mut rows = Vec::new();
+    for (label, algo, dirs) in &groups {
+        rows.push(summarize(label, algo, dirs)?);
+    }
+    // A threshold of 0 or less would be "reached" at the first test: then there is none.
+    let best = rows.iter().map(|r| r.final_return_mean).fold(f64::MIN, f64::max);
+    let threshold = a.threshold.unwrap_or(0.8 * best);
+    if threshold > 0.0 {
+        for (row, (_, _, dirs)) in rows.iter_mut().zip(&groups) {
+            reach(row, dirs, threshold)?;
+        }
+    }
+    let table = render(&a.env, &rows, threshold);
+    std::fs::write(dir.join("comparison.md"), &table)?;
+    std::fs::write(
+        dir.join("comparison.json"),
+        serde_json::to_string_pretty(
+            &serde_json::json!({"env": a.env, "steps": a.steps, "threshold": threshold, "design": design, "rows": rows}),
+        )?,
+    )?;
+    let mut csv = String::from("label,algo,seeds,final_return_mean,final_return_std,final_win_rate_mean,final_win_rate_std,reached,steps_to_threshold,wall_s_to_threshold,wall_s_total\n");
+    let o = |v: Option<f64>| v.map(|x| format!("{x:.4}")).unwrap_or_default();
+    for r in &rows {
+        csv.push_str(&format!(
+            "{},{},{},{:.4},{:.4},{},{},{},{},{},{:.1}\n",
+            r.label,
+            r.algo,
+            r.seeds,
+            r.final_return_mean,
+            r.final_return_std,
+            o(r.final_win_rate_mean),
+            o(r.final_win_rate_std),
+            r.reached,
+            o(r.steps_to_threshold),
+            o(r.wall_s_to_threshold),
+            r.wall_s_total
+        ));
+    }
+    std::fs::write(dir.join("comparison.csv"), csv)?;
+    // The curves and, with the k ablations, the phase plot.
+    plot("plot_experiment", &dir);
+    println!("{table}");
+    println!("written: {}/comparison.{{md,csv,json}} and the plots", dir.display());
+    Ok(0)
+}
+
+/// The experiment's design: reused when it already finished, else designed into `<dir>/design`.
+fn shared_design(a: &ExperimentArgs, dir: &Path, interrupted: std::sync::Arc<std::sync::atomic::AtomicBool>) -> Result<PathBuf> {
+    let note = dir.join("design.txt");
+    if let Ok(p) = std::fs::read_to_string(&note) {
+        let p = PathBuf::from(p.trim());
+        if p.join("phase0").join("protocol.json").exists() {
+            eprintln!("lmac: experiment: reusing the design in {}", p.display());
+            return Ok(p);
+        }
+    }
+    let mut d = DesignArgs::defaults(&a.env, dir.join("design"));
+    d.llm = a.llm.clone();
+    d.pretrain_steps = a.design_steps;
+    d.dataset_episodes = a.dataset_episodes;
+    d.disc_updates = a.disc_updates;
+    d.seed = a.seeds.first().copied().unwrap_or(0);
+    let p = std::fs::canonicalize(design_dir(&d, interrupted)?)?;
+    std::fs::write(&note, p.display().to_string())?;
+    Ok(p)
+}
+
+/// The last few test phases of a run average into its final figure (one phase is only
+/// run.test_episodes episodes): the rule of `env-server/lmac_report/final.py`, which every report
+/// and plot uses.
+const FINAL_TESTS: usize = 5;
+
+/// Mean and population standard deviation over seeds.
+fn mean_std(v: &[f64]) -> (f64, f64) {
+    (mean(v), variance(v).sqrt())
+}
+
+fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
+    let (mut ret, mut win, mut wall) = (Vec::new(), Vec::new(), Vec::new());
+    for d in dirs {
+        let rows = read_metrics(d)?;
+        let tests: Vec<_> = rows.iter().filter(|r| r.test_return_mean.is_some()).collect();
+        if tests.is_empty() {
+            bail!("{}: no test phase was logged", d.display());
+        }
+        let last = &tests[tests.len().saturating_sub(FINAL_TESTS)..];
+        ret.push(last.iter().map(|r| r.test_return_mean.unwrap_or(0.0)).sum::<f64>() / last.len() as f64);
+        win.push(last.iter().map(|r| r.test_win_rate.unwrap_or(0.0)).sum::<f64>() / last.len() as f64);
+        wall.push(rows.last().map_or(0.0, |r| r.wall_s));
+    }
+    let (rm, rs) = mean_std(&ret);
+    let (wm, ws) = mean_std(&win);
+    let has_wins = win.iter().any(|&w| w > 0.0);
+    Ok(Row {
+        label: label.into(),
+        algo: algo.into(),
+        seeds: dirs.len(),
+        final_return_mean: rm,
+        final_return_std: rs,
+        final_win_rate_mean: has_wins.then_some(wm),
+        final_win_rate_std: has_wins.then_some(ws),
+        reached: 0,
+        steps_to_threshold: None,
+        wall_s_to_threshold: None,
+        wall_s_total: mean(&wall),
+    })
+}
+
+fn reach(row: &mut Row, dirs: &[PathBuf], threshold: f64) -> Result<()> {
+    let (mut steps, mut wall) = (Vec::new(), Vec::new());
+    for d in dirs {
+        if let Some(r) = read_metrics(d)?.into_iter().find(|r| r.test_return_mean.is_some_and(|v| v >= threshold)) {
+            steps.push(r.t_env as f64);
+            wall.push(r.wall_s);
+        }
+    }
+    row.reached = steps.len();
+    row.steps_to_threshold = (!steps.is_empty()).then(|| mean(&steps));
+    row.wall_s_to_threshold = (!wall.is_empty()).then(|| mean(&wall));
+    Ok(())
+}
+
+fn render(env: &str, rows: &[Row], threshold: f64) -> String {
+    let mut s = format!(
+        "{env}: final test return (mean +- std over seeds, last {FINAL_TESTS} test phases each); steps and wall time to a test return of {threshold:.3} (mean over the seeds that reached it)\n\n"
+    );
+    s.push_str("| algorithm | seeds | final test return | final win rate | reached | env steps to threshold | wall s to threshold | wall s total |\n");
+    s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- |\n");
+    for r in rows {
+        let win = match (r.final_win_rate_mean, r.final_win_rate_std) {
+            (Some(m), Some(sd)) => format!("{m:.3} +- {sd:.3}"),
+            _ => "-".into(),
+        };
+        s.push_str(&format!(
+            "| {} | {} | {:.3} +- {:.3} | {win} | {}/{} | {} | {} | {:.0} |\n",
+            r.label,
+            r.seeds,
+            r.final_return_mean,
+            r.final_return_std,
+            r.reached,
+            r.seeds,
+            r.steps_to_threshold.map_or("-".into(), |v| format!("{v:.0}")),
+            r.wall_s_to_threshold.map_or("-".into(), |v| format!("{v:.0}")),
+            r.wall_s_total
+        ));
+    }
+    s
+}

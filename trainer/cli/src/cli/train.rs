@@ -1,0 +1,135 @@
+//! `lmac train`: resolve the configs, create or resume the run directories, train each seed
+//! through the pipeline, plot.
+
+use super::parse_steps;
+use anyhow::{Context, Result};
+use clap::Args;
+use lmac_run::workflow::{interrupt_flag, plot, seed_dirs, train_dirs_holding};
+
+pub(crate) const TRAIN_AFTER_HELP: &str = "\
+Update ratio: by default the learner does run.updates_per_episode = 0.125 gradient updates (of
+learn.batch_size = 32 episodes) per collected episode, pymarl's parallel runner with 8
+environments. That is 8x fewer updates per episode than EPyMARL's episode runner (1 per
+episode), and the target network, copied every 200 episodes, is then copied every 25 updates.
+--preset paper reproduces the paper's schedule (EPyMARL's episode runner): 1 update per episode
+from the 32nd episode on, a target copy every 200 updates, the target network unrolled on the
+second core (acting waits for the learner at this ratio); --preset epymarl is the same on one
+core, --preset pymarl-parallel the default's 0.125. Each environment switches to new weights when its
+next episode starts.
+
+Resuming: --resume DIR continues every unfinished seed in DIR (a group or one seed) from its
+last checkpoint (run.checkpoint_interval env steps apart, and one at the end). Without the saved
+replay buffer (run.save_buffer = false) the learner refills learn.batch_size episodes before it
+updates again. Metrics rows logged after that checkpoint are dropped, so curves continue
+without a step backwards; each checkpoint is logged in metrics.jsonl.";
+
+/// `--algo`'s values, with each method's line, from the method registry.
+pub(crate) fn algo_names() -> clap::builder::PossibleValuesParser {
+    clap::builder::PossibleValuesParser::new(
+        lmac_run::learn::methods::REGISTRY.iter().map(|m| clap::builder::PossibleValue::new(m.name).help(m.about)),
+    )
+}
+
+#[derive(Args)]
+pub(crate) struct TrainArgs {
+    /// Environment (overrides run.env).
+    #[arg(long)]
+    env: Option<String>,
+    /// The method to train (overrides run.algo).
+    #[arg(long, value_parser = algo_names())]
+    algo: Option<String>,
+    /// Protocol: a design directory (from `lmac design`), phase files a.json+b.json, or the LMAC
+    /// authors' design shipped in protocols/paper/: `paper` (for --env) or `paper:<task>`
+    /// (overrides run.protocol; lmac needs one).
+    #[arg(long)]
+    protocol: Option<String>,
+    /// Seeds, comma separated: one run directory each, run one after the other.
+    #[arg(long, default_value = "0", value_delimiter = ',')]
+    seeds: Vec<u64>,
+    /// Env steps per seed, e.g. 2M, 500k (overrides run.steps).
+    #[arg(long, value_parser = parse_steps)]
+    steps: Option<u64>,
+    /// Config file (TOML with [run], [learn] and [method] sections).
+    #[arg(long)]
+    config: Option<std::path::PathBuf>,
+    /// Override a config value: --set learn.lr=0.001 --set run.envs=8
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// A named bundle of settings, applied before --set: paper (the LMAC paper's schedule: 1
+    /// update per collected episode, target copy every 200 updates, target unrolled on the
+    /// second core), epymarl (the same schedule on one core), pymarl-parallel (0.125 updates
+    /// per episode).
+    #[arg(long)]
+    preset: Option<String>,
+    /// Where run directories go.
+    #[arg(long, default_value = "runs")]
+    out: std::path::PathBuf,
+    /// Continue the runs in this directory (a seed's directory or a group of seeds).
+    #[arg(long, conflicts_with_all = ["env", "algo", "protocol", "config", "set", "steps", "preset"])]
+    resume: Option<std::path::PathBuf>,
+}
+
+pub(crate) fn train(a: TrainArgs) -> Result<i32> {
+    use lmac_run::train::TrainConfig;
+    let interrupted = interrupt_flag();
+    // The seed directories to run, each with its resolved config.toml.
+    // The locks of seed directories this command made (taken before anything was written in them).
+    let mut held = Vec::new();
+    let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
+        seed_dirs(r)?
+    } else {
+        let mut overrides = lmac_run::train::preset_then(a.preset.as_deref(), &a.set)?;
+        if let Some(e) = &a.env {
+            overrides.push(format!("run.env={e:?}"));
+        }
+        if let Some(al) = &a.algo {
+            overrides.push(format!("run.algo={al:?}"));
+        }
+        if let Some(p) = &a.protocol {
+            overrides.push(format!("run.protocol={p:?}"));
+        }
+        if let Some(st) = a.steps {
+            overrides.push(format!("run.steps={st}"));
+        }
+        let mut cfg = TrainConfig::resolve(a.config.as_deref(), &overrides)?;
+        // Protocol files by absolute path, so a resumed run finds them from anywhere. A paper
+        // design (`paper`, `paper:<task>`) stays as named: it is found in the repository each time.
+        let paper = lmac_run::train::resolve_paper_spec(&cfg.run.protocol, &cfg.run.env)? != cfg.run.protocol;
+        if !cfg.run.protocol.is_empty() && !paper {
+            let absolute = |f: &str| -> Result<String> {
+                Ok(std::fs::canonicalize(f).with_context(|| format!("run.protocol: {f}"))?.display().to_string())
+            };
+            // Protocol files (or a built-in), else a design directory.
+            cfg.run.protocol = match cfg.run.protocol.parse::<lmac_protocol_runner::ProtocolSpec>() {
+                Ok(spec) => spec.map_files(absolute)?.to_string(),
+                Err(_) => absolute(&cfg.run.protocol)?,
+            };
+        }
+        // Valid but suspicious protocol files (another environment's, or an older schema's); an
+        // invalid protocol is reported by the config check below.
+        for w in cfg.protocol_warnings().unwrap_or_default() {
+            eprintln!("lmac: warning: run.protocol: {w}");
+        }
+        // A group directory of this command's own (two launches in the same second get two),
+        // and each seed's lock taken before its config is written: no other lmac ever trains a
+        // directory with a config it did not write.
+        let parent = a.out.join(cfg.run.env.replace(':', "_")).join(&cfg.run.algo);
+        let group = lmac_run::run_dir::create_unique_dir(&parent, &lmac_run::run_dir::stamp())?;
+        let mut dirs = Vec::new();
+        for &seed in &a.seeds {
+            let mut c = cfg.clone();
+            c.learn.seed = seed;
+            let d = group.join(format!("seed{seed}"));
+            std::fs::create_dir(&d).with_context(|| format!("creating {}", d.display()))?;
+            held.push(Some(lmac_run::run_dir::lock(&d)?));
+            let p = d.join("config.toml");
+            std::fs::write(&p, toml::to_string_pretty(&c)?).with_context(|| format!("writing {}", p.display()))?;
+            dirs.push(d);
+        }
+        (group, dirs)
+    };
+    eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
+    train_dirs_holding(&dirs, held, interrupted)?;
+    plot("plot_runs", &group);
+    Ok(0)
+}

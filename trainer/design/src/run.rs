@@ -1,0 +1,317 @@
+//! `lmac design`: runs the three phases end to end and writes the design directory.
+//!
+//! ```text
+//! <out>/<env>/<time>-<designer>/
+//!   options.json            what was asked (env, designer, seeds, budgets)
+//!   collect/                the short QMIX run that collects the dataset B (config, metrics,
+//!                           checkpoint) and collect/dataset/ (see `dataset`)
+//!   phase<k>/protocol.json  the phase's protocol (validated), protocol.txt its explanation,
+//!                           reasoning.md the designer's reasoning, feedback.json (k >= 1) the
+//!                           feedback that led to it, meta.json the meta-information of
+//!                           phases 0..=k on B (its target dims), recovery.json every state
+//!                           dim's per-agent recovery with messages and without (both
+//!                           definitions) and its constant-guess rate
+//!   final.txt               the final protocol (all phases) explained; final_protocol.txt the
+//!                           `--protocol` / `run.protocol` value that trains with it
+//!   transcript.json         every prompt and reply (or the offline designer's account)
+//!   summary.json            per phase: recovery, skill over a constant guess and variance
+//!                           across agents, with and without messages, on fixed dims (phase 0's
+//!                           critical dims, and all dims) and on the phase's target dims;
+//!                           recovery.png plots the fixed-dim trend (the paper's Figure 3)
+//! ```
+
+use super::meta::{evaluate_all, Evaluation, MetaConfig};
+use super::meta_info::{RecoverySummary, SetTrend, Verdict};
+use super::{DesignContext, Designer, PhaseProtocol};
+use anyhow::{bail, Context, Result};
+use lmac_protocol_runner::protocol::{self, ValidatedProtocol};
+use lmac_run::dataset::Dataset;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// What to design and with how much data.
+#[derive(Clone, Debug, Serialize)]
+pub struct DesignOptions {
+    pub env: String,
+    /// Parent of the design directory.
+    pub out: PathBuf,
+    pub seed: u64,
+    /// Env steps of the QMIX run whose epsilon-greedy policy collects B (the paper: 200k).
+    pub pretrain_steps: u64,
+    /// Episodes in B (the paper: 5000).
+    pub dataset_episodes: usize,
+    /// Epsilon while collecting (None: the schedule's value at the end of the QMIX run).
+    pub dataset_epsilon: Option<f32>,
+    /// Environments per env server and env servers of the collection run.
+    pub envs: usize,
+    pub servers: usize,
+    /// Use this dataset directory instead of collecting one.
+    pub dataset: Option<PathBuf>,
+    /// Number of phases: 3 in the paper (initialization, recognition, sharing).
+    pub phases: usize,
+    /// Which "without messages" the designer is shown (both are measured).
+    pub without: super::meta::NoMessages,
+    /// Drop a phase whose messages add nothing to the earlier phases' on the fixed dims (its
+    /// verdict says so either way); off keeps the paper's three phases.
+    pub drop_unhelpful_phases: bool,
+}
+
+/// One phase's line of `summary.json` (read by `lmac_report.plot_design`). The target dims change from
+/// phase to phase (they steer the designer); the trend is read on `fixed_dims` and `all_dims`.
+#[derive(Clone, Debug, Serialize)]
+pub struct PhaseEvaluation {
+    pub phase: usize,
+    pub message_columns: usize,
+    /// On the fixed dims ([`fixed_dims`]), the same for every phase.
+    pub fixed_dims: SetTrend,
+    /// On every state dim.
+    pub all_dims: SetTrend,
+    /// On this phase's target dims (what the designer was shown).
+    pub with_messages: RecoverySummary,
+    pub without_messages: RecoverySummary,
+    pub target_dims: Vec<usize>,
+    /// Do the messages of phases 0..=k help on the fixed dims (against the no-message baseline
+    /// and a constant guess)?
+    pub verdict: Verdict,
+    /// Phase k >= 1: does it add to phases 0..k on the fixed dims?
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub adds: Option<Verdict>,
+    /// Dropped from the final protocol (see [`DesignOptions::drop_unhelpful_phases`]).
+    pub dropped: bool,
+}
+
+/// The dims the trend is read on, fixed at phase 0: its task-critical dims (all dims when it
+/// names none), so "k = 0 -> 1 -> 2" compares the same set. Returns (dims, where they come from).
+pub fn fixed_dims(phase0: &ValidatedProtocol) -> (Vec<usize>, &'static str) {
+    let mut fixed = phase0.critical_dims.clone();
+    fixed.sort_unstable();
+    fixed.dedup();
+    let source = if fixed.is_empty() { "all state dims (phase 0 names no critical dims)" } else { "phase 0's critical state dims" };
+    (fixed, source)
+}
+
+/// Evaluate phases 0..=k (`phases`) on B and write `meta.json` and `recovery.json` into
+/// `phase_dir`; log the result. Returns the meta-information (for the designer) and the phase's
+/// `summary.json` line.
+pub fn evaluate_phase(
+    ctx: &DesignContext,
+    phases: &[ValidatedProtocol],
+    fixed: &[usize],
+    meta_cfg: &MetaConfig,
+    phase_dir: &Path,
+) -> Result<(super::meta_info::MetaInfo, PhaseEvaluation)> {
+    let k = phases.len().saturating_sub(1);
+    let Evaluation { meta, dims } =
+        evaluate_all(ctx, phases, meta_cfg).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
+    std::fs::create_dir_all(phase_dir).with_context(|| format!("creating {}", phase_dir.display()))?;
+    write(&phase_dir.join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
+    let recovery = serde_json::json!({ "alpha": ctx.schema.alpha, "dims": dims });
+    write(&phase_dir.join("recovery.json"), &serde_json::to_string_pretty(&recovery)?)?;
+    let fixed_trend = SetTrend::over(&dims, fixed);
+    let verdict = fixed_trend.verdict(&format!("the {} fixed dims", fixed_trend.dims));
+    let ev = PhaseEvaluation {
+        phase: k,
+        message_columns: lmac_protocol_runner::protocol::combined_width(phases),
+        fixed_dims: fixed_trend,
+        all_dims: SetTrend::over(&dims, &[]),
+        with_messages: meta.summary.with_communication.clone(),
+        without_messages: meta.summary.without_communication.clone(),
+        target_dims: meta.summary.target_dims.clone(),
+        verdict,
+        adds: None,
+        dropped: false,
+    };
+    eprintln!("lmac: phase {k}: {}", meta.summary_line());
+    for d in &meta.dead_fields {
+        eprintln!("lmac: phase {k}: warning: {d}");
+    }
+    eprintln!("lmac: phase {k}: fixed dims {}", ev.fixed_dims.summary_line());
+    eprintln!("lmac: phase {k}: {}", ev.verdict.text);
+    Ok((meta, ev))
+}
+
+fn write(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
+}
+
+fn save_phase(dir: &Path, k: usize, p: &PhaseProtocol, ctx: &DesignContext) -> Result<PathBuf> {
+    let pd = dir.join(format!("phase{k}"));
+    std::fs::create_dir_all(&pd)?;
+    let file = pd.join("protocol.json");
+    // The file says which environment (and schema) it was designed for; the in-memory protocol,
+    // which prompts and recordings read, stays as the designer wrote it.
+    let saved = protocol::Protocol {
+        env: Some(ctx.env_name.to_string()),
+        schema_fingerprint: Some(ctx.schema.fingerprint()),
+        ..p.protocol.clone()
+    };
+    write(&file, &serde_json::to_string_pretty(&saved)?)?;
+    write(&pd.join("protocol.txt"), &protocol::explain(&p.protocol, Some(ctx.env)))?;
+    write(&pd.join("reasoning.md"), &p.reasoning)?;
+    Ok(file)
+}
+
+/// Run the design: phases, dataset (collected through the pipeline's real processes unless
+/// given), discriminators with `meta_cfg`, feedback. Returns the design directory. Ctrl-C
+/// (`interrupted`) stops the collection run cleanly.
+pub fn run_design(
+    opts: &DesignOptions,
+    designer: &mut dyn Designer,
+    meta_cfg: &MetaConfig,
+    interrupted: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> Result<PathBuf> {
+    if opts.phases == 0 {
+        bail!("--phases: at least 1");
+    }
+    let schema = lmac_shm_schema::schema::load_env(&opts.env).map_err(anyhow::Error::msg)?;
+    let penv = lmac_protocol_runner::protocol_env(&schema);
+    // A directory of this design's own, even when another starts in the same second.
+    let dir = lmac_run::run_dir::create_unique_dir(
+        &opts.out.join(opts.env.replace(':', "_")),
+        &format!("{}-{}", lmac_run::run_dir::stamp(), designer.name().replace([':', '/'], "_")),
+    )?;
+    write(&dir.join("options.json"), &serde_json::to_string_pretty(opts)?)?;
+    eprintln!("lmac: design of {} with the {} designer in {}", opts.env, designer.name(), dir.display());
+    let ctx0 = DesignContext { env_name: &opts.env, schema: &schema, env: &penv, dataset: None, seed: opts.seed };
+
+    let mut phases: Vec<PhaseProtocol> = Vec::new();
+    let mut files: Vec<PathBuf> = Vec::new();
+    let persist_transcript =
+        |d: &dyn Designer| -> Result<()> { write(&dir.join("transcript.json"), &serde_json::to_string_pretty(&d.transcript())?) };
+    // Phase 0 before the data when the designer works from the task prompt alone (an LLM).
+    if !designer.needs_data_for_initial() {
+        let p0 = designer.initial(&ctx0).inspect_err(|_| {
+            let _ = persist_transcript(designer);
+        })?;
+        files.push(save_phase(&dir, 0, &p0, &ctx0)?);
+        eprintln!("lmac: phase 0: {}", protocol::check_summary(&p0.validated));
+        phases.push(p0);
+    }
+
+    // The dataset B: collected by a short QMIX run with phase 0's protocol fixed (no messages
+    // when the designer needs data for phase 0), or reused.
+    let data_dir = match &opts.dataset {
+        Some(d) => d.clone(),
+        None => {
+            let run_dir = dir.join("collect");
+            std::fs::create_dir_all(&run_dir)?;
+            // No phase yet (the offline designer designs phase 0 from B): QMIX's own, no messages.
+            let protocol = match files.is_empty() {
+                true => String::new(),
+                false => lmac_protocol_runner::ProtocolSpec::Files(files.iter().map(|f| f.display().to_string()).collect()).to_string(),
+            };
+            let cfg = lmac_run::train::TrainConfig {
+                run: lmac_run::train::RunSection {
+                    env: opts.env.clone(),
+                    algo: "qmix".into(),
+                    protocol,
+                    steps: opts.pretrain_steps.max(1),
+                    envs: opts.envs,
+                    servers: opts.servers,
+                    dataset_episodes: opts.dataset_episodes,
+                    dataset_epsilon: opts.dataset_epsilon,
+                    // Only its dataset is kept: no final evaluation of the collecting policy.
+                    final_eval_episodes: Some(0),
+                    ..Default::default()
+                },
+                learn: lmac_learn::LearnConfig { seed: opts.seed, ..Default::default() },
+                ..Default::default()
+            };
+            cfg.check()?;
+            write(&run_dir.join("config.toml"), &toml::to_string_pretty(&cfg)?)?;
+            eprintln!("lmac: collecting the dataset: QMIX for {} env steps, then {} episodes", opts.pretrain_steps, opts.dataset_episodes);
+            lmac_run::workflow::train_dirs(std::slice::from_ref(&run_dir), interrupted).context("collecting the dataset")?;
+            lmac_run::train::dataset_dir(&run_dir)
+        }
+    };
+    let data = Dataset::load(&data_dir).with_context(|| format!("loading the dataset {}", data_dir.display()))?;
+    if data.header.env != opts.env {
+        bail!("dataset {} was collected on {}, not {}", data_dir.display(), data.header.env, opts.env);
+    }
+    eprintln!(
+        "lmac: dataset: {} episodes, {} steps ({})",
+        data.episodes.len(),
+        data.episodes.iter().map(|e| e.len).sum::<usize>(),
+        data.header.policy
+    );
+    let ctx = DesignContext { dataset: Some(&data), ..ctx0 };
+
+    if phases.is_empty() {
+        let p0 = designer.initial(&ctx).inspect_err(|_| {
+            let _ = persist_transcript(designer);
+        })?;
+        files.push(save_phase(&dir, 0, &p0, &ctx)?);
+        eprintln!("lmac: phase 0: {}", protocol::check_summary(&p0.validated));
+        phases.push(p0);
+    }
+
+    let mut evaluations: Vec<PhaseEvaluation> = Vec::new();
+    let (fixed, fixed_source) = fixed_dims(&phases[0].validated);
+    // The evaluation of the phases kept so far, with its meta-information (what a dropped
+    // phase's successor is designed from).
+    let mut kept: Option<(super::meta_info::MetaInfo, PhaseEvaluation)> = None;
+    for k in 0..opts.phases {
+        let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
+        let (mut meta, mut ev) = evaluate_phase(&ctx, &validated, &fixed, meta_cfg, &dir.join(format!("phase{k}")))?;
+        meta.verdicts.push(format!("phases 0..={k}: {}", ev.verdict.text));
+        if let (true, Some((kept_meta, kept_ev))) = (k > 0, &kept) {
+            let added = ev.message_columns.saturating_sub(kept_ev.message_columns);
+            let adds = ev.fixed_dims.marginal_verdict(&kept_ev.fixed_dims, k, added);
+            eprintln!("lmac: phase {k}: {}", adds.text);
+            if !adds.messages_help && opts.drop_unhelpful_phases {
+                eprintln!("lmac: phase {k}: dropped from the final protocol (--drop-unhelpful-phases)");
+                phases.pop();
+                files.pop();
+                ev.dropped = true;
+                // The next phase is designed on the phases kept, told why this one went.
+                meta = kept_meta.clone();
+                meta.verdicts.push(format!("{}; it was dropped, so the next phase builds on phases before it", adds.text));
+            } else {
+                meta.verdicts.push(adds.text.clone());
+            }
+            meta.newest_phase_added = Some(adds.messages_help);
+            ev.adds = Some(adds);
+        }
+        if !ev.dropped {
+            kept = Some((meta.clone(), ev.clone()));
+        }
+        evaluations.push(ev);
+        persist_transcript(designer)?;
+        if k + 1 == opts.phases {
+            break;
+        }
+        let fb = designer.feedback(&ctx, k + 1, &phases, &meta).inspect_err(|_| {
+            let _ = persist_transcript(designer);
+        })?;
+        let pd = dir.join(format!("phase{}", k + 1));
+        std::fs::create_dir_all(&pd)?;
+        write(&pd.join("feedback.json"), &serde_json::to_string_pretty(&fb)?)?;
+        let next = designer.refine(&ctx, k + 1, &phases, &fb, &meta).inspect_err(|_| {
+            let _ = persist_transcript(designer);
+        })?;
+        files.push(save_phase(&dir, k + 1, &next, &ctx)?);
+        eprintln!("lmac: phase {}: {}", k + 1, protocol::check_summary(&next.validated));
+        phases.push(next);
+    }
+    persist_transcript(designer)?;
+
+    let all: Vec<_> = phases.iter().map(|p| p.protocol.clone()).collect();
+    write(&dir.join("final.txt"), &protocol::explain_phases(&all, Some(ctx.env)))?;
+    let spec = files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join("+");
+    write(&dir.join("final_protocol.txt"), &format!("{spec}\n"))?;
+    let summary = serde_json::json!({
+        "env": opts.env,
+        "designer": designer.name(),
+        "alpha": schema.alpha,
+        "dataset": data_dir.display().to_string(),
+        "dataset_episodes": data.episodes.len(),
+        "target_dims": evaluations.last().map(|e| e.target_dims.clone()).unwrap_or_default(),
+        "fixed_dims": fixed,
+        "fixed_dims_source": fixed_source,
+        "evaluations": evaluations,
+        "final_protocol": spec,
+        "designer_measurements": designer.measurements(),
+    });
+    write(&dir.join("summary.json"), &serde_json::to_string_pretty(&summary)?)?;
+    Ok(dir)
+}
