@@ -312,7 +312,9 @@ fn the_trainers_report_is_never_written_through_a_planted_symlink() {
     .expect("the trainer child appears");
     let args = cmdline(trainer);
     let after = |flag: &str| args.iter().position(|a| a == flag).and_then(|i| args.get(i + 1)).cloned().expect(flag);
-    let (run, report) = (after("--run"), std::path::PathBuf::from(after("--report")));
+    // The report's path is in the trainer's job file (in the run's private directory).
+    let (run, job) = (after("--run"), after("--job"));
+    let report = lmac_run::supervisor::TrainerJobFile::load(std::path::Path::new(&job)).unwrap().report;
     let mut report_tmp = report.clone().into_os_string();
     report_tmp.push(".tmp");
     let planted = [

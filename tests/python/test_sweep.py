@@ -179,7 +179,15 @@ def _trainer_pids(under: str) -> list:
         except OSError:
             continue
         text = [a.decode(errors="replace") for a in args]
-        if "child" in text and "trainer" in text and any(a.startswith(under) for a in text):
+        if not ("child" in text and "trainer" in text and "--job" in text[:-1]):
+            continue
+        # The run directory is in the trainer's job file (supervisor::TrainerJobFile).
+        try:
+            work = json.loads(pathlib.Path(text[text.index("--job") + 1]).read_text())["job"]["work"]
+        except (OSError, ValueError, KeyError):
+            continue
+        run_dir = next((v["dir"] for v in work.values() if "dir" in v), "") if isinstance(work, dict) else ""
+        if run_dir.startswith(under):
             pids.append(int(p.name))
     return pids
 

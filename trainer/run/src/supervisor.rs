@@ -28,10 +28,63 @@ pub struct RunPlan {
     pub protocol: lmac_protocol_runner::ProtocolSpec,
     pub seed: u64,
     pub startup_timeout_s: f64,
-    /// Extra arguments for the trainer child (after `lmac child trainer ...`).
-    pub trainer_args: Vec<String>,
+    /// Env steps the trainer takes (after warm-up).
+    pub steps: u64,
+    /// What the trainer child does; handed to it as a typed file ([`TrainerJobFile`]).
+    pub trainer: TrainerJob,
     /// Extra arguments for every env server (after `python -m lmac_env.server ...`).
     pub env_server_args: Vec<String>,
+}
+
+/// What the trainer child of a pipeline run does besides stepping the ring.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct TrainerJob {
+    /// Slots taken before env steps are counted.
+    pub warmup: u64,
+    /// Check every slot's message columns, episode ids, steps and boundaries.
+    pub verify: bool,
+    /// Write one JSON line per finished episode here (random acting only).
+    pub episodes_out: Option<PathBuf>,
+    /// Show a progress bar.
+    pub progress: bool,
+    pub work: TrainerWork,
+}
+
+impl Default for TrainerJob {
+    fn default() -> Self {
+        TrainerJob { warmup: 10, verify: false, episodes_out: None, progress: false, work: TrainerWork::Random }
+    }
+}
+
+/// The trainer child's work.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrainerWork {
+    /// Act randomly (`lmac run`, the pipeline benchmarks).
+    Random,
+    /// Train the run directory (a `config.toml` inside) from its checkpoint or from scratch.
+    Train { dir: PathBuf },
+    /// Evaluate the run directory's checkpoint as the spec file says.
+    Evaluate { dir: PathBuf, spec: PathBuf },
+}
+
+/// The file the parent writes for its trainer child (`lmac child trainer --job FILE`), in the
+/// run's private scratch directory: the job and what the plan fixes for it.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct TrainerJobFile {
+    pub steps: u64,
+    pub seed: u64,
+    /// Where the child writes its report for the parent.
+    pub report: PathBuf,
+    pub job: TrainerJob,
+}
+
+impl TrainerJobFile {
+    /// Read the job file, naming it in any error.
+    pub fn load(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).with_context(|| format!("reading the trainer job {}", path.display()))?;
+        serde_json::from_slice(&bytes).with_context(|| format!("the trainer job {} is not a job file", path.display()))
+    }
 }
 
 /// The repository root (the folder holding `env-server/lmac_env`): `$LMAC_ROOT`, else found by
@@ -237,7 +290,11 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
         let mut t = Command::new(&exe);
         t.args(["child", "trainer"]);
         common(&mut t);
-        t.args(["--seed", &plan.seed.to_string()]).arg("--report").arg(report_path(&scratch)).args(&plan.trainer_args);
+        let job = TrainerJobFile { steps: plan.steps, seed: plan.seed, report: report_path(&scratch), job: plan.trainer.clone() };
+        let job_path = scratch.path().join("trainer_job.json");
+        crate::safe_fs::write_replace(&job_path, &serde_json::to_vec_pretty(&job)?)
+            .with_context(|| format!("writing the trainer job {}", job_path.display()))?;
+        t.arg("--job").arg(&job_path);
         procs.push(Proc { name: TRAINER.into(), child: t.spawn().context("starting the trainer")?, status: None });
         Ok(())
     };

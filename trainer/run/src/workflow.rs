@@ -5,7 +5,7 @@
 //! `lmac evaluate`, `lmac bench` and the design loop's dataset collection all go through here.
 
 use crate::pipeline::TrainerReport;
-use crate::supervisor::{self, RunPlan};
+use crate::supervisor::{self, RunPlan, TrainerJob, TrainerWork};
 use crate::train::evaluate::{EvalResult, EvalSpec};
 use crate::train::TrainConfig;
 use anyhow::{bail, Context, Result};
@@ -64,9 +64,9 @@ pub fn interrupt_flag() -> Arc<AtomicBool> {
     flag
 }
 
-/// Start the processes of one pipeline run and return the trainer's report. `extra` goes to the
-/// trainer, `env_extra` to the env servers.
-pub fn pipeline_report(p: &Pipeline, extra: Vec<String>, env_extra: Vec<String>, interrupted: Arc<AtomicBool>) -> Result<TrainerReport> {
+/// Start the processes of one pipeline run and return the trainer's report. `job` says what the
+/// trainer does, `env_extra` goes to the env servers' command line.
+pub fn pipeline_report(p: &Pipeline, job: TrainerJob, env_extra: Vec<String>, interrupted: Arc<AtomicBool>) -> Result<TrainerReport> {
     let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
     let plan = lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?;
     if plan.msg_dim() > schema.message_columns {
@@ -96,7 +96,8 @@ pub fn pipeline_report(p: &Pipeline, extra: Vec<String>, env_extra: Vec<String>,
         protocol: p.protocol.clone(),
         seed: p.seed,
         startup_timeout_s: p.startup_timeout,
-        trainer_args: [vec!["--steps".into(), p.steps.to_string()], extra].concat(),
+        steps: p.steps,
+        trainer: job,
         env_server_args: env_extra,
     };
     Ok(supervisor::run_pipeline(&rp, interrupted)?.report)
@@ -159,14 +160,9 @@ pub fn train_dirs_holding(dirs: &[PathBuf], mut held: Vec<Option<crate::run_dir:
         // A resumed segment's environments start from other seeds than the first segment's (else
         // it would replay the same episodes).
         let p = Pipeline::for_run(&cfg, cfg.learn.seed + done_t_env)?;
-        let extra = vec![
-            "--train-dir".to_string(),
-            std::fs::canonicalize(d)?.display().to_string(),
-            "--progress".into(),
-            "--warmup".into(),
-            "1".into(),
-        ];
-        pipeline_report(&p, extra, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
+        let job =
+            TrainerJob { warmup: 1, progress: true, work: TrainerWork::Train { dir: std::fs::canonicalize(d)? }, ..Default::default() };
+        pipeline_report(&p, job, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
         final_evaluation(d, &cfg, interrupted.clone())?;
     }
     Ok(())
@@ -225,15 +221,9 @@ pub fn evaluate_run(
     std::fs::create_dir_all(d.join("evaluations"))?;
     std::fs::write(&spec_path, serde_json::to_vec(spec)?)?;
     let p = Pipeline::for_run(cfg, cfg.learn.seed + seed_offset)?;
-    let extra = vec![
-        "--train-dir".to_string(),
-        std::fs::canonicalize(d)?.display().to_string(),
-        "--evaluate".into(),
-        spec_path.display().to_string(),
-        "--warmup".into(),
-        "1".into(),
-    ];
-    pipeline_report(&p, extra, vec![], interrupted).with_context(|| format!("evaluating {}", d.display()))?;
+    let work = TrainerWork::Evaluate { dir: std::fs::canonicalize(d)?, spec: std::fs::canonicalize(&spec_path)? };
+    let job = TrainerJob { warmup: 1, work, ..Default::default() };
+    pipeline_report(&p, job, vec![], interrupted).with_context(|| format!("evaluating {}", d.display()))?;
     let out = EvalSpec::result_path(&spec_path);
     Ok(serde_json::from_slice(&std::fs::read(&out).with_context(|| format!("reading {}", out.display()))?)?)
 }

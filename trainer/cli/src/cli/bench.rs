@@ -5,6 +5,7 @@ use anyhow::{bail, Context, Result};
 use clap::Subcommand;
 use lmac_run::stats::median;
 use lmac_run::supervisor;
+use lmac_run::supervisor::TrainerJob;
 use lmac_run::workflow::{interrupt_flag, pipeline_report, train_dirs, Pipeline};
 use lmac_shm_schema::schema::load_env;
 use std::sync::atomic::AtomicBool;
@@ -202,7 +203,7 @@ pub(crate) fn bench_interleaved(p: &Pipeline, repeat: usize, interrupted: Arc<At
     // warm-up's (and takes fewer warm-up slots than the env server's warm-up gives it).
     let mut trainer_p = p.clone();
     trainer_p.steps = (repeat as u64 * block + WARMUP) * p.envs as u64;
-    let report = pipeline_report(&trainer_p, vec![], env_extra, interrupted);
+    let report = pipeline_report(&trainer_p, TrainerJob::default(), env_extra, interrupted);
     let blocks = std::fs::read_to_string(&out);
     let report = report?;
     let blocks: serde_json::Value =
@@ -247,7 +248,7 @@ pub(crate) fn bench_separate_runs(p: &Pipeline, repeat: usize, interrupted: Arc<
         let raw: serde_json::Value = serde_json::from_slice(&out.stdout).context("raw baseline output")?;
         raws.push(raw["env_steps_per_s"].as_f64().unwrap_or(0.0));
         // 2. The full pipeline on the same number of env steps.
-        let pipe = pipeline_report(p, vec![], vec![], interrupted.clone())?;
+        let pipe = pipeline_report(p, TrainerJob::default(), vec![], interrupted.clone())?;
         pipes.push(pipe.env_steps_per_s);
         trainer_us.push(pipe.trainer_us_per_slot);
     }
@@ -338,7 +339,7 @@ pub(crate) fn bench_train(
             seed: 0,
             startup_timeout: 60.0,
         };
-        let rand_rate = pipeline_report(&p, vec![], vec![], interrupted.clone())?.env_steps_per_s;
+        let rand_rate = pipeline_report(&p, TrainerJob::default(), vec![], interrupted.clone())?.env_steps_per_s;
         eprintln!(
             "lmac: {n} envs: training {train_rate:.0} env-steps/s ({updates_done} updates), random acting {rand_rate:.0} env-steps/s"
         );

@@ -4,6 +4,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use lmac_protocol_runner::runner::{self as prunner, RunnerArgs};
 use lmac_run::pipeline::{self, MessageCheck, RandomActor, TrainerArgs, TrainerReport};
+use lmac_run::supervisor::{TrainerJob, TrainerJobFile, TrainerWork};
 use lmac_shm_schema::schema::load_env;
 use std::io::Write;
 use std::time::Duration;
@@ -30,27 +31,11 @@ pub(crate) enum ChildCmd {
     Trainer {
         #[command(flatten)]
         o: ChildOpts,
+        /// The job the parent wrote for this process (`supervisor::TrainerJobFile`, JSON): env
+        /// steps, seed, what to do (act randomly, train or evaluate a run directory), where to
+        /// write the report.
         #[arg(long)]
-        steps: u64,
-        #[arg(long, default_value_t = 10)]
-        warmup: u64,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        #[arg(long)]
-        verify: bool,
-        #[arg(long)]
-        episodes_out: Option<std::path::PathBuf>,
-        #[arg(long)]
-        progress: bool,
-        /// Train with the run directory's config (instead of acting randomly).
-        #[arg(long)]
-        train_dir: Option<std::path::PathBuf>,
-        /// With --train-dir: evaluate its checkpoint as this spec (JSON) says instead of training.
-        #[arg(long, requires = "train_dir")]
-        evaluate: Option<std::path::PathBuf>,
-        /// Write the report (JSON) here for the parent.
-        #[arg(long)]
-        report: std::path::PathBuf,
+        job: std::path::PathBuf,
     },
 }
 
@@ -81,7 +66,9 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                 }
             }
         }
-        ChildCmd::Trainer { o, steps, warmup, seed, verify, episodes_out, progress, train_dir, evaluate, report: report_to } => {
+        ChildCmd::Trainer { o, job } => {
+            let TrainerJobFile { steps, seed, report: report_to, job } = TrainerJobFile::load(&job)?;
+            let TrainerJob { warmup, verify, episodes_out, progress, work } = job;
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
             let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
             let check = match o.protocol {
@@ -102,7 +89,7 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                 protocol: o.protocol.clone(),
                 progress,
             };
-            if let (Some(dir), Some(spec)) = (&train_dir, &evaluate) {
+            if let TrainerWork::Evaluate { dir, spec } = &work {
                 return match lmac_run::train::evaluate::evaluate_in_child(dir, spec, &args) {
                     Ok(_) => {
                         write_report(&report_to, &TrainerReport::default())?;
@@ -115,8 +102,8 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                     }
                 };
             }
-            if let Some(dir) = train_dir {
-                return match lmac_run::train::train_in_child(&dir, &args, progress) {
+            if let TrainerWork::Train { dir } = &work {
+                return match lmac_run::train::train_in_child(dir, &args, progress) {
                     Ok(report) => {
                         write_report(&report_to, &report)?;
                         Ok(0)

@@ -3,6 +3,7 @@
 use super::PipelineOpts;
 use anyhow::{Context, Result};
 use clap::Args;
+use lmac_run::supervisor::TrainerJob;
 use lmac_run::workflow::{interrupt_flag, pipeline_report};
 
 #[derive(Args)]
@@ -21,20 +22,15 @@ pub(crate) struct RunArgs {
 }
 
 pub(crate) fn run(a: RunArgs) -> Result<i32> {
-    let mut extra = vec!["--progress".to_string()];
-    if a.verify {
-        extra.push("--verify".into());
-    }
-    if let Some(p) = &a.episodes_out {
-        extra.push("--episodes-out".into());
-        extra.push(
+    let episodes_out = match &a.episodes_out {
+        Some(p) => Some(
             std::fs::canonicalize(p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new(".")))?
-                .join(p.file_name().context("--episodes-out needs a file name")?)
-                .display()
-                .to_string(),
-        );
-    }
-    let report = pipeline_report(&a.p.pipeline(), extra, vec![], interrupt_flag())?;
+                .join(p.file_name().context("--episodes-out needs a file name")?),
+        ),
+        None => None,
+    };
+    let job = TrainerJob { verify: a.verify, episodes_out, progress: true, ..Default::default() };
+    let report = pipeline_report(&a.p.pipeline(), job, vec![], interrupt_flag())?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
