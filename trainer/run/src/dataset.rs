@@ -299,39 +299,45 @@ impl Dataset {
         Ok(dataset)
     }
 
-    /// Each episode's received messages (`len * n_agents * plan.msg_dim()`, by step then agent)
-    /// as the runner would have written them: the plan runs over the stored observations step by
-    /// step with the episode-start flag and the previous step's actions (-1 on the first step).
-    pub fn messages(&self, plan: &mut dyn MessagePlan) -> Vec<Vec<f32>> {
+    /// Run `plan` over episodes `episodes` step by step as the runner would have: over the stored
+    /// observations, with the episode-start flag (fresh history at each episode's first step) and
+    /// the previous step's actions (-1 on the first step); `f` gets each step's episode, step and
+    /// rows (`n_agents x (obs_dim + msg_dim)`, the messages after each agent's observation).
+    pub fn replay(&self, episodes: &[usize], plan: &mut dyn MessagePlan, f: &mut dyn FnMut(&Trajectory, usize, &[f32])) {
         let (n, od, md) = (self.header.n_agents, self.header.obs_dim, plan.msg_dim());
         let row = od + md;
         let mut rows = vec![0f32; n * row];
         let mut last = vec![-1i32; n];
-        self.episodes
-            .iter()
-            .map(|e| {
-                let mut out = Vec::with_capacity(e.len * n * md);
-                for t in 0..e.len {
-                    for a in 0..n {
-                        rows[a * row..a * row + od].copy_from_slice(&e.obs[(t * n + a) * od..(t * n + a + 1) * od]);
-                        rows[a * row + od..(a + 1) * row].fill(0.0);
-                        last[a] = if t == 0 { -1 } else { e.actions[(t - 1) * n + a] };
-                    }
-                    let first = [t == 0];
-                    let mut view = StepView {
-                        num_envs: 1,
-                        n_agents: n,
-                        obs_dim: od,
-                        msg_dim: md,
-                        rows: &mut rows,
-                        first: &first,
-                        last_actions: &last,
-                    };
-                    plan.apply(&mut view);
+        for &k in episodes {
+            let e = &self.episodes[k];
+            for t in 0..e.len {
+                for a in 0..n {
+                    rows[a * row..a * row + od].copy_from_slice(&e.obs[(t * n + a) * od..(t * n + a + 1) * od]);
+                    rows[a * row + od..(a + 1) * row].fill(0.0);
+                    last[a] = if t == 0 { -1 } else { e.actions[(t - 1) * n + a] };
+                }
+                let first = [t == 0];
+                let mut view =
+                    StepView { num_envs: 1, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut rows, first: &first, last_actions: &last };
+                plan.apply(&mut view);
+                f(e, t, &rows);
+            }
+        }
+    }
+
+    /// Each episode's received messages (`len * n_agents * plan.msg_dim()`, by step then agent)
+    /// as the runner would have written them ([`Dataset::replay`] over every episode).
+    pub fn messages(&self, plan: &mut dyn MessagePlan) -> Vec<Vec<f32>> {
+        let (n, od, md) = (self.header.n_agents, self.header.obs_dim, plan.msg_dim());
+        let row = od + md;
+        (0..self.episodes.len())
+            .map(|k| {
+                let mut out = Vec::with_capacity(self.episodes[k].len * n * md);
+                self.replay(&[k], plan, &mut |_, _, rows| {
                     for a in 0..n {
                         out.extend_from_slice(&rows[a * row + od..(a + 1) * row]);
                     }
-                }
+                });
                 out
             })
             .collect()

@@ -17,7 +17,7 @@
 #[allow(unused_imports)]
 use super::*;
 use lmac_learn::stats::ColumnSums;
-use lmac_protocol_runner::plan::{MessagePlan, StepView};
+use lmac_protocol_runner::plan::MessagePlan;
 use lmac_run::dataset::Dataset;
 
 /// Sweep pivot `k` out of the symmetric matrix `c` (size p): the rest becomes the covariance
@@ -118,35 +118,6 @@ pub(super) fn sample<'a>(
     Ok(Sampled { data, chosen, prev, probe, width, targets: targets.to_vec(), rows })
 }
 
-/// Run `plan` over the episodes step by step as [`Dataset::messages`] does (fresh history at each
-/// episode's first step), handing `f` each step's rows (n x (obs_dim + msg_dim)).
-fn run_plan(
-    data: &Dataset,
-    episodes: &[usize],
-    plan: &mut dyn MessagePlan,
-    f: &mut dyn FnMut(&lmac_run::dataset::Trajectory, usize, &[f32]),
-) {
-    let (n, od, md) = (data.header.n_agents, data.header.obs_dim, plan.msg_dim());
-    let row = od + md;
-    let mut rows = vec![0f32; n * row];
-    let mut last = vec![-1i32; n];
-    for &k in episodes {
-        let e = &data.episodes[k];
-        for t in 0..e.len {
-            for a in 0..n {
-                rows[a * row..a * row + od].copy_from_slice(&e.obs[(t * n + a) * od..(t * n + a + 1) * od]);
-                rows[a * row + od..(a + 1) * row].fill(0.0);
-                last[a] = if t == 0 { -1 } else { e.actions[(t - 1) * n + a] };
-            }
-            let first = [t == 0];
-            let mut view =
-                StepView { num_envs: 1, n_agents: n, obs_dim: od, msg_dim: md, rows: &mut rows, first: &first, last_actions: &last };
-            plan.apply(&mut view);
-            f(e, t, &rows);
-        }
-    }
-}
-
 impl RowSource for Sampled<'_> {
     fn n(&self) -> usize {
         self.data.header.n_agents
@@ -167,7 +138,7 @@ impl RowSource for Sampled<'_> {
         let mut cand = vec![0f32; n * width];
         let mut y = vec![0f32; self.targets.len()];
         let targets = &self.targets;
-        run_plan(self.data, &self.chosen, self.probe.as_mut(), &mut |e, t, rows| {
+        self.data.replay(&self.chosen, self.probe.as_mut(), &mut |e, t, rows| {
             for j in 0..n {
                 // Sender j's block as received by agent r = j+1 (mod n).
                 let r = (j + 1) % n;
@@ -195,7 +166,7 @@ impl RowSource for Sampled<'_> {
             }
             Some(plan) => {
                 let md = plan.msg_dim();
-                run_plan(self.data, &self.chosen, plan.as_mut(), &mut |_, _, rows| f(&rows[i * (od + md)..(i + 1) * (od + md)]));
+                self.data.replay(&self.chosen, plan.as_mut(), &mut |_, _, rows| f(&rows[i * (od + md)..(i + 1) * (od + md)]));
             }
         }
         Ok(())
