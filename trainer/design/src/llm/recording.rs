@@ -164,16 +164,21 @@ impl Recorder {
 mod tests {
     use super::*;
 
-    #[test]
-    fn canonical_key_ignores_nothing_that_matters() {
-        let r = CanonicalRequest {
+    /// An OpenAI request for model `m` at temperature 0.6 with one user message.
+    fn request(text: &str) -> CanonicalRequest {
+        CanonicalRequest {
             provider: Provider::OpenAi,
             model: "m".into(),
             temperature: 0.6,
             max_tokens: None,
-            messages: vec![ChatMessage::user("hi")],
+            messages: vec![ChatMessage::user(text)],
             response_schema: None,
-        };
+        }
+    }
+
+    #[test]
+    fn canonical_key_ignores_nothing_that_matters() {
+        let r = request("hi");
         let mut r2 = r.clone();
         assert_eq!(r.key(), r2.key());
         r2.temperature = 0.7;
@@ -192,14 +197,7 @@ mod tests {
     fn concurrent_appends_to_one_recording_keep_every_response() {
         let dir = std::env::temp_dir().join(format!("lmac-recording-race-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let req = CanonicalRequest {
-            provider: Provider::OpenAi,
-            model: "m".into(),
-            temperature: 0.6,
-            max_tokens: None,
-            messages: vec![ChatMessage::user("the same question")],
-            response_schema: None,
-        };
+        let req = request("the same question");
         let (writers, each) = (4, 25);
         std::thread::scope(|s| {
             for w in 0..writers {
