@@ -209,7 +209,7 @@ fn ensure_private_dir(dir: &std::path::Path, uid: u32) -> Result<(), String> {
     Ok(())
 }
 
-type SlotService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, SlotMsg, ()>;
+pub type SlotService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, SlotMsg, ()>;
 
 /// Where this process sits in the ring.
 #[derive(Clone, Debug)]
@@ -247,7 +247,9 @@ pub struct Port {
     dead_notified: bool,
 }
 
-fn pubsub(node: &Node<ipc::Service>, name: &str, n_slots: usize) -> Result<SlotService, RingError> {
+/// A slot-message service of the ring, with the settings every peer must open it with (a peer
+/// asking for others is refused by iceoryx2).
+pub fn pubsub(node: &Node<ipc::Service>, name: &str, n_slots: usize) -> Result<SlotService, RingError> {
     let sname = ServiceName::new(name).map_err(ipc("service name"))?;
     node.service_builder(&sname)
         .publish_subscribe::<SlotMsg>()

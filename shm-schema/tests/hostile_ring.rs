@@ -5,7 +5,9 @@
 //! run or application on the same machine (real processes killed with SIGKILL).
 use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
-use lmac_shm_schema::ring::{cleanup_dead_nodes, is_run_node, node_name, ring_config, Port, RingError, RingSpec, SlotMsg, KIND_SLOT};
+use lmac_shm_schema::ring::{
+    cleanup_dead_nodes, is_run_node, node_name, pubsub, ring_config, Port, RingError, RingSpec, SlotMsg, KIND_SLOT,
+};
 use lmac_shm_schema::Stage;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::process::{Child, Command, Stdio};
@@ -60,17 +62,8 @@ fn sender_child(spec: &str) {
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<ipc::Service>()
         .unwrap();
-    // The same service settings as the ring's (ring.rs `pubsub`), as any peer must use.
-    let service = node
-        .service_builder(&ServiceName::new(&format!("lmac/{run}/s{member}/to_runner")).unwrap())
-        .publish_subscribe::<SlotMsg>()
-        .subscriber_max_buffer_size(2 * n_slots + 16)
-        .history_size(0)
-        .max_publishers(2)
-        .max_subscribers(2)
-        .enable_safe_overflow(false)
-        .open_or_create()
-        .unwrap();
+    // The ring's own service settings, as any peer must use.
+    let service = pubsub(&node, &format!("lmac/{run}/s{member}/to_runner"), n_slots).unwrap();
     let publisher = service.publisher_builder().create().unwrap();
     for m in msgs.split(';') {
         let v: Vec<u32> = m.split(',').map(|x| x.parse().unwrap()).collect();
