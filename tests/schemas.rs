@@ -4,32 +4,11 @@ use lmac_shm_schema::layout::{LayoutParams, SlotLayout, ALIGN};
 use lmac_shm_schema::schema::{all_envs, EnvSchema};
 use std::path::Path;
 
-const GOOD: &str = r#"
-name = "toy:two"
-task = "A toy task."
-n_agents = 2
-obs_dim = 3
-state_dim = 4
-n_actions = 2
-episode_limit = 10
-message_columns = 10
-alpha = 0.1
-reward = "1 per step."
-actions = ["left", "right"]
-[[obs_dims]]
-count = 2
-meaning = "position {k}"
-[[obs_dims]]
-count = 1
-meaning = "speed"
-[[state_dims]]
-count = 4
-shape = [2, 2]
-meaning = "cell ({i0}, {i1})"
-"#;
+/// The small valid schema of the schema parser's own tests.
+const GOOD: &str = include_str!("../shm-schema/tests/data/toy.toml");
 
 fn errors(text: &str) -> String {
-    EnvSchema::parse(text, Path::new("schemas/toy/two.toml")).expect_err("must be rejected").to_string()
+    EnvSchema::parse(text, Path::new("schemas/toy/one.toml")).expect_err("must be rejected").to_string()
 }
 
 #[test]
@@ -82,13 +61,13 @@ fn a_repeated_group_describes_one_block_per_entity() {
 #[test]
 fn missing_field_names_file_and_field() {
     let e = errors(&GOOD.replace("n_agents = 2\n", ""));
-    assert!(e.contains("schemas/toy/two.toml") && e.contains("n_agents") && e.contains("missing"), "{e}");
+    assert!(e.contains("schemas/toy/one.toml") && e.contains("n_agents") && e.contains("missing"), "{e}");
 }
 
 #[test]
 fn zero_agents_is_rejected() {
     let e = errors(&GOOD.replace("n_agents = 2", "n_agents = 0"));
-    assert!(e.contains("schemas/toy/two.toml: n_agents: must be at least 1"), "{e}");
+    assert!(e.contains("schemas/toy/one.toml: n_agents: must be at least 1"), "{e}");
 }
 
 #[test]

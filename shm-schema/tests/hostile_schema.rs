@@ -4,28 +4,8 @@ use lmac_shm_schema::layout::{LayoutParams, SlotLayout};
 use lmac_shm_schema::schema::{EnvSchema, MAX_DIM, MAX_FILE_BYTES};
 use std::path::{Path, PathBuf};
 
-const TOY: &str = r#"name = "toy:one"
-task = "A toy task."
-n_agents = 2
-obs_dim = 3
-state_dim = 4
-n_actions = 2
-episode_limit = 10
-message_columns = 10
-alpha = 0.1
-reward = "1 per step."
-actions = ["left", "right"]
-[[obs_dims]]
-count = 2
-meaning = "position {k}"
-[[obs_dims]]
-count = 1
-meaning = "speed"
-[[state_dims]]
-count = 4
-shape = [2, 2]
-meaning = "cell ({i0}, {i1})"
-"#;
+/// A small valid schema (also the end-to-end schema tests' good example).
+const TOY: &str = include_str!("data/toy.toml");
 
 const FILE: &str = "schemas/toy/one.toml";
 
