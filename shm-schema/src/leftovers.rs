@@ -95,42 +95,55 @@ fn node_dir(config: &Config, id: &impl std::fmt::Display) -> Option<std::path::P
     Some(std::path::PathBuf::from(config.global.node_dir().to_string()).join(id.to_string()))
 }
 
+/// The configuration lmac's nodes had before they moved into a namespace of the user's own
+/// (iceoryx2's global one, without its machine-wide clean-up of dead nodes).
+fn legacy_config() -> Config {
+    let mut config = Config::global_config().clone();
+    config.global.node.cleanup_dead_nodes_on_creation = false;
+    config.global.node.cleanup_dead_nodes_on_destruction = false;
+    config
+}
+
 /// Look at every lmac slab and iceoryx2 node on this machine and sort them into dead and kept.
 /// Nothing is changed.
 pub fn survey() -> Survey {
     set_log_level(LogLevel::Error);
-    let config = ring_config();
+    // lmac's own namespace, and iceoryx2's default one, where lmac versions before the
+    // namespace kept their nodes: an upgraded machine's leftovers are found too.
+    let configs = [ring_config(), legacy_config()];
     let me = my_uid();
     let mut live_runs = HashSet::new();
     let (mut dead, mut kept, mut dead_nodes) = (Vec::new(), Vec::new(), Vec::new());
     let mut dead_views = Vec::new();
-    let _ = Node::<ipc::Service>::list(&config, |state| {
-        match state {
-            NodeState::Alive(v) => {
-                if let Some(d) = v.details() {
-                    let name = d.name().to_string();
-                    if let Some(run) = run_of_node(&name) {
-                        live_runs.insert(run.to_string());
-                        let why = format!("alive (pid {})", d.process_id().value());
-                        kept.push(Found { kind: Kind::Node, run: run.to_string(), name, why });
+    for (c, config) in configs.iter().enumerate() {
+        let _ = Node::<ipc::Service>::list(config, |state| {
+            match state {
+                NodeState::Alive(v) => {
+                    if let Some(d) = v.details() {
+                        let name = d.name().to_string();
+                        if let Some(run) = run_of_node(&name) {
+                            live_runs.insert(run.to_string());
+                            let why = format!("alive (pid {})", d.process_id().value());
+                            kept.push(Found { kind: Kind::Node, run: run.to_string(), name, why });
+                        }
                     }
                 }
-            }
-            NodeState::Dead(v) => {
-                if let Some(d) = v.details().clone() {
-                    if let Some(run) = run_of_node(&d.name().to_string()) {
-                        dead_views.push((run.to_string(), d, v));
+                NodeState::Dead(v) => {
+                    if let Some(d) = v.details().clone() {
+                        if let Some(run) = run_of_node(&d.name().to_string()) {
+                            dead_views.push((run.to_string(), d, v, c));
+                        }
                     }
                 }
+                // Nodes this user may not inspect are not ours to judge.
+                NodeState::Inaccessible(_) | NodeState::Undefined(_) => {}
             }
-            // Nodes this user may not inspect are not ours to judge.
-            NodeState::Inaccessible(_) | NodeState::Undefined(_) => {}
-        }
-        CallbackProgression::Continue
-    });
-    for (run, d, v) in dead_views {
+            CallbackProgression::Continue
+        });
+    }
+    for (run, d, v, c) in dead_views {
         let name = d.name().to_string();
-        let dir = node_dir(&config, v.id());
+        let dir = node_dir(&configs[c], v.id());
         let owner = dir.as_ref().and_then(|p| std::fs::symlink_metadata(p).ok()).map(|m| m.uid());
         let pid = d.process_id().value();
         let found = |why: String| Found { kind: Kind::Node, name: name.clone(), run: run.clone(), why };

@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 
 const SENDER: &str = "LMAC_TEST_RING_SENDER";
 const SLEEPER: &str = "LMAC_TEST_RING_SLEEPER";
+const LEGACY: &str = "LMAC_TEST_RING_LEGACY";
 
 fn unique_run(tag: &str) -> String {
     let t = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().subsec_nanos();
@@ -148,7 +149,9 @@ fn run_nodes_are_recognised_exactly() {
 /// otherwise), say so, and sleep until killed.
 fn sleeper_child(name: &str) {
     set_log_level(LogLevel::Error);
-    let config = if name.starts_with("lmac-") { ring_config() } else { Config::global_config().clone() };
+    // LMAC_TEST_RING_LEGACY: an lmac node where lmac versions before its namespace put them.
+    let legacy = std::env::var_os(LEGACY).is_some();
+    let config = if name.starts_with("lmac-") && !legacy { ring_config() } else { Config::global_config().clone() };
     let _node = NodeBuilder::new()
         .config(&config)
         .name(&NodeName::new(name).unwrap())
@@ -263,4 +266,33 @@ fn the_ring_lives_in_a_namespace_of_this_users_own() {
         assert_eq!((md.uid(), md.mode() & 0o777), (uid, 0o600), "{name:?}");
     }
     drop(port);
+}
+
+/// A machine upgraded from an lmac that kept its nodes in iceoryx2's default namespace: such a
+/// run, killed whole, leaves its dead nodes there, and `lmac clean`'s survey finds and removes
+/// them (only them: the survey still touches nothing alive and nothing not named as lmac's).
+#[test]
+fn dead_nodes_an_older_lmac_left_in_iceoryx2s_default_namespace_are_removed() {
+    if let Ok(name) = std::env::var(SLEEPER) {
+        return sleeper_child(&name);
+    }
+    set_log_level(LogLevel::Error);
+    let run = unique_run("hl");
+    let name = node_name(&run, Stage::Env, 0);
+    let mut k =
+        child("dead_nodes_an_older_lmac_left_in_iceoryx2s_default_namespace_are_removed", &[(SLEEPER, name.clone()), (LEGACY, "1".into())]);
+    wait_for_line(&mut k, "READY");
+    unsafe { libc::kill(k.id() as i32, libc::SIGKILL) };
+    let _ = k.wait();
+    let names = vec![name.clone()];
+    let t0 = Instant::now();
+    while states(&names) != vec![Some(false)] {
+        assert!(t0.elapsed() < Duration::from_secs(5), "the killed node is not seen dead: {:?}", states(&names));
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let survey = lmac_shm_schema::leftovers::survey();
+    assert!(survey.dead.iter().any(|f| f.name == name), "the old namespace's dead node is found");
+    let removed = survey.remove();
+    assert!(removed.removed.iter().any(|f| f.name == name), "and removed");
+    assert_eq!(states(&names), vec![None], "it is gone from iceoryx2's node list");
 }
