@@ -74,8 +74,8 @@ pub(crate) enum BenchCmd {
         #[arg(long, value_delimiter = ',', default_value = "qmix,vdn,qplex")]
         mixers: Vec<String>,
         /// A method's agent network instead of the plain RNN agent: lmac, ndq, maic, masia,
-        /// t2mac, cola, qmix-state, ... (`lmac train --help`); no GFLOP/s then, the FLOP count
-        /// describes the plain agent.
+        /// t2mac, cola, qmix-state, ... (`lmac train --help`). GFLOP/s where the update's FLOPs
+        /// are counted (the plain agent's methods, qmix-state, lmac, ndq); none for the others yet.
         #[arg(long)]
         algo: Option<String>,
         /// Message columns at the end of each agent's observation (what the method reads as

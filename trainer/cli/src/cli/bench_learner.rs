@@ -111,8 +111,30 @@ impl Shape {
     }
 }
 
+impl Shape {
+    /// [`update_flops`](Self::update_flops) of an NDQ update (`c`: its settings): the plain
+    /// agent's count with its input widened by the n * msg_dim received message dims, plus per
+    /// agent row the message encoder (input -> encoder_hidden -> encoder_hidden -> n * msg_dim)
+    /// in the online network (forward and backward, no input gradient for its first layer) and
+    /// the target network, and the action-inference head (input + n * msg_dim -> 4 n msg_dim ->
+    /// 4 n msg_dim -> actions) in the online network only. Routing messages to receivers is a
+    /// transpose (no FLOPs).
+    pub(crate) fn ndq_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, c: &lmac_run::learn::methods::ndq::NdqConfig) -> f64 {
+        let s = &c.settings;
+        let rows = (self.batch * self.steps * self.agents) as f64;
+        let (iw, h, nd, a) = (self.input as f64, s.encoder_hidden as f64, (self.agents * s.msg_dim) as f64, self.actions as f64);
+        let plain = Shape { input: self.input + self.agents * s.msg_dim, ..*self }.update_flops(mixer, cfg);
+        let enc_first = 2.0 * iw * h;
+        let enc = enc_first + 2.0 * h * h + 2.0 * h * nd;
+        let infer = 2.0 * (iw + nd) * 4.0 * nd + 2.0 * 16.0 * nd * nd + 2.0 * 4.0 * nd * a;
+        // encoder: online forward + backward + target forward; inference head: online forward + backward
+        plain + rows * (enc + (2.0 * enc - enc_first) + enc) + rows * 3.0 * infer
+    }
+}
+
 /// The FLOPs one update of `method` (None: the plain agent) counts, where a count is written
-/// (the plain agent, qmix-state and LMAC; the other methods' extra networks are not counted yet).
+/// (the plain agent, qmix-state, LMAC and NDQ; MAIC's, MASIA's, COLA's and T2MAC's extra
+/// networks are not counted yet).
 fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Option<&MethodUnderTest>) -> Option<f64> {
     match method.map(|m| (&m.agent, m.name.as_str())) {
         None | Some((AgentConfig::Rnn, _)) => {
@@ -120,6 +142,7 @@ fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Opti
             Some(Shape { input: shape.input + state_in, ..*shape }.update_flops(mixer, cfg))
         }
         Some((AgentConfig::Lmac(l), _)) => Some(shape.lmac_update_flops(mixer, cfg, l)),
+        Some((AgentConfig::Ndq(c), _)) => Some(shape.ndq_update_flops(mixer, cfg, c)),
         Some(_) => None,
     }
 }
