@@ -132,9 +132,28 @@ impl Shape {
     }
 }
 
+impl Shape {
+    /// [`update_flops`](Self::update_flops) of a T2MAC update (`c`: its settings): the plain
+    /// agent's count (fc1, the GRU, the Q head on the merged state) plus per agent row the heads
+    /// after the GRU, in the online network (forward and backward) and the target network: key,
+    /// query and value (GRU -> attention_dim), the attention logits over the n agents from the
+    /// query and every agent's key, the weighted values, the merge (attention + GRU -> GRU
+    /// width) and the selector (input -> selector_hidden -> n; no input gradient). The evidence
+    /// fusion runs on the host and is not counted.
+    pub(crate) fn t2mac_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, c: &lmac_run::learn::methods::t2mac::T2macConfig) -> f64 {
+        let s = &c.settings;
+        let rows = (self.batch * self.steps * self.agents) as f64;
+        let (iw, h, k, n, sh) =
+            (self.input as f64, self.hidden as f64, s.attention_dim as f64, self.agents as f64, s.selector_hidden as f64);
+        let select_first = 2.0 * iw * sh;
+        let heads = 3.0 * 2.0 * h * k + 2.0 * k * (n + 1.0) * n + 2.0 * n * k + 2.0 * (k + h) * h + select_first + 2.0 * sh * n;
+        self.update_flops(mixer, cfg) + rows * (heads + (2.0 * heads - select_first) + heads)
+    }
+}
+
 /// The FLOPs one update of `method` (None: the plain agent) counts, where a count is written
-/// (the plain agent, qmix-state, LMAC and NDQ; MAIC's, MASIA's, COLA's and T2MAC's extra
-/// networks are not counted yet).
+/// (the plain agent, qmix-state, LMAC, NDQ and T2MAC; MAIC's, MASIA's and COLA's extra networks
+/// are not counted yet).
 fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Option<&MethodUnderTest>) -> Option<f64> {
     match method.map(|m| (&m.agent, m.name.as_str())) {
         None | Some((AgentConfig::Rnn, _)) => {
@@ -143,6 +162,7 @@ fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Opti
         }
         Some((AgentConfig::Lmac(l), _)) => Some(shape.lmac_update_flops(mixer, cfg, l)),
         Some((AgentConfig::Ndq(c), _)) => Some(shape.ndq_update_flops(mixer, cfg, c)),
+        Some((AgentConfig::T2mac(c), _)) => Some(shape.t2mac_update_flops(mixer, cfg, c)),
         Some(_) => None,
     }
 }
