@@ -75,7 +75,8 @@ pub(crate) enum BenchCmd {
         mixers: Vec<String>,
         /// A method's agent network instead of the plain RNN agent: lmac, ndq, maic, masia,
         /// t2mac, cola, qmix-state, ... (`lmac train --help`). GFLOP/s where the update's FLOPs
-        /// are counted (the plain agent's methods, qmix-state, lmac, ndq, t2mac); none for the others yet.
+        /// are counted (the plain agent's methods, qmix-state, lmac, ndq, t2mac, maic); none for masia and cola
+        /// yet.
         #[arg(long)]
         algo: Option<String>,
         /// Message columns at the end of each agent's observation (what the method reads as

@@ -151,8 +151,31 @@ impl Shape {
     }
 }
 
+impl Shape {
+    /// [`update_flops`](Self::update_flops) of a MAIC update (`c`: its settings): the plain
+    /// agent's count plus, in the online network (forward and backward) and the target network,
+    /// per agent row the teammate model (GRU -> hidden -> 2 n latent), the messages' first layer
+    /// on the GRU state (computed once per agent) and the attention query, and per agent pair
+    /// its first layer on the latent, the message head (hidden -> actions), the attention key and
+    /// score and the weighted sum; in the online network only, the MI loss's inference net (its
+    /// first layer on the GRU state per row and on the one-hot action per pair, no input
+    /// gradient for the one-hot; then hidden -> 2 latent per pair).
+    pub(crate) fn maic_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, c: &lmac_run::learn::methods::maic::MaicConfig) -> f64 {
+        let s = &c.settings;
+        let rows = (self.batch * self.steps * self.agents) as f64;
+        let pairs = rows * self.agents as f64;
+        let (h, kh, l, att, n, a) =
+            (self.hidden as f64, s.hidden as f64, s.latent_dim as f64, s.attention_dim as f64, self.agents as f64, self.actions as f64);
+        let heads = rows * (2.0 * h * kh + 2.0 * kh * 2.0 * n * l + 2.0 * h * kh + 2.0 * h * att)
+            + pairs * (2.0 * l * kh + 2.0 * kh * a + 2.0 * l * att + 2.0 * att + 2.0 * a);
+        let onehot_first = pairs * 2.0 * a * kh;
+        let mi = rows * 2.0 * h * kh + onehot_first + pairs * 2.0 * kh * 2.0 * l;
+        self.update_flops(mixer, cfg) + 3.0 * (heads + mi) - onehot_first + heads
+    }
+}
+
 /// The FLOPs one update of `method` (None: the plain agent) counts, where a count is written
-/// (the plain agent, qmix-state, LMAC, NDQ and T2MAC; MAIC's, MASIA's and COLA's extra networks
+/// (the plain agent, qmix-state, LMAC, NDQ, T2MAC and MAIC; MASIA's and COLA's extra networks
 /// are not counted yet).
 fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Option<&MethodUnderTest>) -> Option<f64> {
     match method.map(|m| (&m.agent, m.name.as_str())) {
@@ -163,6 +186,7 @@ fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Opti
         Some((AgentConfig::Lmac(l), _)) => Some(shape.lmac_update_flops(mixer, cfg, l)),
         Some((AgentConfig::Ndq(c), _)) => Some(shape.ndq_update_flops(mixer, cfg, c)),
         Some((AgentConfig::T2mac(c), _)) => Some(shape.t2mac_update_flops(mixer, cfg, c)),
+        Some((AgentConfig::Maic(c), _)) => Some(shape.maic_update_flops(mixer, cfg, c)),
         Some(_) => None,
     }
 }
