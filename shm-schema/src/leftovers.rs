@@ -12,7 +12,7 @@
 //! - **never another user's**: only files owned by this user are touched, and only lmac's names;
 //! - **nothing followed**: a slab name that is not a regular file (a planted symlink) is skipped.
 
-use crate::ring::{ring_config, run_of_node};
+use crate::ring::{config_without_machine_wide_cleanup, ring_config, run_of_node};
 use crate::slab::{owner_pid, parse_slab_name, shm_file_path};
 use iceoryx2::node::{DeadNodeView, NodeView};
 use iceoryx2::prelude::*;
@@ -95,22 +95,13 @@ fn node_dir(config: &Config, id: &impl std::fmt::Display) -> Option<std::path::P
     Some(std::path::PathBuf::from(config.global.node_dir().to_string()).join(id.to_string()))
 }
 
-/// The configuration lmac's nodes had before they moved into a namespace of the user's own
-/// (iceoryx2's global one, without its machine-wide clean-up of dead nodes).
-fn legacy_config() -> Config {
-    let mut config = Config::global_config().clone();
-    config.global.node.cleanup_dead_nodes_on_creation = false;
-    config.global.node.cleanup_dead_nodes_on_destruction = false;
-    config
-}
-
 /// Look at every lmac slab and iceoryx2 node on this machine and sort them into dead and kept.
 /// Nothing is changed.
 pub fn survey() -> Survey {
     set_log_level(LogLevel::Error);
     // lmac's own namespace, and iceoryx2's default one, where lmac versions before the
     // namespace kept their nodes: an upgraded machine's leftovers are found too.
-    let configs = [ring_config(), legacy_config()];
+    let configs = [ring_config(), config_without_machine_wide_cleanup()];
     let me = my_uid();
     let mut live_runs = HashSet::new();
     let (mut dead, mut kept, mut dead_nodes) = (Vec::new(), Vec::new(), Vec::new());

@@ -122,13 +122,21 @@ pub fn run_of_node(name: &str) -> Option<&str> {
 /// [`cleanup_dead_nodes`]; opening a service still cleans the dead nodes attached to that
 /// service, which are all participants of this run's services.
 pub fn ring_config() -> Config {
-    let mut config = Config::global_config().clone();
-    config.global.node.cleanup_dead_nodes_on_creation = false;
-    config.global.node.cleanup_dead_nodes_on_destruction = false;
+    let mut config = config_without_machine_wide_cleanup();
     let uid = current_uid();
     // Both are short ASCII, far below iceoryx2's name limits.
     config.global.set_root_path(&Path::new(private_root(uid).as_bytes()).expect("a valid root path"));
     config.global.prefix = FileName::new(namespace_prefix(uid).as_bytes()).expect("a valid file-name prefix");
+    config
+}
+
+/// iceoryx2's global configuration without its clean-up of every dead node on the machine when a
+/// node is created or dropped (which would remove other applications' stale resources too); in
+/// iceoryx2's default namespace, where lmac versions before [`private_namespace`] kept their nodes.
+pub fn config_without_machine_wide_cleanup() -> Config {
+    let mut config = Config::global_config().clone();
+    config.global.node.cleanup_dead_nodes_on_creation = false;
+    config.global.node.cleanup_dead_nodes_on_destruction = false;
     config
 }
 

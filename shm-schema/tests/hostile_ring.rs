@@ -6,7 +6,8 @@
 use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
 use lmac_shm_schema::ring::{
-    cleanup_dead_nodes, is_run_node, node_name, pubsub, ring_config, Port, RingError, RingSpec, SlotMsg, KIND_SLOT,
+    cleanup_dead_nodes, config_without_machine_wide_cleanup, is_run_node, node_name, pubsub, ring_config, Port, RingError, RingSpec,
+    SlotMsg, KIND_SLOT,
 };
 use lmac_shm_schema::Stage;
 use std::io::{BufRead, BufReader, Read, Write};
@@ -151,7 +152,12 @@ fn sleeper_child(name: &str) {
     set_log_level(LogLevel::Error);
     // LMAC_TEST_RING_LEGACY: an lmac node where lmac versions before its namespace put them.
     let legacy = std::env::var_os(LEGACY).is_some();
-    let config = if name.starts_with("lmac-") && !legacy { ring_config() } else { Config::global_config().clone() };
+    let config = match (name.starts_with("lmac-"), legacy) {
+        (true, false) => ring_config(),
+        // As an lmac before the namespace made its nodes.
+        (true, true) => config_without_machine_wide_cleanup(),
+        (false, _) => Config::global_config().clone(),
+    };
     let _node = NodeBuilder::new()
         .config(&config)
         .name(&NodeName::new(name).unwrap())

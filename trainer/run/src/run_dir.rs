@@ -52,8 +52,7 @@ pub fn lock(dir: &std::path::Path) -> anyhow::Result<RunLock> {
         .truncate(false)
         .open(&path)
         .map_err(|e| anyhow::anyhow!("opening {}: {e}", path.display()))?;
-    // SAFETY: flock on a descriptor this function owns.
-    if unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+    if crate::safe_fs::lock_exclusive(&f, false).is_err() {
         let mut holder = String::new();
         let _ = f.read_to_string(&mut holder);
         anyhow::bail!("{} is being trained by another lmac (pid {}); wait for it or stop it first", dir.display(), holder.trim());

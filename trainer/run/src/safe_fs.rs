@@ -11,6 +11,20 @@ use std::io::Write;
 use std::os::unix::fs::{DirBuilderExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
 
+/// Take an exclusive advisory lock (`flock`) on `f`: wait for it (`wait`), or fail at once with
+/// `WouldBlock` when another open file holds it. flock locks belong to the open file, so a second
+/// open in the same process conflicts too; the lock ends when every descriptor of `f` is closed
+/// (also when the process dies). Not `File::lock`: the workspace's rust-version is 1.85.
+pub fn lock_exclusive(f: &std::fs::File, wait: bool) -> std::io::Result<()> {
+    use std::os::unix::io::AsRawFd;
+    let op = if wait { libc::LOCK_EX } else { libc::LOCK_EX | libc::LOCK_NB };
+    // SAFETY: flock on a descriptor the caller's File owns for the duration of the call.
+    match unsafe { libc::flock(f.as_raw_fd(), op) } {
+        0 => Ok(()),
+        _ => Err(std::io::Error::last_os_error()),
+    }
+}
+
 /// A directory only this user can enter, fresh under the system's temp directory, removed
 /// (with what is in it) when the value is dropped.
 #[derive(Debug)]

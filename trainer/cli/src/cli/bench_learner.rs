@@ -109,9 +109,7 @@ impl Shape {
         // online forward + backward (no input gradient for the embedding's first layer) + target
         plain + module_fwd + rows * heads + (2.0 * (module_fwd + rows * heads) - rows * embed_first) + module_fwd
     }
-}
 
-impl Shape {
     /// [`update_flops`](Self::update_flops) of an NDQ update (`c`: its settings): the plain
     /// agent's count with its input widened by the n * msg_dim received message dims, plus per
     /// agent row the message encoder (input -> encoder_hidden -> encoder_hidden -> n * msg_dim)
@@ -130,9 +128,6 @@ impl Shape {
         // encoder: online forward + backward + target forward; inference head: online forward + backward
         plain + rows * (enc + (2.0 * enc - enc_first) + enc) + rows * 3.0 * infer
     }
-}
-
-impl Shape {
     /// [`update_flops`](Self::update_flops) of a T2MAC update (`c`: its settings): the plain
     /// agent's count (fc1, the GRU, the Q head on the merged state) plus per agent row the heads
     /// after the GRU, in the online network (forward and backward) and the target network: key,
@@ -149,9 +144,6 @@ impl Shape {
         let heads = 3.0 * 2.0 * h * k + 2.0 * k * (n + 1.0) * n + 2.0 * n * k + 2.0 * (k + h) * h + select_first + 2.0 * sh * n;
         self.update_flops(mixer, cfg) + rows * (heads + (2.0 * heads - select_first) + heads)
     }
-}
-
-impl Shape {
     /// [`update_flops`](Self::update_flops) of a MAIC update (`c`: its settings): the plain
     /// agent's count plus, in the online network (forward and backward) and the target network,
     /// per agent row the teammate model (GRU -> hidden -> 2 n latent), the messages' first layer

@@ -89,31 +89,21 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                 protocol: o.protocol.clone(),
                 progress,
             };
-            if let TrainerWork::Evaluate { dir, spec } = &work {
-                return match lmac_run::train::evaluate::evaluate_in_child(dir, spec, &args) {
-                    Ok(_) => {
-                        write_report(&report_to, &TrainerReport::default())?;
-                        Ok(0)
-                    }
-                    Err(e) if e.to_string().contains("stopped by request") => Ok(0),
-                    Err(e) => {
-                        eprintln!("lmac: trainer: {e:#}");
-                        Ok(4)
-                    }
-                };
-            }
-            if let TrainerWork::Train { dir } = &work {
-                return match lmac_run::train::train_in_child(dir, &args, progress) {
-                    Ok(report) => {
-                        write_report(&report_to, &report)?;
-                        Ok(0)
-                    }
-                    Err(e) if e.to_string().contains("stopped by request") => Ok(0),
-                    Err(e) => {
-                        eprintln!("lmac: trainer: {e:#}");
-                        Ok(4)
-                    }
-                };
+            // Training and evaluation end the same way: a report for the parent, or the error.
+            let finish = |r: Result<TrainerReport>| match r {
+                Ok(report) => write_report(&report_to, &report).map(|()| 0),
+                Err(e) if e.to_string().contains("stopped by request") => Ok(0),
+                Err(e) => {
+                    eprintln!("lmac: trainer: {e:#}");
+                    Ok(4)
+                }
+            };
+            match &work {
+                TrainerWork::Evaluate { dir, spec } => {
+                    return finish(lmac_run::train::evaluate::evaluate_in_child(dir, spec, &args).map(|_| TrainerReport::default()))
+                }
+                TrainerWork::Train { dir } => return finish(lmac_run::train::train_in_child(dir, &args, progress)),
+                TrainerWork::Random => {}
             }
             let mut actor = RandomActor::new(seed);
             match pipeline::run(&args, &mut actor) {

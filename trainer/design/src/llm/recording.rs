@@ -133,23 +133,14 @@ impl Recorder {
             .truncate(false)
             .write(true)
             .open(&lock_path)
-            .and_then(|f| {
-                use std::os::unix::io::AsRawFd;
-                // flock (not File::lock: the workspace's rust-version is 1.85); released when
-                // `lock` is dropped or the process dies.
-                // SAFETY: flock on a descriptor this function owns.
-                match unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX) } {
-                    0 => Ok(f),
-                    _ => Err(std::io::Error::last_os_error()),
-                }
-            })
+            .and_then(|f| lmac_run::safe_fs::lock_exclusive(&f, true).map(|()| f))
             .map_err(|e| LlmError::Recording { path: lock_path.clone(), problem: format!("cannot lock: {e}") })?;
         let mut rec = self.load(&key)?.unwrap_or_else(|| Recording { key: key.clone(), request: req.clone(), responses: Vec::new() });
         rec.responses.push(resp);
         let n = rec.responses.len();
         let text = serde_json::to_string_pretty(&rec).expect("a recording serializes");
-        // Unique per process and per writer; the lock already keeps writers apart.
-        let tmp = self.dir.join(format!(".{key}.json.tmp{}-{:p}", std::process::id(), self as *const Self));
+        // The lock keeps writers apart, in this process too (flock locks belong to open files).
+        let tmp = self.dir.join(format!(".{key}.json.tmp{}", std::process::id()));
         std::fs::write(&tmp, text).map_err(|e| LlmError::Recording { path: tmp.clone(), problem: format!("cannot write: {e}") })?;
         std::fs::rename(&tmp, &path)
             .map_err(|e| LlmError::Recording { path: path.clone(), problem: format!("cannot rename {} into place: {e}", tmp.display()) })?;
