@@ -1,6 +1,8 @@
 //! Liveness through iceoryx2 alone (no supervisor): a peer process that is killed is reported
 //! by name within 2 seconds by the waiting side, and its stale resources are cleaned up.
-use lmac_shm_schema::ring::{Port, RingError, RingSpec};
+use iceoryx2::node::NodeView;
+use iceoryx2::prelude::*;
+use lmac_shm_schema::ring::{node_name, ring_config, Port, RingError, RingSpec};
 use lmac_shm_schema::Stage;
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -31,7 +33,7 @@ fn killed_peer_is_reported_by_name_within_two_seconds() {
     let t0 = Instant::now();
     loop {
         trainer.check_peers().unwrap();
-        let alive = std::fs::read_dir("/tmp/iceoryx2/nodes").map(|d| d.count()).unwrap_or(0) > 0;
+        let alive = child_node_alive(&run);
         if alive && t0.elapsed() > Duration::from_millis(800) {
             break;
         }
@@ -57,4 +59,18 @@ fn killed_peer_is_reported_by_name_within_two_seconds() {
     }
     assert!(took < Duration::from_secs(2), "took {took:?}");
     assert!(err.to_string().contains("env0") && err.to_string().contains("died"));
+}
+
+/// Whether env server 0 of `run` has a live node, looked up in lmac's own iceoryx2 namespace
+/// (where `Port::new` creates it), not in iceoryx2's default directory.
+fn child_node_alive(run: &str) -> bool {
+    let want = node_name(run, Stage::Env, 0);
+    let mut alive = false;
+    let _ = Node::<ipc::Service>::list(&ring_config(), |state| {
+        if let NodeState::Alive(v) = state {
+            alive |= v.details().as_ref().is_some_and(|d| d.name().to_string() == want);
+        }
+        CallbackProgression::Continue
+    });
+    alive
 }
