@@ -95,15 +95,17 @@ fn the_learner_bench_times_a_methods_agent_network() {
     let gflop = |v: &serde_json::Value| v["flops"][0]["gflop_per_update"].as_f64().unwrap();
     assert!(gflop(&lmac_v) > gflop(&plain), "{} vs {}", lmac_v["flops"], plain["flops"]);
     assert!(plain["figures"][0]["gflops"].as_f64().unwrap() > 0.0);
-    // NDQ's, T2MAC's and MAIC's are counted too (their networks on top of the agent); MASIA's not yet.
+    // Every method's networks on top of the agent are counted.
     let ndq = ok(&run(&["--algo", "ndq"]));
     assert!(ndq["figures"][0]["gflops"].as_f64().unwrap() > 0.0 && gflop(&ndq) > gflop(&plain), "{}", ndq["flops"]);
     let t2mac = ok(&run(&["--algo", "t2mac"]));
     assert!(gflop(&t2mac) > gflop(&plain), "{}", t2mac["flops"]);
     let maic = ok(&run(&["--algo", "maic"]));
     assert!(gflop(&maic) > gflop(&plain), "{}", maic["flops"]);
-    let masia = ok(&run(&["--algo", "masia"]));
-    assert!(masia["figures"][0]["gflops"].is_null() && masia["flops"].as_array().unwrap().is_empty(), "{}", masia["flops"]);
+    for algo in ["masia", "cola"] {
+        let v = ok(&run(&["--algo", algo]));
+        assert!(v["figures"][0]["gflops"].as_f64().unwrap() > 0.0 && gflop(&v) > gflop(&plain), "{algo}: {}", v["flops"]);
+    }
 
     let fixed = ok(&run(&["--algo", "qplex"]));
     let mixers: Vec<&str> = fixed["figures"].as_array().unwrap().iter().map(|f| f["mixer"].as_str().unwrap()).collect();
