@@ -1,12 +1,14 @@
 """End to end at the paper's schedule, how the learner uses the second core (issue 26, goal 3):
-`lmac train` on smaclite:1o_10b_vs_1r at `--preset paper` with the authors' design, in four
-settings measured back to back, alternating, `--rounds` times:
+`lmac train` on smaclite:1o_10b_vs_1r at `--preset paper` with the authors' design, in these
+settings measured back to back, alternating, `--rounds` times (`--settings` picks some):
 
-- `paper`: the preset as it is (the target network unrolled on a second thread, burn's flex
-  backend free to run its large matmuls on rayon's two threads);
-- `one-thread-gemm`: the same with RAYON_NUM_THREADS=1 (matmuls on one thread);
-- `serial-target`: learn.parallel_target=false (target unrolled before the online pass);
-- `one-core`: both off: the learner on one core.
+- `paper`: the preset as it is: each update's batch in two halves on two threads
+  (learn.data_parallel), burn's flex backend free to run its large matmuls on rayon's two threads;
+- `target-on-second-core`: learn.data_parallel=false: the target network unrolled on a second
+  thread during the online pass (the preset before data_parallel);
+- `one-thread-gemm`: `target-on-second-core` with RAYON_NUM_THREADS=1 (matmuls on one thread);
+- `serial-target`: learn.data_parallel=false, learn.parallel_target=false;
+- `one-core`: all three off: the learner on one core.
 
 The rate is env steps per second between the first metrics row past `--from` steps and the
 last row (start-up, the first 32 episodes without updates and the buffer filling excluded).
@@ -22,11 +24,13 @@ import statistics
 import subprocess
 import tempfile
 
+SERIAL = ["--set", "learn.data_parallel=false"]
 SETTINGS = {
     "paper": ({}, []),
-    "one-thread-gemm": ({"RAYON_NUM_THREADS": "1"}, []),
-    "serial-target": ({}, ["--set", "learn.parallel_target=false"]),
-    "one-core": ({"RAYON_NUM_THREADS": "1"}, ["--set", "learn.parallel_target=false"]),
+    "target-on-second-core": ({}, SERIAL),
+    "one-thread-gemm": ({"RAYON_NUM_THREADS": "1"}, SERIAL),
+    "serial-target": ({}, SERIAL + ["--set", "learn.parallel_target=false"]),
+    "one-core": ({"RAYON_NUM_THREADS": "1"}, SERIAL + ["--set", "learn.parallel_target=false"]),
 }
 
 
@@ -53,11 +57,17 @@ def main() -> None:
     ap.add_argument("--steps", default="40k")
     ap.add_argument("--from", dest="start", default="10k")
     ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--settings", default=",".join(SETTINGS), help="comma-separated subset of: " + ", ".join(SETTINGS))
     a = ap.parse_args()
-    results = {name: [] for name in SETTINGS}
+    chosen = a.settings.split(",")
+    unknown = [c for c in chosen if c not in SETTINGS]
+    if unknown:
+        ap.error(f"--settings: unknown {unknown}; known: {', '.join(SETTINGS)}")
+    results = {name: [] for name in chosen}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(a.rounds):
-            for name, (env, extra) in SETTINGS.items():
+            for name in chosen:
+                env, extra = SETTINGS[name]
                 out = pathlib.Path(tmp) / f"{name}-{r}"
                 cmd = [a.lmac, "train", "--env", "smaclite:1o_10b_vs_1r", "--algo", a.algo, "--preset", "paper",
                        "--steps", a.steps, "--seeds", "0", "--out", str(out),
@@ -71,15 +81,16 @@ def main() -> None:
                 print(f"round {r} {name}: {sps:.1f} env steps/s, {ms} ms per update (wall time / updates)", flush=True)
     summary = {name: statistics.median(x["env_steps_per_s"] for x in v) for name, v in results.items()}
     doc = {
-        "command": f"python scripts/cores_ab.py LMAC {a.out} --algo {a.algo} --steps {a.steps} --from {a.start} --rounds {a.rounds}",
+        "command": f"python scripts/cores_ab.py LMAC {a.out} --algo {a.algo} --steps {a.steps} --from {a.start} --rounds {a.rounds} --settings {a.settings}",
         "env": "smaclite:1o_10b_vs_1r", "algo": a.algo, "preset": "paper", "steps": a.steps,
-        "settings": {k: {"env": v[0], "args": v[1]} for k, v in SETTINGS.items()},
+        "settings": {k: {"env": SETTINGS[k][0], "args": SETTINGS[k][1]} for k in chosen},
         "runs": results,
         "median_env_steps_per_s": summary,
-        "ratio_to_one_core": {k: round(v / summary["one-core"], 3) for k, v in summary.items()},
     }
+    base = "one-core" if "one-core" in summary else chosen[-1]
+    doc[f"ratio_to_{base}"] = {k: round(v / summary[base], 3) for k, v in summary.items()}
     pathlib.Path(a.out).write_text(json.dumps(doc, indent=2))
-    print(json.dumps(doc["ratio_to_one_core"]))
+    print(json.dumps(doc[f"ratio_to_{base}"]))
 
 
 if __name__ == "__main__":

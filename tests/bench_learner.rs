@@ -67,9 +67,9 @@ fn the_learner_bench_reports_each_mixer_and_refuses_what_it_cannot_run() {
 }
 
 /// `--algo` times a method's agent network on the same shape: LMAC's module (more work than
-/// the plain agent it wraps, FLOPs counted), an algorithm that names its backbone runs on that
-/// one only, no FLOP figure where the method's networks are not counted, and inputs that do
-/// not fit are refused.
+/// the plain agent it wraps, FLOPs counted), every method's FLOPs counted, an algorithm that
+/// names its backbone runs on that one only, `--two-cores` adds the update as `--preset paper`
+/// runs it, and inputs that do not fit are refused.
 #[test]
 fn the_learner_bench_times_a_methods_agent_network() {
     let run = |extra: &[&str]| {
@@ -89,7 +89,7 @@ fn the_learner_bench_times_a_methods_agent_network() {
     assert_eq!(lmac_v["method"]["algo"], "lmac");
     assert_eq!(lmac_v["method"]["critical_dims"], 8);
     // LMAC's FLOPs are counted (its module on top of the agent it wraps): more than the plain
-    // agent's on the same shape; a method whose extra networks are not counted has no figure.
+    // agent's on the same shape.
     let fig = &lmac_v["figures"][0];
     assert!(fig["gflops"].as_f64().unwrap() > 0.0 && fig["median_ms"].as_f64().unwrap() > 0.0, "{fig}");
     let gflop = |v: &serde_json::Value| v["flops"][0]["gflop_per_update"].as_f64().unwrap();
@@ -106,6 +106,11 @@ fn the_learner_bench_times_a_methods_agent_network() {
         let v = ok(&run(&["--algo", algo]));
         assert!(v["figures"][0]["gflops"].as_f64().unwrap() > 0.0 && gflop(&v) > gflop(&plain), "{algo}: {}", v["flops"]);
     }
+
+    let two = ok(&run(&["--algo", "lmac", "--messages", "10", "--critical", "8", "--two-cores"]));
+    let names: Vec<&str> = two["figures"].as_array().unwrap().iter().map(|f| f["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["lmac", "lmac-two-cores"], "{}", two["figures"]);
+    assert!(two["figures"][1]["median_ms"].as_f64().unwrap() > 0.0);
 
     let fixed = ok(&run(&["--algo", "qplex"]));
     let mixers: Vec<&str> = fixed["figures"].as_array().unwrap().iter().map(|f| f["mixer"].as_str().unwrap()).collect();

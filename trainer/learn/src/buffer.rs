@@ -170,4 +170,39 @@ impl Batch {
         }
         batch
     }
+
+    /// Episodes `range` of this batch as a batch of their own, over the same T steps (so a part's
+    /// padding, and every per-step quantity, is the whole batch's).
+    pub fn episodes(&self, range: std::ops::Range<usize>) -> Batch {
+        assert!(range.start < range.end && range.end <= self.b, "episodes {range:?} of a batch of {}", self.b);
+        let (t, b, nb) = (self.t, self.b, range.len());
+        let (n, a) = (self.n_agents, self.n_actions);
+        Batch {
+            b: nb,
+            t,
+            n_agents: n,
+            n_actions: a,
+            state_dim: self.state_dim,
+            input_dim: self.input_dim,
+            inputs: episode_rows(&self.inputs, t, b, n * self.input_dim, &range),
+            state: episode_rows(&self.state, t, b, self.state_dim, &range),
+            actions: episode_rows(&self.actions, t, b, n, &range),
+            avail: episode_rows(&self.avail, t, b, n * a, &range),
+            reward: episode_rows(&self.reward, t, b, 1, &range),
+            terminated: episode_rows(&self.terminated, t, b, 1, &range),
+            mask: episode_rows(&self.mask, t, b, 1, &range),
+            has_next: episode_rows(&self.has_next, t, b, 1, &range),
+        }
+    }
+}
+
+/// Episodes `range` of a [t, b, width] array (time-major, as a [`Batch`] holds its data): per
+/// step, those episodes' rows.
+pub fn episode_rows<T: Copy>(v: &[T], t: usize, b: usize, width: usize, range: &std::ops::Range<usize>) -> Vec<T> {
+    assert_eq!(v.len(), t * b * width, "a [t, b, width] array");
+    let mut out = Vec::with_capacity(t * range.len() * width);
+    for ti in 0..t {
+        out.extend_from_slice(&v[(ti * b + range.start) * width..(ti * b + range.end) * width]);
+    }
+    out
 }

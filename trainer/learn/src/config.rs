@@ -98,6 +98,13 @@ pub struct LearnConfig {
     /// Unroll the target network on a second thread during the online forward pass
     /// (faster updates when a core is free; off by default because acting wants that core).
     pub parallel_target: bool,
+    /// Each update's batch in two halves of its episodes on two threads (online and target
+    /// unroll and backward each), the gradients summed: both cores at work on one update. The
+    /// same update up to float summation order (each half's losses are divided by the whole
+    /// batch's trained steps) where every loss term of the method is a mean over trained steps:
+    /// the plain agent's methods and LMAC with its masked consistency term. Other methods
+    /// ignore it (and use `parallel_target`). Off by default because acting wants that core.
+    pub data_parallel: bool,
     /// The agents' recurrence in training unrolls as one fused operation with a hand-written
     /// backward (`learn::gru_sequence`); false: burn's per-step GRU cell, the slower reference.
     pub fused_gru: bool,
@@ -136,6 +143,7 @@ impl Default for LearnConfig {
             agent_sees_state: false,
             seed: 0,
             parallel_target: false,
+            data_parallel: false,
             fused_gru: true,
             reward_standardisation: RewardStandardisation::Method,
         }

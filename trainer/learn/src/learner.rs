@@ -4,12 +4,12 @@
 
 use std::sync::OnceLock;
 
-use burn::module::{Module, ModuleVisitor, Param, ParamId};
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer, RmsPropConfig};
 use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
-use super::buffer::{Batch, ReplayBuffer};
+use super::buffer::{episode_rows, Batch, ReplayBuffer};
 use super::config::{ConfigError, LearnConfig, MixerKind, OptimizerKind, RewardStandardisation};
 use super::methods::{AgentConfig, AgentNet, StepActions, TrainContext};
 use super::mixer::{Mixer, QplexInputs};
@@ -275,8 +275,51 @@ impl Learner {
     /// rewards, the batch's rewards first update the running statistics.
     pub fn train_on(&mut self, batch: &Batch) -> Result<TrainStats, LearnError> {
         let rewards = self.standardised_rewards(batch);
+        if self.cfg.data_parallel && batch.b >= 2 && self.net.agent.losses_are_step_means() {
+            return self.train_on_halves(batch, rewards.as_deref());
+        }
         let (loss, stats) = self.td_loss_with(batch, rewards.as_deref())?;
         self.apply_loss(loss, stats)
+    }
+
+    /// `learn.data_parallel`: the losses of the batch's two halves of episodes, each divided by
+    /// the whole batch's trained steps, and their backward passes, on two threads; the gradients
+    /// and statistics add up to the whole batch's (every term is a sum over trained steps
+    /// divided by their count).
+    fn train_on_halves(&mut self, batch: &Batch, rewards: Option<&[f32]>) -> Result<TrainStats, LearnError> {
+        let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
+        let ranges = [0..batch.b / 2, batch.b / 2..batch.b];
+        // Both forward passes end before either backward pass starts: burn's autodiff keeps one
+        // registry of graphs, and a thread recording a graph while another runs backward can
+        // deadlock in it (measured: both threads waiting on its locks).
+        let forwards_done = std::sync::Barrier::new(2);
+        let part = |i: usize| -> Result<(f32, GradientsParams, TrainStats), LearnError> {
+            let r = &ranges[i];
+            let half = batch.episodes(r.clone());
+            let rewards = rewards.map(|v| episode_rows(v, batch.t, batch.b, 1, r));
+            // The network's parameters as leaves of this half's own autodiff graph (burn joins
+            // the graphs of tensors that share a leaf into one); parameter ids stay, so the
+            // gradients are the network's.
+            let net = self.net.clone().map(&mut FreshLeaves);
+            let forward = self.td_loss_part(&net, &half, rewards.as_deref(), mask_sum, i as u64, false);
+            forwards_done.wait();
+            let (loss, stats) = forward?;
+            let value: f32 = loss.clone().detach().into_scalar();
+            Ok((value, GradientsParams::from_grads(loss.backward(), &net), stats))
+        };
+        let (first, second) = std::thread::scope(|s| {
+            let second = s.spawn(|| part(1));
+            (part(0), second.join().expect("the second half's update thread panicked"))
+        });
+        let ((l1, mut grads, mut stats), (l2, g2, s2)) = (first?, second?);
+        add_grads(&self.net, &mut grads, g2);
+        stats.td_error_abs += s2.td_error_abs;
+        stats.q_taken_mean += s2.q_taken_mean;
+        stats.target_mean += s2.target_mean;
+        for (term, other) in stats.method.iter_mut().zip(&s2.method) {
+            term.1 += other.1;
+        }
+        self.apply_grads(l1 + l2, grads, stats)
     }
 
     /// Whether this run standardises rewards (`learn.reward_standardisation`, by default the
@@ -313,6 +356,23 @@ impl Learner {
     /// [`td_loss`](Self::td_loss) with the TD targets' rewards replaced by `rewards` (one per
     /// (t, b) row, as `batch.reward`).
     fn td_loss_with(&self, batch: &Batch, rewards: Option<&[f32]>) -> Result<(Tensor<1>, TrainStats), LearnError> {
+        let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
+        self.td_loss_part(&self.net, batch, rewards, mask_sum, 0, self.cfg.parallel_target)
+    }
+
+    /// [`td_loss_with`](Self::td_loss_with) of the online network `net` on `batch`, a part of an update's batch whose
+    /// trained steps number `mask_sum` (every mean over trained steps divides by it; the method's
+    /// terms see it as `TrainContext::mask_sum`); part `part`'s random draws; the target network
+    /// unrolled on a second thread when `parallel_target`.
+    fn td_loss_part(
+        &self,
+        net: &QNet,
+        batch: &Batch,
+        rewards: Option<&[f32]>,
+        mask_sum: f32,
+        part: u64,
+        parallel_target: bool,
+    ) -> Result<(Tensor<1>, TrainStats), LearnError> {
         let reward = rewards.unwrap_or(&batch.reward);
         let (b, t, n, a) = (batch.b, batch.t, batch.n_agents, batch.n_actions);
         let (nb, iw, sd) = (t * b, batch.input_dim, batch.state_dim);
@@ -341,7 +401,6 @@ impl Learner {
 
         // ---- online network (autodiff)
         // The target unroll (no autodiff) optionally runs on a second thread meanwhile.
-        let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
         let mask_t: Tensor<1> = Tensor::from_data(TensorData::new(batch.mask.clone(), [nb]), &ad);
         // The batch's actions and (once the target unroll has run) the target network's greedy
         // available actions, per step and agent-row, for methods whose losses read them.
@@ -352,7 +411,9 @@ impl Learner {
             mask_sum,
             b,
             n_agents: n,
-            seed: self.cfg.seed ^ (self.counters.updates + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            seed: self.cfg.seed
+                ^ (self.counters.updates + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                ^ part.wrapping_mul(0xD1B5_4A32_D192_ED03),
             actions: Some(step_actions),
             reward: Some(Tensor::from_data(TensorData::new(reward.to_vec(), [nb]), &ad)),
         };
@@ -371,16 +432,16 @@ impl Learner {
             let _ = greedy_cell.set(Some(Tensor::from_data(greedy.into_data(), &ad)));
             out
         };
-        let ((mac_out, aux), (target_out, _)) = if self.cfg.parallel_target {
+        let ((mac_out, aux), (target_out, _)) = if parallel_target {
             std::thread::scope(|s| {
                 let target = s.spawn(target_unroll);
-                let online = self.net.agent.unroll(step_inputs(&ad), Some(&ctx));
+                let online = net.agent.unroll(step_inputs(&ad), Some(&ctx));
                 (online, target.join().expect("target unroll thread panicked"))
             })
         } else {
             // The target first: the online unroll's losses may read its greedy actions.
             let target = target_unroll();
-            (self.net.agent.unroll(step_inputs(&ad), Some(&ctx)), target)
+            (net.agent.unroll(step_inputs(&ad), Some(&ctx)), target)
         };
         let mac_out: Tensor<4> = mac_out.reshape([t, b, n, a]);
         let chosen = mac_out.clone().gather(3, actions_t(&ad)).reshape([nb, n]);
@@ -417,7 +478,7 @@ impl Learner {
         // ---- mixed online values and loss
         let extra = (kind == MixerKind::Qplex)
             .then(|| QplexInputs { actions_onehot: onehot(actions_t(&ad)), max_q: mac_plain.max_dim(3).reshape([nb, n]) });
-        let q_tot = self.net.mixer.forward(chosen, states_t(&ad), extra);
+        let q_tot = net.mixer.forward(chosen, states_t(&ad), extra);
         let y_t: Tensor<1> = Tensor::from_data(TensorData::new(y, [nb]), &ad);
         let td = (q_tot.clone() - y_t) * mask_t.clone();
         let mut loss = td.clone().square().sum().div_scalar(mask_sum);
@@ -446,11 +507,16 @@ impl Learner {
 
     /// Backward of `loss`, global gradient-norm clip, optimizer step. Fails (naming the update)
     /// when the loss or the gradient norm is NaN or infinite; the network is then unchanged.
-    pub fn apply_loss(&mut self, loss: Tensor<1>, mut stats: TrainStats) -> Result<TrainStats, LearnError> {
+    pub fn apply_loss(&mut self, loss: Tensor<1>, stats: TrainStats) -> Result<TrainStats, LearnError> {
         let loss_v: f32 = loss.clone().detach().into_scalar();
         self.check_finite("loss", loss_v)?;
-        let grads = loss.backward();
-        let mut grads = GradientsParams::from_grads(grads, &self.net);
+        let grads = GradientsParams::from_grads(loss.backward(), &self.net);
+        self.apply_grads(loss_v, grads, stats)
+    }
+
+    /// [`apply_loss`](Self::apply_loss) from the loss's value and gradients.
+    fn apply_grads(&mut self, loss_v: f32, mut grads: GradientsParams, mut stats: TrainStats) -> Result<TrainStats, LearnError> {
+        self.check_finite("loss", loss_v)?;
         let grad_norm = global_grad_norm(&self.net, &grads);
         self.check_finite("gradient norm", grad_norm)?;
         let clip = self.cfg.grad_norm_clip;
@@ -521,6 +587,46 @@ impl ModuleVisitor for Scale<'_> {
             self.seen.push(param.id);
         }
     }
+}
+
+/// A module's parameters as new autodiff leaves (same values and ids, same need of gradients).
+struct FreshLeaves;
+
+impl ModuleMapper for FreshLeaves {
+    fn map_float<const D: usize>(&mut self, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        p.map(|t| {
+            let grad = t.is_require_grad();
+            let t = t.detach();
+            if grad {
+                t.require_grad()
+            } else {
+                t
+            }
+        })
+    }
+}
+
+struct Add<'a> {
+    grads: &'a mut GradientsParams,
+    other: GradientsParams,
+}
+
+impl ModuleVisitor for Add<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        // Taken out of `other` once: a parameter visited twice is added once.
+        if let Some(o) = self.other.remove::<D>(param.id) {
+            let sum = match self.grads.remove::<D>(param.id) {
+                Some(g) => g + o,
+                None => o,
+            };
+            self.grads.register::<D>(param.id, sum);
+        }
+    }
+}
+
+/// `grads += other`, parameter by parameter.
+pub fn add_grads<M: Module>(module: &M, grads: &mut GradientsParams, other: GradientsParams) {
+    module.visit(&mut Add { grads, other });
 }
 
 /// Multiply every parameter gradient by `coef`.

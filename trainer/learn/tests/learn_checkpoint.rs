@@ -208,6 +208,68 @@ fn parallel_target_gives_the_same_updates() {
     assert_eq!(losses[0], losses[1]);
 }
 
+/// `learn.data_parallel` (the batch's two halves on two threads, gradients summed) trains the
+/// same network as the whole-batch update up to float summation order, for the plain agent on
+/// every mixer and for LMAC (dropout off, so both draw nothing; with standardised rewards); a
+/// method whose losses do not split (LMAC's released unmasked consistency) is not split and
+/// trains exactly as without the setting.
+#[test]
+fn data_parallel_updates_equal_whole_batch_updates() {
+    use lmac_learn::methods::lmac::{LmacConfig, LmacSettings};
+    use lmac_learn::AgentConfig;
+    let lmac = |mask_consistency: bool| {
+        let settings = LmacSettings { dropout: 0.0, standardise_rewards: true, mask_consistency, ..LmacSettings::default() };
+        AgentConfig::Lmac(LmacConfig { settings, msg_cols: 2, alpha: 0.05, critical_dims: vec![0, 3, 6] })
+    };
+    let cases = [
+        ("qmix", MixerKind::Qmix, AgentConfig::Rnn, false),
+        ("vdn", MixerKind::Vdn, AgentConfig::Rnn, false),
+        ("qplex", MixerKind::Qplex, AgentConfig::Rnn, false),
+        ("lmac", MixerKind::Qmix, lmac(true), false),
+        ("lmac, unmasked consistency (not split)", MixerKind::Qmix, lmac(false), true),
+    ];
+    for (name, mixer, agent, exact) in cases {
+        let mut runs = Vec::new();
+        for data_parallel in [false, true] {
+            let cfg = LearnConfig {
+                mixer,
+                batch_size: 6,
+                buffer_size: 12,
+                seed: 4,
+                qplex_num_kernel: 2,
+                data_parallel,
+                ..LearnConfig::default()
+            };
+            let mut learner = Learner::with_agent(DIMS, cfg, agent.clone(), Device::default()).unwrap();
+            let mut rng = LearnRng::seed_from(9);
+            for i in 0..12 {
+                learner.add_episode(random_episode(&mut rng, 2 + i % 4, i % 3 == 0)).unwrap();
+            }
+            let stats: Vec<_> = (0..4).map(|_| learner.train_step().unwrap()).collect();
+            runs.push((stats, q_values(&learner, 21)));
+        }
+        let close = |a: f32, b: f32| if exact { a == b } else { (a - b).abs() <= 1e-4 * (1.0 + a.abs().max(b.abs())) };
+        let ((whole, q_whole), (halves, q_halves)) = (&runs[0], &runs[1]);
+        for (u, (w, h)) in whole.iter().zip(halves).enumerate() {
+            for (what, a, b) in [
+                ("loss", w.loss, h.loss),
+                ("grad norm", w.grad_norm, h.grad_norm),
+                ("td error", w.td_error_abs, h.td_error_abs),
+                ("q taken", w.q_taken_mean, h.q_taken_mean),
+                ("target", w.target_mean, h.target_mean),
+            ] {
+                assert!(close(a, b), "{name}, update {u}: {what} {a} whole vs {b} in halves");
+            }
+            for ((term, a), (_, b)) in w.method.iter().zip(&h.method) {
+                assert!(close(*a, *b), "{name}, update {u}: {term} {a} whole vs {b} in halves");
+            }
+        }
+        for (a, b) in q_whole.iter().zip(q_halves) {
+            assert!(close(*a, *b), "{name}: Q-values after 4 updates {a} whole vs {b} in halves");
+        }
+    }
+}
+
 /// A learner whose `t_env` grows with every `step` call (one 3-step episode each), so each save
 /// is told apart by its counters.
 fn small_learner() -> (Learner, LearnRng) {

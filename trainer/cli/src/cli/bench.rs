@@ -74,9 +74,8 @@ pub(crate) enum BenchCmd {
         #[arg(long, value_delimiter = ',', default_value = "qmix,vdn,qplex")]
         mixers: Vec<String>,
         /// A method's agent network instead of the plain RNN agent: lmac, ndq, maic, masia,
-        /// t2mac, cola, qmix-state, ... (`lmac train --help`). GFLOP/s where the update's FLOPs
-        /// are counted (the plain agent's methods, qmix-state, lmac, ndq, t2mac, maic); none for masia and cola
-        /// yet.
+        /// t2mac, cola, qmix-state, ... (`lmac train --help`); its update's FLOPs are counted
+        /// (the method's networks on top of the agent), so GFLOP/s is reported for every method.
         #[arg(long)]
         algo: Option<String>,
         /// Message columns at the end of each agent's observation (what the method reads as
@@ -104,6 +103,11 @@ pub(crate) enum BenchCmd {
         /// Skip burn's per-step GRU cell (the reference of the fused recurrence).
         #[arg(long)]
         no_stepwise: bool,
+        /// Also time the update on two cores as `--preset paper` runs it (the batch's two halves
+        /// on two threads, or the target unroll on the second for methods whose losses do not
+        /// split), alternating with the one-thread update.
+        #[arg(long)]
+        two_cores: bool,
         /// Also time the phases of an update (target unroll, online forward, mixers and loss,
         /// backward, optimizer).
         #[arg(long)]

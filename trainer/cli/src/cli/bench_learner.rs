@@ -315,8 +315,18 @@ fn mixer_name(m: MixerKind) -> &'static str {
 
 /// A learner (the plain RNN agent, or `method`'s) filled with synthetic full-length episodes of
 /// `shape`.
-fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool, method: Option<&MethodUnderTest>) -> Result<Learner> {
-    let mut cfg = LearnConfig { mixer, rnn_hidden_dim: shape.hidden, batch_size: shape.batch, fused_gru: fused, ..LearnConfig::default() };
+/// A learner of `shape` with two batches of synthetic episodes in its buffer; `two_cores`: the
+/// update as `--preset paper` runs it (`learn.data_parallel` and `learn.parallel_target`).
+fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool, two_cores: bool, method: Option<&MethodUnderTest>) -> Result<Learner> {
+    let mut cfg = LearnConfig {
+        mixer,
+        rnn_hidden_dim: shape.hidden,
+        batch_size: shape.batch,
+        fused_gru: fused,
+        data_parallel: two_cores,
+        parallel_target: two_cores,
+        ..LearnConfig::default()
+    };
     let dims = shape.dims()?;
     let agent = match method {
         Some(m) => {
@@ -497,6 +507,8 @@ pub(crate) struct LearnerBenchOpts {
     pub rounds: usize,
     pub updates: usize,
     pub stepwise: bool,
+    /// Also time the update on two cores, as `--preset paper` runs it.
+    pub two_cores: bool,
     pub profile: bool,
     pub json: bool,
     pub out: Option<PathBuf>,
@@ -525,8 +537,9 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     for &mixer in &mixers {
         let cfg = LearnConfig { mixer, ..LearnConfig::default() };
         let flops = update_flops(&o.shape, mixer, &cfg, method);
-        let mut fused = filled_learner(&o.shape, mixer, true, method)?;
-        let mut stepwise = if o.stepwise { Some(filled_learner(&o.shape, mixer, false, method)?) } else { None };
+        let mut fused = filled_learner(&o.shape, mixer, true, false, method)?;
+        let mut stepwise = if o.stepwise { Some(filled_learner(&o.shape, mixer, false, false, method)?) } else { None };
+        let mut two_cores = if o.two_cores { Some(filled_learner(&o.shape, mixer, true, true, method)?) } else { None };
         let mut torch = if o.against_torch { Some(Torch::start(&python, &script, &o.shape, mixer, threads)?) } else { None };
         if let Some(t) = &torch {
             torch_version = Some(t.version.clone());
@@ -536,25 +549,32 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
         if let Some(s) = stepwise.as_mut() {
             time_updates(s, 3)?;
         }
-        let (mut f_rounds, mut s_rounds, mut t_rounds) = (Vec::new(), Vec::new(), Vec::new());
+        if let Some(l) = two_cores.as_mut() {
+            time_updates(l, 3)?;
+        }
+        let (mut f_rounds, mut s_rounds, mut t_rounds, mut c_rounds) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for round in 0..o.rounds {
             f_rounds.push(median(&time_updates(&mut fused, o.updates)?));
             if let Some(s) = stepwise.as_mut() {
                 s_rounds.push(median(&time_updates(s, o.updates)?));
             }
+            if let Some(l) = two_cores.as_mut() {
+                c_rounds.push(median(&time_updates(l, o.updates)?));
+            }
             if let Some(t) = torch.as_mut() {
                 t_rounds.push(median(&t.run(o.updates)?));
             }
             eprintln!(
-                "lmac: {} round {}: lmac {:.1} ms{}{}",
+                "lmac: {} round {}: lmac {:.1} ms{}{}{}",
                 mixer_name(mixer),
                 round + 1,
                 f_rounds[round],
                 s_rounds.get(round).map(|v| format!(", lmac stepwise {v:.1} ms")).unwrap_or_default(),
+                c_rounds.get(round).map(|v| format!(", lmac on two cores {v:.1} ms")).unwrap_or_default(),
                 t_rounds.get(round).map(|v| format!(", torch {v:.1} ms")).unwrap_or_default()
             );
         }
-        for (name, rounds) in [("lmac", f_rounds), ("lmac-stepwise", s_rounds), ("torch", t_rounds)] {
+        for (name, rounds) in [("lmac", f_rounds), ("lmac-stepwise", s_rounds), ("lmac-two-cores", c_rounds), ("torch", t_rounds)] {
             if rounds.is_empty() {
                 continue;
             }
@@ -569,7 +589,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
         }
         drop(torch);
         if o.profile {
-            for (name, l) in [("lmac", Some(&mut fused)), ("lmac-stepwise", stepwise.as_mut())] {
+            for (name, l) in [("lmac", Some(&mut fused)), ("lmac-stepwise", stepwise.as_mut()), ("lmac-two-cores", two_cores.as_mut())] {
                 let Some(l) = l else { continue };
                 let p = profile_update(l, o.updates)?;
                 for (phase, v) in &p {

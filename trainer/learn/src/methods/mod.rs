@@ -206,6 +206,16 @@ macro_rules! method_networks {
                 }
             }
 
+            /// Whether every loss term of the method is a sum over trained steps divided by
+            /// `TrainContext::mask_sum`, so that the terms of two halves of a batch add up to
+            /// the whole batch's (`learn.data_parallel` splits only such methods' updates).
+            pub fn losses_are_step_means(&self) -> bool {
+                match self {
+                    AgentNet::Rnn(_) => true,
+                    $( AgentNet::$variant(a) => a.losses_are_step_means(), )*
+                }
+            }
+
             /// After every optimizer step of the online network: a method's updates that are not
             /// gradient steps (an EMA teacher, a momentum target encoder). Parameters it keeps
             /// this way do not require grad, so the optimizer leaves them alone; they are saved
@@ -249,6 +259,12 @@ pub trait MethodHooks: Sized {
     fn after_update(self) -> Self {
         self
     }
+    /// Whether every loss term is a sum over trained steps divided by `TrainContext::mask_sum`
+    /// (see `AgentNet::losses_are_step_means`); not by default, so a new method's update is
+    /// never split unless it says so.
+    fn losses_are_step_means(&self) -> bool {
+        false
+    }
 }
 
 impl AgentConfig {
@@ -269,7 +285,9 @@ pub struct TrainContext {
     pub state: Tensor<2>,
     /// [T * B]: 1 on steps that are trained on.
     pub mask: Tensor<1>,
-    /// Sum of `mask` (at least 1).
+    /// The number of trained steps every mean over them divides by (at least 1): the sum of
+    /// `mask`, or with `learn.data_parallel` the whole batch's while this context holds half of
+    /// its episodes (the halves' terms then add up to the whole batch's).
     pub mask_sum: f32,
     pub b: usize,
     pub n_agents: usize,

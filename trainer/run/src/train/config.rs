@@ -123,8 +123,9 @@ pub const PRESETS: &[(&str, &str)] = &[
         "paper",
         "the LMAC paper's schedule (the authors' EPyMARL episode runner, Table C.3): one update of 32 \
          episodes per collected episode once the buffer holds 32, target copy every 200 episodes \
-         (= 200 updates), and the target network unrolled on the second core (acting waits for the \
-         learner at this ratio, so the core is free)",
+         (= 200 updates), and each update on both cores (acting waits for the learner at this ratio, \
+         so the second core is free): the batch's two halves on two threads where the method's losses \
+         split exactly (learn.data_parallel), else the target network unrolled on the second",
     ),
     (
         "epymarl",
@@ -159,6 +160,7 @@ pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
         "paper" => {
             let mut o = episode_runner();
             o.push("learn.parallel_target=true".into());
+            o.push("learn.data_parallel=true".into());
             o
         }
         "epymarl" => episode_runner(),
@@ -457,6 +459,7 @@ mod tests {
         let paper = TrainConfig::resolve(None, &preset_overrides("paper").unwrap()).unwrap();
         assert_eq!((paper.run.updates_per_episode, paper.learn.target_update_interval_episodes), (1.0, 200));
         assert!(paper.learn.parallel_target, "the paper schedule unrolls the target on the second core");
+        assert!(paper.learn.data_parallel, "and splits the batch over both cores where the method allows");
         let old = TrainConfig::resolve(None, &preset_overrides("pymarl-parallel").unwrap()).unwrap();
         assert_eq!(old.run.updates_per_episode, 0.125);
     }

@@ -88,6 +88,12 @@ impl MethodHooks for LmacAgent {
     fn rnn_agent_mut(&mut self) -> Option<&mut RnnAgent> {
         Some(&mut self.agent)
     }
+
+    /// Reconstruction, meta and consistency terms are masked means over the trained steps,
+    /// except the released code's unmasked consistency mean (`mask_consistency = false`).
+    fn losses_are_step_means(&self) -> bool {
+        self.cfg.settings.mask_consistency
+    }
 }
 
 impl LmacAgent {
