@@ -92,6 +92,9 @@ pub(crate) struct Row {
     pub steps_to_threshold: Option<f64>,
     pub wall_s_to_threshold: Option<f64>,
     pub wall_s_total: f64,
+    /// The learning schedule the seeds were trained with (from their config.toml; distinct
+    /// schedules joined with " / ").
+    pub schedule: String,
 }
 
 /// The rows to train: (label, algo, extra overrides).
@@ -268,7 +271,12 @@ fn mean_std(v: &[f64]) -> (f64, f64) {
 
 fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
     let (mut ret, mut win, mut wall) = (Vec::new(), Vec::new(), Vec::new());
+    let mut schedules: Vec<String> = Vec::new();
     for d in dirs {
+        let s = schedule(&TrainConfig::load(d)?);
+        if !schedules.contains(&s) {
+            schedules.push(s);
+        }
         let rows = read_metrics(d)?;
         let tests: Vec<_> = rows.iter().filter(|r| r.test_return_mean.is_some()).collect();
         if tests.is_empty() {
@@ -294,7 +302,16 @@ fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
         steps_to_threshold: None,
         wall_s_to_threshold: None,
         wall_s_total: mean(&wall),
+        schedule: schedules.join(" / "),
     })
+}
+
+/// A run's learning schedule in words: updates per collected episode, batch, target copies.
+fn schedule(cfg: &TrainConfig) -> String {
+    format!(
+        "{} updates per episode, batch {}, target copy every {} episodes",
+        cfg.run.updates_per_episode, cfg.learn.batch_size, cfg.learn.target_update_interval_episodes
+    )
 }
 
 fn reach(row: &mut Row, dirs: &[PathBuf], threshold: f64) -> Result<()> {
@@ -315,15 +332,15 @@ fn render(env: &str, rows: &[Row], threshold: f64) -> String {
     let mut s = format!(
         "{env}: final test return (mean +- std over seeds, last {FINAL_TESTS} test phases each); steps and wall time to a test return of {threshold:.3} (mean over the seeds that reached it)\n\n"
     );
-    s.push_str("| algorithm | seeds | final test return | final win rate | reached | env steps to threshold | wall s to threshold | wall s total |\n");
-    s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- |\n");
+    s.push_str("| algorithm | seeds | final test return | final win rate | reached | env steps to threshold | wall s to threshold | wall s total | schedule |\n");
+    s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
     for r in rows {
         let win = match (r.final_win_rate_mean, r.final_win_rate_std) {
             (Some(m), Some(sd)) => format!("{m:.3} +- {sd:.3}"),
             _ => "-".into(),
         };
         s.push_str(&format!(
-            "| {} | {} | {:.3} +- {:.3} | {win} | {}/{} | {} | {} | {:.0} |\n",
+            "| {} | {} | {:.3} +- {:.3} | {win} | {}/{} | {} | {} | {:.0} | {} |\n",
             r.label,
             r.seeds,
             r.final_return_mean,
@@ -332,7 +349,8 @@ fn render(env: &str, rows: &[Row], threshold: f64) -> String {
             r.seeds,
             r.steps_to_threshold.map_or("-".into(), |v| format!("{v:.0}")),
             r.wall_s_to_threshold.map_or("-".into(), |v| format!("{v:.0}")),
-            r.wall_s_total
+            r.wall_s_total,
+            r.schedule
         ));
     }
     s
