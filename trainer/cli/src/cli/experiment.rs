@@ -212,11 +212,11 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
             &serde_json::json!({"env": a.env, "steps": a.steps, "threshold": threshold, "design": design, "rows": rows}),
         )?,
     )?;
-    let mut csv = String::from("label,algo,seeds,final_return_mean,final_return_std,final_win_rate_mean,final_win_rate_std,reached,steps_to_threshold,wall_s_to_threshold,wall_s_total\n");
+    let mut csv = String::from("label,algo,seeds,final_return_mean,final_return_std,final_win_rate_mean,final_win_rate_std,reached,steps_to_threshold,wall_s_to_threshold,wall_s_total,schedule\n");
     let o = |v: Option<f64>| v.map(|x| format!("{x:.4}")).unwrap_or_default();
     for r in &rows {
         csv.push_str(&format!(
-            "{},{},{},{:.4},{:.4},{},{},{},{},{},{:.1}\n",
+            "{},{},{},{:.4},{:.4},{},{},{},{},{},{:.1},\"{}\"\n",
             r.label,
             r.algo,
             r.seeds,
@@ -227,7 +227,8 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
             r.reached,
             o(r.steps_to_threshold),
             o(r.wall_s_to_threshold),
-            r.wall_s_total
+            r.wall_s_total,
+            r.schedule
         ));
     }
     std::fs::write(dir.join("comparison.csv"), csv)?;
