@@ -641,13 +641,14 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     println!("| --- | --- | --- | --- | --- | --- |");
     for f in &figures {
         let torch = figures.iter().find(|g| g.mixer == f.mixer && g.name == "torch").map(|g| g.median_ms);
+        let cores = if f.name == "lmac-two-cores" { 2.0 } else { 1.0 };
         println!(
-            "| {} | {} | {:.1} | {} | {} | {} |",
+            "| {} | {} | {:.1} | {:.1} | {:.0}% | {} |",
             f.mixer,
             f.name,
             f.median_ms,
-            format!("{:.1}", f.gflops),
-            format!("{:.0}%", 100.0 * f.gflops / (peak * if f.name == "lmac-two-cores" { 2.0 } else { 1.0 })),
+            f.gflops,
+            100.0 * f.gflops / (peak * cores),
             torch.map(|t| format!("{:.2}", t / f.median_ms)).unwrap_or_else(|| "-".into())
         );
     }
