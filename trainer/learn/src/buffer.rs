@@ -171,6 +171,12 @@ impl Batch {
         batch
     }
 
+    /// The number of trained steps (the mask's sum), at least 1: what every mean over trained
+    /// steps divides by.
+    pub fn trained_steps(&self) -> f32 {
+        self.mask.iter().sum::<f32>().max(1.0)
+    }
+
     /// Episodes `range` of this batch as a batch of their own, over the same T steps (so a part's
     /// padding, and every per-step quantity, is the whole batch's).
     pub fn episodes(&self, range: std::ops::Range<usize>) -> Batch {

@@ -287,7 +287,7 @@ impl Learner {
     /// and statistics add up to the whole batch's (every term is a sum over trained steps
     /// divided by their count).
     fn train_on_halves(&mut self, batch: &Batch, rewards: Option<&[f32]>) -> Result<TrainStats, LearnError> {
-        let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
+        let mask_sum = batch.trained_steps();
         let ranges = [0..batch.b / 2, batch.b / 2..batch.b];
         // Both forward passes end before either backward pass starts: burn's autodiff keeps one
         // registry of graphs, and a thread recording a graph while another runs backward can
@@ -312,6 +312,7 @@ impl Learner {
             (part(0), second.join().expect("the second half's update thread panicked"))
         });
         let ((l1, mut grads, mut stats), (l2, g2, s2)) = (first?, second?);
+        self.check_finite("loss", l1 + l2)?;
         add_grads(&self.net, &mut grads, g2);
         stats.td_error_abs += s2.td_error_abs;
         stats.q_taken_mean += s2.q_taken_mean;
@@ -356,14 +357,13 @@ impl Learner {
     /// [`td_loss`](Self::td_loss) with the TD targets' rewards replaced by `rewards` (one per
     /// (t, b) row, as `batch.reward`).
     fn td_loss_with(&self, batch: &Batch, rewards: Option<&[f32]>) -> Result<(Tensor<1>, TrainStats), LearnError> {
-        let mask_sum: f32 = batch.mask.iter().sum::<f32>().max(1.0);
-        self.td_loss_part(&self.net, batch, rewards, mask_sum, 0, self.cfg.parallel_target)
+        self.td_loss_part(&self.net, batch, rewards, batch.trained_steps(), 0, self.cfg.parallel_target)
     }
 
-    /// [`td_loss_with`](Self::td_loss_with) of the online network `net` on `batch`, a part of an update's batch whose
-    /// trained steps number `mask_sum` (every mean over trained steps divides by it; the method's
-    /// terms see it as `TrainContext::mask_sum`); part `part`'s random draws; the target network
-    /// unrolled on a second thread when `parallel_target`.
+    /// [`td_loss_with`](Self::td_loss_with) of the online network `net` on `batch`, a part of an
+    /// update's batch whose trained steps number `mask_sum` (every mean over trained steps
+    /// divides by it; the method's terms see it as `TrainContext::mask_sum`); part `part`'s
+    /// random draws; the target network unrolled on a second thread when `parallel_target`.
     fn td_loss_part(
         &self,
         net: &QNet,
@@ -514,9 +514,8 @@ impl Learner {
         self.apply_grads(loss_v, grads, stats)
     }
 
-    /// [`apply_loss`](Self::apply_loss) from the loss's value and gradients.
+    /// [`apply_loss`](Self::apply_loss) from the (finite) loss's value and its gradients.
     fn apply_grads(&mut self, loss_v: f32, mut grads: GradientsParams, mut stats: TrainStats) -> Result<TrainStats, LearnError> {
-        self.check_finite("loss", loss_v)?;
         let grad_norm = global_grad_norm(&self.net, &grads);
         self.check_finite("gradient norm", grad_norm)?;
         let clip = self.cfg.grad_norm_clip;

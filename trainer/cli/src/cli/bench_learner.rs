@@ -294,6 +294,9 @@ impl MethodUnderTest {
     }
 }
 
+/// The figure of the update on two cores (`--two-cores`).
+const TWO_CORES: &str = "lmac-two-cores";
+
 /// What one implementation measured: per-update milliseconds of every round, and the GFLOP/s
 /// that makes of the update's counted FLOPs (see `update_flops`).
 #[derive(Debug, Serialize)]
@@ -313,10 +316,9 @@ fn mixer_name(m: MixerKind) -> &'static str {
     }
 }
 
-/// A learner (the plain RNN agent, or `method`'s) filled with synthetic full-length episodes of
-/// `shape`.
-/// A learner of `shape` with two batches of synthetic episodes in its buffer; `two_cores`: the
-/// update as `--preset paper` runs it (`learn.data_parallel` and `learn.parallel_target`).
+/// A learner (the plain RNN agent, or `method`'s) with two batches of synthetic full-length
+/// episodes of `shape` in its buffer; `two_cores`: the update as `--preset paper` runs it
+/// (`learn.data_parallel` and `learn.parallel_target`).
 fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool, two_cores: bool, method: Option<&MethodUnderTest>) -> Result<Learner> {
     let mut cfg = LearnConfig {
         mixer,
@@ -574,7 +576,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
                 t_rounds.get(round).map(|v| format!(", torch {v:.1} ms")).unwrap_or_default()
             );
         }
-        for (name, rounds) in [("lmac", f_rounds), ("lmac-stepwise", s_rounds), ("lmac-two-cores", c_rounds), ("torch", t_rounds)] {
+        for (name, rounds) in [("lmac", f_rounds), ("lmac-stepwise", s_rounds), (TWO_CORES, c_rounds), ("torch", t_rounds)] {
             if rounds.is_empty() {
                 continue;
             }
@@ -589,7 +591,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
         }
         drop(torch);
         if o.profile {
-            for (name, l) in [("lmac", Some(&mut fused)), ("lmac-stepwise", stepwise.as_mut()), ("lmac-two-cores", two_cores.as_mut())] {
+            for (name, l) in [("lmac", Some(&mut fused)), ("lmac-stepwise", stepwise.as_mut()), (TWO_CORES, two_cores.as_mut())] {
                 let Some(l) = l else { continue };
                 let p = profile_update(l, o.updates)?;
                 for (phase, v) in &p {
@@ -641,7 +643,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     println!("| --- | --- | --- | --- | --- | --- |");
     for f in &figures {
         let torch = figures.iter().find(|g| g.mixer == f.mixer && g.name == "torch").map(|g| g.median_ms);
-        let cores = if f.name == "lmac-two-cores" { 2.0 } else { 1.0 };
+        let cores = if f.name == TWO_CORES { 2.0 } else { 1.0 };
         println!(
             "| {} | {} | {:.1} | {:.1} | {:.0}% | {} |",
             f.mixer,
