@@ -1,10 +1,13 @@
 """Per-row, per-seed numbers of an `lmac experiment` directory: final test return and win rate
-(mean of the last 5 test phases, lmac's rule), the best checkpoint's final evaluation
+(lmac_report.final's rule: the mean of the last 5 test phases), the best checkpoint's final evaluation
 (marl_eval.json), and the mean of the last 10 logged rows of the LMAC module's terms.
 
-    python scripts/seed_numbers.py EXPERIMENT_DIR [OUT.json]
+    PYTHONPATH=env-server python scripts/seed_numbers.py EXPERIMENT_DIR [OUT.json]
 """
 import csv, json, pathlib, statistics, sys
+
+from lmac_report.final import final_of
+
 root = pathlib.Path(sys.argv[1]) / "runs"
 out = {}
 for row in sorted(p.name for p in root.iterdir()):
@@ -13,9 +16,8 @@ for row in sorted(p.name for p in root.iterdir()):
         if not (sd / "metrics.csv").exists():
             continue
         rows = [r for r in csv.DictReader(open(sd / "metrics.csv")) if r["test_return_mean"]]
-        last = rows[-5:]
-        fin_r = statistics.mean(float(r["test_return_mean"]) for r in last) if last else None
-        fin_w = statistics.mean(float(r["test_win_rate"]) for r in last) if last else None
+        fin_r = final_of([float(r["test_return_mean"]) for r in rows]) if rows else None
+        fin_w = final_of([float(r["test_win_rate"]) for r in rows]) if rows else None
         me = sd / "marl_eval.json"
         best = None
         if me.exists():

@@ -44,7 +44,7 @@ fn an_experiment_designs_trains_resumes_after_an_interruption_and_writes_its_tab
     let table = std::fs::read_to_string(out.join("comparison.md")).unwrap();
     assert!(table.contains("| lmac | 1 |") && table.contains("| qmix | 1 |"), "{table}");
     // Every row says the schedule it was trained with (here lmac train's default).
-    assert_eq!(table.matches("| 0.125 updates per episode, batch 32, target copy every 200 episodes |").count(), 2, "{table}");
+    assert_eq!(table.matches("| 1 update per episode, batch 32, target copy every 200 episodes |").count(), 2, "{table}");
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("comparison.json")).unwrap()).unwrap();
     assert_eq!(json["rows"].as_array().unwrap().len(), 2);
     assert!(out.join("comparison.csv").exists() && out.join("curves.png").exists());

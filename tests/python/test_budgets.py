@@ -16,8 +16,8 @@ def test_one_row_per_t_env_tests_on_the_grid_and_a_warning_for_few_updates(tmp_p
              "--set", "run.envs=4", "--set", "run.log_interval=500", "--set", "run.test_interval=1000",
              "--set", "run.test_episodes=8", "--set", "run.final_eval_episodes=8"])
     assert r.returncode == 0, r.stderr[-3000:]
-    # 3000 steps / 20-step episodes x 0.125 updates per episode
-    assert "= 19 updates if episodes run to their limit" in r.stderr, r.stderr[-3000:]
+    # 3000 steps / 20-step episodes x 1 update per episode (the default)
+    assert "= 150 updates if episodes run to their limit" in r.stderr, r.stderr[-3000:]
     assert "raise run.updates_per_episode (to 6.67 for 1000)" in r.stderr
     rows = list(csv.DictReader(next(tmp_path.rglob("metrics.csv")).open()))
     t_env = [int(row["t_env"]) for row in rows]

@@ -95,15 +95,17 @@ pub struct LearnConfig {
     pub agent_sees_state: bool,
     /// Seed for parameter init, replay sampling and exploration.
     pub seed: u64,
-    /// Unroll the target network on a second thread during the online forward pass
-    /// (faster updates when a core is free; off by default because acting wants that core).
+    /// Unroll the target network on a second thread during the online forward pass. On by
+    /// default: at one update per collected episode acting waits for the learner, so the
+    /// second core is free; `--preset pymarl-parallel` turns it off (at 0.125 updates per
+    /// episode acting keeps both cores busy).
     pub parallel_target: bool,
     /// Each update's batch in two halves of its episodes on two threads (online and target
     /// unroll and backward each), the gradients summed: both cores at work on one update. The
     /// same update up to float summation order (each half's losses are divided by the whole
     /// batch's trained steps) where every loss term of the method is a mean over trained steps:
     /// the plain agent's methods and LMAC with its masked consistency term. Other methods
-    /// ignore it (and use `parallel_target`). Off by default because acting wants that core.
+    /// ignore it (and use `parallel_target`). On by default for the reason `parallel_target` is.
     pub data_parallel: bool,
     /// The agents' recurrence in training unrolls as one fused operation with a hand-written
     /// backward (`learn::gru_sequence`); false: burn's per-step GRU cell, the slower reference.
@@ -142,8 +144,8 @@ impl Default for LearnConfig {
             obs_agent_id: true,
             agent_sees_state: false,
             seed: 0,
-            parallel_target: false,
-            data_parallel: false,
+            parallel_target: true,
+            data_parallel: true,
             fused_gru: true,
             reward_standardisation: RewardStandardisation::Method,
         }

@@ -33,7 +33,18 @@ fn measure() -> BTreeMap<String, Vec<Vec<(String, f64)>>> {
     let mut out = BTreeMap::new();
     for spec in REGISTRY {
         let agent = (spec.configure)(&settings(spec.name), &ctx).unwrap_or_else(|e| panic!("{}: {e}", spec.name));
-        let mut learn = LearnConfig { batch_size: 4, buffer_size: 16, seed: 11, qplex_num_kernel: 2, ..LearnConfig::default() };
+        // The whole batch on one thread, as recorded: the default's two-thread split draws each
+        // half's dropout separately (`data_parallel_updates_equal_whole_batch_updates` checks
+        // the split against this update where no dropout is drawn).
+        let mut learn = LearnConfig {
+            batch_size: 4,
+            buffer_size: 16,
+            seed: 11,
+            qplex_num_kernel: 2,
+            data_parallel: false,
+            parallel_target: false,
+            ..LearnConfig::default()
+        };
         if let Some(m) = spec.mixer {
             learn.mixer = m;
         }

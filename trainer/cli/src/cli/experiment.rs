@@ -309,9 +309,12 @@ fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
 
 /// A run's learning schedule in words: updates per collected episode, batch, target copies.
 fn schedule(cfg: &TrainConfig) -> String {
+    let per_episode = cfg.run.updates_per_episode;
     format!(
-        "{} updates per episode, batch {}, target copy every {} episodes",
-        cfg.run.updates_per_episode, cfg.learn.batch_size, cfg.learn.target_update_interval_episodes
+        "{per_episode} update{} per episode, batch {}, target copy every {} episodes",
+        if per_episode == 1.0 { "" } else { "s" },
+        cfg.learn.batch_size,
+        cfg.learn.target_update_interval_episodes
     )
 }
 

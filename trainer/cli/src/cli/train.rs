@@ -7,15 +7,16 @@ use clap::Args;
 use lmac_run::workflow::{interrupt_flag, plot, seed_dirs, train_dirs_holding};
 
 pub(crate) const TRAIN_AFTER_HELP: &str = "\
-Update ratio: by default the learner does run.updates_per_episode = 0.125 gradient updates (of
-learn.batch_size = 32 episodes) per collected episode, pymarl's parallel runner with 8
-environments. That is 8x fewer updates per episode than EPyMARL's episode runner (1 per
-episode), and the target network, copied every 200 episodes, is then copied every 25 updates.
---preset paper reproduces the paper's schedule (EPyMARL's episode runner): 1 update per episode
-from the 32nd episode on, a target copy every 200 updates, the target network unrolled on the
-second core (acting waits for the learner at this ratio); --preset epymarl is the same on one
-core, --preset pymarl-parallel the default's 0.125. Each environment switches to new weights when its
-next episode starts.
+Update ratio: by default the learner follows the LMAC paper's schedule (the authors' EPyMARL
+episode runner): run.updates_per_episode = 1 gradient update (of learn.batch_size = 32 episodes)
+per collected episode once the buffer holds 32, the target network copied every 200 episodes =
+200 updates, and each update on both cores (acting waits for the learner at this ratio): the
+batch's halves on two threads (learn.data_parallel) or the target network unrolled on the second
+(learn.parallel_target). --preset paper spells these defaults out; --preset epymarl is the same
+schedule on one core; --preset pymarl-parallel is pymarl's parallel runner with 8 environments,
+0.125 updates per episode (8x fewer; the target copied every 25 updates), lmac's default before
+the paper's schedule was affordable. Each environment switches to new weights when its next
+episode starts.
 
 Resuming: --resume DIR continues every unfinished seed in DIR (a group or one seed) from its
 last checkpoint (run.checkpoint_interval env steps apart, and one at the end). Without the saved
@@ -55,10 +56,10 @@ pub(crate) struct TrainArgs {
     /// Override a config value: --set learn.lr=0.001 --set run.envs=8
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
-    /// A named bundle of settings, applied before --set: paper (the LMAC paper's schedule: 1
-    /// update per collected episode, target copy every 200 updates, target unrolled on the
-    /// second core), epymarl (the same schedule on one core), pymarl-parallel (0.125 updates
-    /// per episode).
+    /// A named bundle of settings, applied before --set: paper (the default, spelled out: the
+    /// LMAC paper's schedule of 1 update per collected episode, target copy every 200 updates,
+    /// both cores on each update), epymarl (the same schedule on one core), pymarl-parallel
+    /// (0.125 updates per episode, one learner thread: the old default).
     #[arg(long)]
     preset: Option<String>,
     /// Where run directories go.

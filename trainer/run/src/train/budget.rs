@@ -70,7 +70,7 @@ mod tests {
         cfg.run.steps = 200_000;
         let w = warnings(&cfg, 500);
         assert_eq!(w.len(), 2, "{w:?}");
-        assert!(w[0].contains("= 50 updates"), "{}", w[0]);
+        assert!(w[0].contains("= 400 updates"), "{}", w[0]);
         assert!(w[1].contains("% of run.steps"), "{}", w[1]);
         cfg.run.steps = 2_000_000;
         assert!(warnings(&cfg, 25).is_empty(), "LBF's settings fit LBF");

@@ -29,11 +29,13 @@ pub struct RunSection {
     /// Sub-batches per env server (double buffering, see `supervisor::RunPlan`); 0: two when
     /// `envs` is even and the schema allows it (`double_buffer`), else one.
     pub sub_batches: usize,
-    /// Gradient updates per collected (training) episode. The default 0.125 is pymarl's parallel
-    /// runner with 8 environments (one update per 8 episodes); EPyMARL's episode runner does 1
-    /// (`--preset epymarl`). The target network is copied every
-    /// `learn.target_update_interval_episodes` episodes, so at 0.125 its 200 episodes are 25
-    /// updates, at 1 they are 200.
+    /// Gradient updates per collected (training) episode. The default 1 is the LMAC paper's
+    /// schedule (the authors' EPyMARL episode runner: one update per episode once the buffer
+    /// holds a batch); 0.125 is pymarl's parallel runner with 8 environments (one update per 8
+    /// episodes, `--preset pymarl-parallel`, the schedule of lmac's figures trained before the
+    /// paper's was affordable). The target network is copied every
+    /// `learn.target_update_interval_episodes` episodes, so at 1 its 200 episodes are 200
+    /// updates, at 0.125 they are 25.
     pub updates_per_episode: f64,
     /// Env steps between greedy test phases.
     pub test_interval: u64,
@@ -78,7 +80,7 @@ impl Default for RunSection {
             envs: 16,
             servers: 2,
             sub_batches: 0,
-            updates_per_episode: 0.125,
+            updates_per_episode: 1.0,
             test_interval: 10_000,
             test_episodes: 32,
             final_eval_episodes: None,
@@ -118,25 +120,28 @@ pub struct TrainConfig {
 }
 
 /// Named bundles of settings (`lmac train --preset NAME`), applied before `--set` overrides.
+/// `paper` is what the defaults already are, spelled out so that a config pins it.
 pub const PRESETS: &[(&str, &str)] = &[
     (
         "paper",
-        "the LMAC paper's schedule (the authors' EPyMARL episode runner, Table C.3): one update of 32 \
-         episodes per collected episode once the buffer holds 32, target copy every 200 episodes \
-         (= 200 updates), and each update on both cores (acting waits for the learner at this ratio, \
-         so the second core is free): the batch's two halves on two threads where the method's losses \
-         split exactly (learn.data_parallel), else the target network unrolled on the second",
+        "the LMAC paper's schedule, the default (the authors' EPyMARL episode runner, Table C.3): one \
+         update of 32 episodes per collected episode once the buffer holds 32, target copy every 200 \
+         episodes (= 200 updates), and each update on both cores (acting waits for the learner at this \
+         ratio, so the second core is free): the batch's two halves on two threads where the method's \
+         losses split exactly (learn.data_parallel), else the target network unrolled on the second",
     ),
     (
         "epymarl",
-        "EPyMARL's episode-runner learning schedule: one update of 32 episodes per collected episode \
-         (updates start once the buffer holds 32), target copy every 200 episodes = 200 updates",
+        "EPyMARL's episode-runner learning schedule on one core: one update of 32 episodes per \
+         collected episode (updates start once the buffer holds 32), target copy every 200 episodes = \
+         200 updates, no second learner thread",
     ),
     (
         "pymarl-parallel",
         "pymarl's parallel runner with 8 environments: 0.125 updates per collected episode (one per 8), \
-         target copy every 200 episodes = 25 updates; lmac's default before the paper schedule was \
-         affordable, and the schedule of every figure trained before it",
+         target copy every 200 episodes = 25 updates, no second learner thread (acting keeps both cores \
+         busy at this ratio); lmac's default before the paper's schedule was affordable, and the \
+         schedule of every figure trained before it",
     ),
 ];
 
@@ -153,20 +158,19 @@ pub fn preset_then(preset: Option<&str>, sets: &[String]) -> Result<Vec<String>>
 
 /// The `key=value` overrides of a preset.
 pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
-    let episode_runner = || {
-        vec!["run.updates_per_episode=1.0".to_string(), "learn.batch_size=32".into(), "learn.target_update_interval_episodes=200".into()]
+    let schedule = |updates_per_episode: &str, second_thread: bool| {
+        vec![
+            format!("run.updates_per_episode={updates_per_episode}"),
+            "learn.batch_size=32".into(),
+            "learn.target_update_interval_episodes=200".into(),
+            format!("learn.parallel_target={second_thread}"),
+            format!("learn.data_parallel={second_thread}"),
+        ]
     };
     Ok(match name {
-        "paper" => {
-            let mut o = episode_runner();
-            o.push("learn.parallel_target=true".into());
-            o.push("learn.data_parallel=true".into());
-            o
-        }
-        "epymarl" => episode_runner(),
-        "pymarl-parallel" => {
-            vec!["run.updates_per_episode=0.125".into(), "learn.batch_size=32".into(), "learn.target_update_interval_episodes=200".into()]
-        }
+        "paper" => schedule("1.0", true),
+        "epymarl" => schedule("1.0", false),
+        "pymarl-parallel" => schedule("0.125", false),
         other => bail!("--preset: unknown preset {other:?}; known: {}", PRESETS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")),
     })
 }
@@ -460,8 +464,16 @@ mod tests {
         assert_eq!((paper.run.updates_per_episode, paper.learn.target_update_interval_episodes), (1.0, 200));
         assert!(paper.learn.parallel_target, "the paper schedule unrolls the target on the second core");
         assert!(paper.learn.data_parallel, "and splits the batch over both cores where the method allows");
+        let default = TrainConfig::resolve(None, &[]).unwrap();
+        assert_eq!(
+            (default.run.updates_per_episode, default.learn.target_update_interval_episodes, default.learn.data_parallel),
+            (1.0, 200, true),
+            "the paper's schedule is the default"
+        );
         let old = TrainConfig::resolve(None, &preset_overrides("pymarl-parallel").unwrap()).unwrap();
         assert_eq!(old.run.updates_per_episode, 0.125);
+        assert!(!old.learn.parallel_target && !old.learn.data_parallel, "the old default's one learner thread");
+        assert!(!c.learn.parallel_target && !c.learn.data_parallel, "epymarl is the schedule on one core");
     }
 
     /// Issue 30: every number is range-checked (1e300 updates per episode hung the run at t_env

@@ -157,7 +157,7 @@ mod tests {
             assert!(page.contains(&format!("### `{}`", spec.name)), "method {} missing", spec.name);
         }
         // Defaults come from the types' Default impls.
-        assert!(page.contains("| `updates_per_episode` | `0.125` |"), "{page}");
+        assert!(page.contains("| `updates_per_episode` | `1.0` |"), "{page}");
         assert!(page.contains("One of: `\"vdn\"`"), "enum choices are listed");
     }
 }
