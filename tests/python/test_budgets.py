@@ -3,6 +3,7 @@ metric rows never repeat a t_env (a test phase that falls due with a training ro
 test phases start on the run.test_interval grid, and a run whose update count will be tiny for
 its episode length says so before it starts."""
 import csv
+import re
 
 from test_pz_cli import run
 
@@ -19,6 +20,12 @@ def test_one_row_per_t_env_tests_on_the_grid_and_a_warning_for_few_updates(tmp_p
     # 3000 steps / 20-step episodes x 1 update per episode (the default)
     assert "= 150 updates if episodes run to their limit" in r.stderr, r.stderr[-3000:]
     assert "raise run.updates_per_episode (to 6.67 for 1000)" in r.stderr
+    # The run's log says how fast acting was and how long it waited for the learner.
+    acting = re.search(r"trainer: acting: (\d+) batched steps, the controller ([\d.]+) ms median / ([\d.]+) ms p99 "
+                       r"per batched step; acting waited ([\d.]+) s of ([\d.]+) s for the learner", r.stderr)
+    assert acting, r.stderr[-3000:]
+    steps, median, p99, waited, total = (float(g) for g in acting.groups())
+    assert steps >= 3000 / 4 and 0 < median <= p99 and 0 <= waited <= total, acting.group(0)
     rows = list(csv.DictReader(next(tmp_path.rglob("metrics.csv")).open()))
     t_env = [int(row["t_env"]) for row in rows]
     assert len(t_env) == len(set(t_env)), f"a t_env logged twice: {t_env}"

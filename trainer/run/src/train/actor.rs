@@ -69,6 +69,11 @@ pub struct TrainActor {
     pub(super) dataset: Vec<Trajectory>,
     /// Observation columns without messages (what the dataset keeps).
     pub(super) obs_dim: usize,
+    /// The controller's time per batched step (every env of one slab), microseconds: acting's
+    /// latency, reported when the run ends (the learner shares the cores with it).
+    pub(super) act_us: Vec<f32>,
+    /// Time acting spent waiting for the learner to catch up (`wait_for_learner`).
+    pub(super) learner_wait: std::time::Duration,
 }
 
 impl TrainActor {
@@ -90,18 +95,39 @@ impl TrainActor {
         }
     }
 
-    fn wait_for_learner(&self) {
+    fn wait_for_learner(&mut self) {
         // Keep updates per episode at the configured ratio: acting waits while the learner lags
         // by more than two updates.
         let due = self.schedule.due(self.episodes_sent);
+        let start = Instant::now();
         loop {
             let s = self.shared.lock();
             if s.error.is_some() || s.updates + 2 >= due {
-                return;
+                break;
             }
             drop(s);
             std::thread::sleep(std::time::Duration::from_micros(500));
         }
+        self.learner_wait += start.elapsed();
+    }
+
+    /// One line on acting for the run's log: the controller's latency per batched step (median
+    /// and 99th percentile) and how long acting waited for the learner.
+    pub(super) fn acting_summary(&self) -> Option<String> {
+        if self.act_us.is_empty() {
+            return None;
+        }
+        let mut us = self.act_us.clone();
+        us.sort_by(f32::total_cmp);
+        let at = |q: f64| us[((us.len() - 1) as f64 * q).round() as usize] / 1000.0;
+        Some(format!(
+            "acting: {} batched steps, the controller {:.2} ms median / {:.2} ms p99 per batched step; acting waited {:.1} s of {:.1} s for the learner",
+            us.len(),
+            at(0.5),
+            at(0.99),
+            self.learner_wait.as_secs_f64(),
+            self.started.elapsed().as_secs_f64()
+        ))
     }
 
     fn fail(&mut self, e: anyhow::Error) {
@@ -186,6 +212,7 @@ impl Actor for TrainActor {
         }
         let state = if self.learn.agent_sees_state { Some(slot.state()) } else { None };
         let eps = self.epsilon();
+        let acting = Instant::now();
         let acts = self.controllers[member].select_actions(
             slot.obs(),
             state,
@@ -207,6 +234,7 @@ impl Actor for TrainActor {
                 actions[r] = crate::learn::controller::greedy_available(qs, av).unwrap_or(0) as i32;
             }
         }
+        self.act_us.push(acting.elapsed().as_secs_f32() * 1e6);
     }
 
     fn episode_done(&mut self, member: usize, env: usize, ep: Episode, won: bool) {

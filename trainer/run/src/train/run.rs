@@ -123,6 +123,8 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         checkpoints_pending: 0,
         dataset: Vec::new(),
         obs_dim: schema.obs_dim,
+        act_us: Vec::new(),
+        learner_wait: std::time::Duration::ZERO,
         rng: LearnRng::seed_from(learn.seed ^ 0xAC70_0000 ^ counters.t_env),
         controllers,
         dims,
@@ -132,6 +134,9 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     let result = crate::pipeline::run(args, &mut actor);
     if let Some(b) = &actor.bar {
         b.finish_and_clear();
+    }
+    if let Some(line) = actor.acting_summary() {
+        eprintln!("lmac: trainer: {line}");
     }
     if actor.cfg.run.dataset_episodes > 0 && actor.dataset.len() >= actor.cfg.run.dataset_episodes {
         save_dataset(run_dir, &actor, args)?;
