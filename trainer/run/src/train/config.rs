@@ -139,9 +139,8 @@ pub const PRESETS: &[(&str, &str)] = &[
     (
         "pymarl-parallel",
         "pymarl's parallel runner with 8 environments: 0.125 updates per collected episode (one per 8), \
-         target copy every 200 episodes = 25 updates, no second learner thread (acting keeps both cores \
-         busy at this ratio); lmac's default before the paper's schedule was affordable, and the \
-         schedule of every figure trained before it",
+         target copy every 200 episodes = 25 updates, one learner thread: lmac's default before the \
+         paper's schedule was affordable, exactly, and the schedule of every figure trained before it",
     ),
 ];
 
