@@ -18,7 +18,9 @@ fn filled_learner(mixer: MixerKind) -> Learner {
 }
 
 fn filled(mixer: MixerKind, agent: AgentConfig) -> Learner {
-    let cfg = LearnConfig { mixer, ..LearnConfig::default() };
+    // The update on one thread, as these figures always measured it (the default since runs it
+    // on both cores; `lmac bench learner --two-cores` times that).
+    let cfg = LearnConfig { mixer, data_parallel: false, parallel_target: false, ..LearnConfig::default() };
     let mut learner = Learner::with_agent(DIMS, cfg, agent, Device::default()).unwrap();
     let mut rng = LearnRng::seed_from(0);
     let d = DIMS;
