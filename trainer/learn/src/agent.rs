@@ -7,7 +7,7 @@ use burn::nn::Linear;
 use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::{Device, Tensor};
 
-use super::gru_sequence::{gru_sequence, gru_sequence_carry};
+use super::gru_sequence::{gru_sequence_carry, gru_sequence_projected};
 use super::init::linear;
 use super::LearnRng;
 
@@ -46,11 +46,16 @@ impl FusedGru {
     }
 
     /// The hidden states over a whole sequence from zero: `x` holds every step's input,
-    /// time-major [T * N, in] -> [T, N, H]. The input projection runs once over all steps and
-    /// the recurrence is one fused operation (`gru_sequence`), equal to stepping `forward`.
+    /// time-major [T * N, in] -> [T, N, H]. One fused operation (`gru_sequence_projected`)
+    /// computes each step's input projection and recurrence, equal to stepping `forward`.
     pub fn sequence(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
-        let (gi, bias) = self.input_projection(x, steps);
-        gru_sequence(gi, self.hidden.weight.val(), bias)
+        let [total, width] = x.dims();
+        let rows = total / steps.max(1);
+        let device = x.device();
+        let zeros = || Tensor::zeros([3 * self.hidden_dim], &device);
+        let b_ih = self.input.bias.as_ref().map_or_else(zeros, |b| b.val());
+        let b_hh = self.hidden.bias.as_ref().map_or_else(zeros, |b| b.val());
+        gru_sequence_projected(x.reshape([steps, rows, width]), self.input.weight.val(), b_ih, self.hidden.weight.val(), b_hh)
     }
 
     /// What both sequence forms feed the recurrence: every step's input projection [T, N, 3H]

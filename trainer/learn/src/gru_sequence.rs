@@ -8,6 +8,13 @@
 //! are plain loops over host slices with one `gemm` call per step, registered with burn's
 //! autodiff as a single node (`#[backend_extension]`, hand-written `Backward`).
 //!
+//! `gru_sequence_projected` also takes the input projection into the loop: each step's
+//! `gi_t = x_t W_ih + b_ih` is computed into a one-step buffer just before its gates read it, and
+//! backward turns each step's d(gi_t) into d(x_t) and the W_ih gradient at once, so the
+//! [T, N, 3H] projection and its gradient never exist whole. On 1o_10b's update (17,600 rows,
+//! 13.5 MB of gi) writing and rereading that array made the one large matmul run at about half
+//! the rate the same product reaches one step at a time (`lmac bench learner`'s shape ceiling).
+//!
 //! Conventions are torch's `GRUCell` with burn's row layout (weights [in, out], gates r, z, n):
 //! `gh = h W_hh + b_hh`, `r = sigmoid(gi_r + gh_r)`, `z = sigmoid(gi_z + gh_z)`,
 //! `n = tanh(gi_n + r * gh_n)`, `h' = n + z (h - n)`, from `h_0 = 0`. `gi = x W_ih + b_ih` is
@@ -39,6 +46,13 @@ pub trait GruSequenceBackend: Backend {
         b_hh: FloatTensor<Self>,
         res: FloatTensor<Self>,
     ) -> FloatTensor<Self>;
+    fn gru_sequence_projected(
+        x: FloatTensor<Self>,
+        w_ih: FloatTensor<Self>,
+        b_ih: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
 }
 
 /// The hidden states of the GRU over time: `gi` [T, N, 3H] (input projections of all steps,
@@ -59,6 +73,18 @@ pub fn gru_sequence_carry(gi: Tensor<3>, w_hh: Tensor<2>, b_hh: Tensor<1>, res: 
     ))
 }
 
+/// [`gru_sequence`] with the input projection inside the loop: `x` [T, N, I], `w_ih` [I, 3H],
+/// `b_ih` [3H] give gi_t = x_t W_ih + b_ih one step at a time. Differentiable in all five.
+pub fn gru_sequence_projected(x: Tensor<3>, w_ih: Tensor<2>, b_ih: Tensor<1>, w_hh: Tensor<2>, b_hh: Tensor<1>) -> Tensor<3> {
+    Tensor::from_dispatch(<Dispatch as GruSequenceBackend>::gru_sequence_projected(
+        x.into_dispatch(),
+        w_ih.into_dispatch(),
+        b_ih.into_dispatch(),
+        w_hh.into_dispatch(),
+        b_hh.into_dispatch(),
+    ))
+}
+
 #[cfg(feature = "flex")]
 impl GruSequenceBackend for burn::backend::Flex {
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
@@ -71,6 +97,15 @@ impl GruSequenceBackend for burn::backend::Flex {
         res: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
         forward_on::<Self>(gi, w_hh, b_hh, Some(res), false).0
+    }
+    fn gru_sequence_projected(
+        x: FloatTensor<Self>,
+        w_ih: FloatTensor<Self>,
+        b_ih: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        projected_on::<Self>(x, w_ih, b_ih, w_hh, b_hh, false).0
     }
 }
 
@@ -86,6 +121,15 @@ impl GruSequenceBackend for burn::backend::NdArray {
         res: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
         forward_on::<Self>(gi, w_hh, b_hh, Some(res), false).0
+    }
+    fn gru_sequence_projected(
+        x: FloatTensor<Self>,
+        w_ih: FloatTensor<Self>,
+        b_ih: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        projected_on::<Self>(x, w_ih, b_ih, w_hh, b_hh, false).0
     }
 }
 
@@ -117,6 +161,53 @@ impl<B: Backend + GruSequenceBackend, C: CheckpointStrategy> GruSequenceBackend 
             OpsKind::UnTracked(prep) => prep.finish(
                 forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), Some(res.into_primitive()), false).0,
             ),
+        }
+    }
+
+    fn gru_sequence_projected(
+        x: FloatTensor<Self>,
+        w_ih: FloatTensor<Self>,
+        b_ih: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let nodes = [x.node(), w_ih.node(), b_ih.node(), w_hh.node(), b_hh.node()];
+        let prims = (x.into_primitive(), w_ih.into_primitive(), b_ih.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive());
+        match GruProjectedBackward.prepare::<C>(nodes).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => {
+                let (out, saved) = projected_on::<B>(prims.0, prims.1, prims.2, prims.3, prims.4, true);
+                prep.finish(saved.expect("saved activations"), out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(projected_on::<B>(prims.0, prims.1, prims.2, prims.3, prims.4, false).0),
+        }
+    }
+}
+
+#[derive(Debug)]
+struct GruProjectedBackward;
+
+impl<B: Backend> Backward<B, 5> for GruProjectedBackward {
+    type State = Arc<Saved>;
+
+    fn backward(self, ops: Ops<Self::State, 5>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+        let [node_x, node_w_ih, node_b_ih, node_w, node_b] = ops.parents;
+        let grad = grads.consume::<B>(&ops.node);
+        let device = grad.device();
+        let saved = ops.state;
+        let g = saved.backward(&host::<B>(grad));
+        let (t, n, h) = (saved.steps, saved.rows, saved.hidden);
+        let width = saved.projection.as_ref().map_or(0, |p| p.width);
+        let parts = [
+            (node_x, g.x, vec![t, n, width]),
+            (node_w_ih, g.w_ih, vec![width, 3 * h]),
+            (node_b_ih, g.b_ih, vec![3 * h]),
+            (node_w, g.w_hh, vec![h, 3 * h]),
+            (node_b, g.b_hh, vec![3 * h]),
+        ];
+        for (node, values, shape) in parts {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, B::float_from_data(TensorData::new(values, shape), &device));
+            }
         }
     }
 }
@@ -196,13 +287,59 @@ fn forward_on<B: Backend>(
         assert!(r_dims == [t, n, h3 / 3], "gru_sequence_carry: res {r_dims:?} does not fit [T, N, H] = {:?}", [t, n, h3 / 3]);
         host::<B>(r)
     });
-    let saved = Saved::forward_carry(&host::<B>(gi), host::<B>(w_hh), &host::<B>(b_hh), res.as_deref(), t, n, h3 / 3, save);
-    let shape = [t, n, h3 / 3];
+    let gi = host::<B>(gi);
+    let saved = Saved::unroll(StepInput::Given(&gi), host::<B>(w_hh), &host::<B>(b_hh), res.as_deref(), t, n, h3 / 3, save);
+    finish_on::<B>(saved, save, &device)
+}
+
+/// [`forward_on`] of the projected form: x [T, N, I], w_ih [I, 3H], b_ih [3H].
+fn projected_on<B: Backend>(
+    x: FloatTensor<B>,
+    w_ih: FloatTensor<B>,
+    b_ih: FloatTensor<B>,
+    w_hh: FloatTensor<B>,
+    b_hh: FloatTensor<B>,
+    save: bool,
+) -> (FloatTensor<B>, Option<Arc<Saved>>) {
+    let device = x.device();
+    let [t, n, width] = x.shape().dims::<3>();
+    let (wi_dims, bi_dims, w_dims, b_dims) =
+        (w_ih.shape().dims::<2>(), b_ih.shape().dims::<1>(), w_hh.shape().dims::<2>(), b_hh.shape().dims::<1>());
+    let h3 = b_dims[0];
+    assert!(
+        h3 % 3 == 0 && wi_dims == [width, h3] && bi_dims == [h3] && w_dims == [h3 / 3, h3],
+        "gru_sequence_projected: x {:?}, w_ih {wi_dims:?}, b_ih {bi_dims:?}, w_hh {w_dims:?}, b_hh {b_dims:?} do not fit [T, N, I], [I, 3H], [3H], [H, 3H], [3H]",
+        [t, n, width]
+    );
+    let input = StepInput::Project { x: host::<B>(x), w_ih: host::<B>(w_ih), b_ih: host::<B>(b_ih), width };
+    let saved = Saved::unroll(input, host::<B>(w_hh), &host::<B>(b_hh), None, t, n, h3 / 3, save);
+    finish_on::<B>(saved, save, &device)
+}
+
+/// The hidden states as a backend tensor, and what backward reads when `save`.
+fn finish_on<B: Backend>(saved: Saved, save: bool, device: &B::Device) -> (FloatTensor<B>, Option<Arc<Saved>>) {
+    let shape = [saved.steps, saved.rows, saved.hidden];
     if save {
-        (B::float_from_data(TensorData::new(saved.hs.clone(), shape), &device), Some(Arc::new(saved)))
+        (B::float_from_data(TensorData::new(saved.hs.clone(), shape), device), Some(Arc::new(saved)))
     } else {
-        (B::float_from_data(TensorData::new(saved.hs, shape), &device), None)
+        (B::float_from_data(TensorData::new(saved.hs, shape), device), None)
     }
+}
+
+/// Where each step's input projection gi_t [N, 3H] comes from.
+pub enum StepInput<'a> {
+    /// The caller's, for every step: gi [T, N, 3H].
+    Given(&'a [f32]),
+    /// Computed at each step: gi_t = x_t W_ih + b_ih from x [T, N, width], W_ih [width, 3H].
+    Project { x: Vec<f32>, w_ih: Vec<f32>, b_ih: Vec<f32>, width: usize },
+}
+
+/// What backward needs of a projected input: the inputs and the projection's weights.
+#[derive(Debug, Clone)]
+pub struct Projection {
+    x: Vec<f32>,
+    w_ih: Vec<f32>,
+    width: usize,
 }
 
 /// The forward's results and what its backward reads: hidden states and gate activations of
@@ -221,11 +358,17 @@ pub struct Saved {
     gh_n: Vec<f32>,
     /// Whether each step's state had a residual added (`gru_sequence_carry`).
     carry: bool,
+    /// The input projection, when the unroll computed it (`gru_sequence_projected`).
+    projection: Option<Projection>,
 }
 
-/// Gradients of the inputs (`res` empty without a residual).
+/// Gradients of the inputs: of gi, or with a projected input of x, w_ih and b_ih instead (the
+/// others empty); `res` empty without a residual.
 pub struct SequenceGrads {
     pub gi: Vec<f32>,
+    pub x: Vec<f32>,
+    pub w_ih: Vec<f32>,
+    pub b_ih: Vec<f32>,
     pub w_hh: Vec<f32>,
     pub b_hh: Vec<f32>,
     pub res: Vec<f32>,
@@ -321,8 +464,35 @@ impl Saved {
     /// is carried on (and returned).
     #[allow(clippy::too_many_arguments)]
     pub fn forward_carry(gi: &[f32], w_hh: Vec<f32>, b_hh: &[f32], res: Option<&[f32]>, t: usize, n: usize, h: usize, keep: bool) -> Saved {
+        Self::unroll(StepInput::Given(gi), w_hh, b_hh, res, t, n, h, keep)
+    }
+
+    /// The unroll behind every form: each step's gi_t from `input`, an optional residual.
+    #[allow(clippy::too_many_arguments)]
+    pub fn unroll(
+        input: StepInput<'_>,
+        w_hh: Vec<f32>,
+        b_hh: &[f32],
+        res: Option<&[f32]>,
+        t: usize,
+        n: usize,
+        h: usize,
+        keep: bool,
+    ) -> Saved {
         let h3 = 3 * h;
-        assert_eq!(gi.len(), t * n * h3, "gru_sequence: gi length");
+        match &input {
+            StepInput::Given(gi) => assert_eq!(gi.len(), t * n * h3, "gru_sequence: gi length"),
+            StepInput::Project { x, w_ih, b_ih, width } => {
+                assert_eq!(x.len(), t * n * width, "gru_sequence_projected: x length");
+                assert_eq!(w_ih.len(), width * h3, "gru_sequence_projected: w_ih length");
+                assert_eq!(b_ih.len(), h3, "gru_sequence_projected: b_ih length");
+            }
+        }
+        // One step's input projection when the unroll computes it.
+        let mut gi_buf = match &input {
+            StepInput::Given(_) => Vec::new(),
+            StepInput::Project { .. } => vec![0.0f32; n * h3],
+        };
         let step = n * h;
         let mut hs = vec![0.0f32; t * step];
         let keep_len = if keep { t * step } else { 0 };
@@ -343,7 +513,17 @@ impl Saved {
                 matmul(n, h3, h, &mut gh, h3, true, prev, (h, 1), &w_hh, (h3, 1));
             }
             let out = &mut rest[..step];
-            let gi_t = &gi[ti * n * h3..(ti + 1) * n * h3];
+            let gi_t: &[f32] = match &input {
+                StepInput::Given(gi) => &gi[ti * n * h3..(ti + 1) * n * h3],
+                StepInput::Project { x, w_ih, b_ih, width } => {
+                    // gi_t = b_ih + x_t W_ih, one step's rows while they are in cache
+                    for row in gi_buf.chunks_exact_mut(h3) {
+                        row.copy_from_slice(b_ih);
+                    }
+                    matmul(n, h3, *width, &mut gi_buf, h3, true, &x[ti * n * width..], (*width, 1), w_ih, (h3, 1));
+                    &gi_buf
+                }
+            };
             let keep_at = ti * step..(ti + 1) * step;
             let (r, z, c, ghn) = if keep {
                 (&mut r_all[keep_at.clone()], &mut z_all[keep_at.clone()], &mut n_all[keep_at.clone()], &mut ghn_all[keep_at])
@@ -360,7 +540,11 @@ impl Saved {
                 }
             }
         }
-        Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all, carry: res.is_some() }
+        let projection = match input {
+            StepInput::Project { x, w_ih, width, .. } if keep => Some(Projection { x, w_ih, width }),
+            _ => None,
+        };
+        Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all, carry: res.is_some(), projection }
     }
 
     /// Backpropagation through time of `d_hs` = dL/dh_t for every step [T, N, H].
@@ -369,7 +553,14 @@ impl Saved {
         let (h3, step) = (3 * h, n * h);
         assert_eq!(d_hs.len(), t * step, "gru_sequence: gradient length");
         assert_eq!(self.r.len(), t * step, "gru_sequence: backward needs a forward run with keep");
-        let mut d_gi = vec![0.0f32; t * n * h3];
+        // d(gi): of every step when gi was given; one step's, turned into d(x_t) and the W_ih
+        // gradient at once, when the unroll projected x itself.
+        let proj = self.projection.as_ref();
+        let mut d_gi = vec![0.0f32; if proj.is_some() { n * h3 } else { t * n * h3 }];
+        let width = proj.map_or(0, |p| p.width);
+        let mut d_x = vec![0.0f32; t * n * width];
+        let mut d_w_ih = vec![0.0f32; width * h3];
+        let mut d_b_ih = vec![0.0f32; if proj.is_some() { h3 } else { 0 }];
         // d(gh) of every step, kept for the weight gradient (one matmul over all steps at the end)
         let mut d_gh = vec![0.0f32; t * n * h3];
         let mut d_next = vec![0.0f32; step]; // dL/dh_{t} arriving from step t + 1
@@ -387,8 +578,20 @@ impl Saved {
             let prev = if ti > 0 { &self.hs[(ti - 1) * step..ti * step] } else { &zeros[..] };
             let saved = (&self.r[at.clone()], &self.z[at.clone()], &self.n[at.clone()], &self.gh_n[at.clone()]);
             let g_at = ti * n * h3..(ti + 1) * n * h3;
-            let (d_gi_t, d_gh_t) = (&mut d_gi[g_at.clone()], &mut d_gh[g_at.clone()]);
+            let gi_at = if proj.is_some() { 0..n * h3 } else { g_at.clone() };
+            let (d_gi_t, d_gh_t) = (&mut d_gi[gi_at], &mut d_gh[g_at.clone()]);
             with_simd!(gates_backward(h, &d_hs[at], &d_next, saved, prev, &mut d_prev, d_gi_t, d_gh_t));
+            if let Some(p) = proj {
+                let w = p.width;
+                // d(x_t) = d(gi_t) W_ih^T; dW_ih += x_t^T d(gi_t); db_ih += column sums of d(gi_t)
+                matmul(n, w, h3, &mut d_x[ti * n * w..], w, false, d_gi_t, (h3, 1), &p.w_ih, (1, h3));
+                matmul(w, h3, n, &mut d_w_ih, h3, ti + 1 < t, &p.x[ti * n * w..], (1, w), d_gi_t, (h3, 1));
+                for row in d_gi_t.chunks_exact(h3) {
+                    for (acc, v) in d_b_ih.iter_mut().zip(row) {
+                        *acc += v;
+                    }
+                }
+            }
             // dh_{t-1} += d(gh_t) W_hh^T  (W_hh [H, 3H] read transposed)
             if ti > 0 {
                 matmul(n, h, h3, &mut d_prev, h, true, &d_gh[g_at], (h3, 1), &self.w_hh, (1, h3));
@@ -405,7 +608,10 @@ impl Saved {
                 *acc += v;
             }
         }
-        SequenceGrads { gi: d_gi, w_hh: d_w, b_hh: d_b, res: d_res }
+        if proj.is_some() {
+            d_gi = Vec::new();
+        }
+        SequenceGrads { gi: d_gi, x: d_x, w_ih: d_w_ih, b_ih: d_b_ih, w_hh: d_w, b_hh: d_b, res: d_res }
     }
 }
 
@@ -476,6 +682,48 @@ mod tests {
         let bias = plain.hidden.bias.as_ref().expect("bias").val();
         let out = gru_sequence(gi, plain.hidden.weight.val(), bias).reshape([t * n, hd]);
         assert!(max_diff(reference.inner(), out) < 1e-5);
+    }
+
+    /// The projected form (`FusedGru::sequence`: each step's input projection inside the loop)
+    /// against the step-by-step cell, with an input width unlike the hidden width: hidden states
+    /// and the gradients of x and of all four parameters to 1e-5, with and without autodiff.
+    #[test]
+    fn the_projected_form_matches_the_step_by_step_cell() {
+        let (t, n, width, hd) = (6, 5, 7, 4);
+        let dev = Device::default().autodiff();
+        let mut rng = LearnRng::seed_from(11);
+        let gru = FusedGru::new(&mut rng, width, hd, &dev);
+        let xs: Vec<Tensor<2>> = (0..t).map(|_| random(&mut rng, [n, width], &dev).require_grad()).collect();
+        let weights = random(&mut rng, [t * n, hd], &dev);
+        let mut h = Tensor::zeros([n, hd], &dev);
+        let mut hs = Vec::new();
+        for x in &xs {
+            h = gru.forward(x.clone(), h);
+            hs.push(h.clone());
+        }
+        let reference = Tensor::cat(hs, 0);
+        let ref_grads = (reference.clone() * weights.clone()).sum().backward();
+        let fused = gru.sequence(Tensor::cat(xs.clone(), 0), t).reshape([t * n, hd]);
+        assert!(max_diff(reference.clone().inner(), fused.clone().inner()) < 1e-5);
+        let grads = (fused * weights).sum().backward();
+        for (name, p) in [("w_ih", &gru.input.weight), ("w_hh", &gru.hidden.weight)] {
+            let d = max_diff(p.val().grad(&ref_grads).expect("reference"), p.val().grad(&grads).expect("fused"));
+            assert!(d < 1e-5, "{name}: gradients differ by {d}");
+        }
+        for (name, b) in [("b_ih", &gru.input.bias), ("b_hh", &gru.hidden.bias)] {
+            let b = b.as_ref().expect("bias").val();
+            let d = (b.grad(&ref_grads).expect("reference") - b.grad(&grads).expect("fused")).abs().max().into_scalar::<f32>();
+            assert!(d < 1e-5, "{name}: gradients differ by {d}");
+        }
+        for (i, x) in xs.iter().enumerate() {
+            let d = max_diff(x.grad(&ref_grads).expect("x gradient"), x.grad(&grads).expect("fused x gradient"));
+            assert!(d < 1e-5, "input of step {i}: gradients differ by {d}");
+        }
+        let plain = gru.valid();
+        let out = plain.sequence(Tensor::cat(xs.iter().map(|x| x.clone().inner()).collect(), 0), t).reshape([t * n, hd]);
+        assert!(max_diff(reference.inner(), out) < 1e-5);
+        let one = plain.sequence(Tensor::ones([3, width], &Device::default()), 1);
+        assert_eq!(one.dims(), [1, 3, hd]);
     }
 
     /// The carried form c_t = GRU(x_t, c_{t-1}) + x_t against the cell stepped by hand, values

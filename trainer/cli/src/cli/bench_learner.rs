@@ -441,6 +441,122 @@ fn sgemm_gflops() -> f64 {
     2.0 * (n * n * n) as f64 / best / 1e9
 }
 
+/// One matmul of an update: `reps` products of [m, k] x [k, n], the lhs read transposed when
+/// `lhs_t` (a weight gradient reads the layer's input as [k, m]), `batch` of them at once (a
+/// batched matmul, as the mixer's per-step [1, n] x [n, e]).
+#[derive(Clone, Copy, Debug, Serialize)]
+struct MatmulShape {
+    what: &'static str,
+    m: usize,
+    k: usize,
+    n: usize,
+    batch: usize,
+    reps: usize,
+    lhs_t: bool,
+}
+
+/// The matmuls of a plain-agent update with the QMIX or VDN mixer, shape by shape, as
+/// [`Shape::update_flops`] counts them and the fused recurrence runs them: the agent's forward
+/// (fc1; the GRU's input and hidden projections once per step on one step's rows; fc2), the
+/// backward's input and
+/// weight gradients (none into the first layers' inputs), the target network's forward, and
+/// the mixer's hypernetworks and per-step mixing. QPLEX has no list (None).
+fn update_matmuls(s: &Shape, mixer: MixerKind, cfg: &LearnConfig) -> Option<Vec<MatmulShape>> {
+    let (h, a, n, st) = (s.hidden, s.actions, s.agents, s.state);
+    let r = s.batch * s.steps * n;
+    let step_rows = s.batch * n;
+    let mm = |what, m, k, nn, reps| MatmulShape { what, m, k, n: nn, batch: 1, reps, lhs_t: false };
+    let wg = |what, m, k, nn, reps| MatmulShape { what, m, k, n: nn, batch: 1, reps, lhs_t: true };
+    // Forward of online and target (2x), input gradients, weight gradients.
+    let mut v = vec![
+        mm("agent fc1 (forward, online + target)", r, s.input, h, 2),
+        mm("GRU input projection, one step (forward)", step_rows, h, 3 * h, 2 * s.steps),
+        mm("GRU hidden projection, one step (forward)", step_rows, h, 3 * h, 2 * s.steps),
+        mm("agent fc2 (forward)", r, h, a, 2),
+        mm("fc2 input gradient", r, a, h, 1),
+        mm("GRU input projection, one step, input gradient", step_rows, 3 * h, h, s.steps),
+        mm("GRU hidden, one step, input gradient", step_rows, 3 * h, h, s.steps),
+        wg("fc1 weight gradient", s.input, r, h, 1),
+        wg("GRU input weight gradient, one step", h, step_rows, 3 * h, s.steps),
+        wg("GRU hidden weight gradient", h, r, 3 * h, 1),
+        wg("fc2 weight gradient", h, r, a, 1),
+    ];
+    match mixer {
+        MixerKind::Vdn => {}
+        MixerKind::Qmix => {
+            let (e, he, m) = (cfg.mixing_embed_dim, cfg.hypernet_embed, s.batch * s.steps);
+            // Each layer: forward twice (online, target), its weight gradient, and its input
+            // gradient unless it reads the state.
+            for (what, k, nn, first) in [
+                ("hyper w1, first layer", st, he, true),
+                ("hyper w1, second layer", he, e * n, false),
+                ("hyper w_final, first layer", st, he, true),
+                ("hyper w_final, second layer", he, e, false),
+                ("hyper b1", st, e, true),
+                ("V, first layer", st, e, true),
+                ("V, second layer", e, 1, false),
+            ] {
+                v.push(mm(what, m, k, nn, 2));
+                v.push(wg(what, k, m, nn, 1));
+                if !first {
+                    v.push(mm(what, m, nn, k, 1));
+                }
+            }
+            // The per-step mixing: [1, n] x [n, e] then [1, e] x [e, 1], forward twice and
+            // two gradients each.
+            v.push(MatmulShape { what: "mixing, agents x w1 (batched)", m: 1, k: n, n: e, batch: m, reps: 4, lhs_t: false });
+            v.push(MatmulShape { what: "mixing, hidden x w_final (batched)", m: 1, k: e, n: 1, batch: m, reps: 4, lhs_t: false });
+        }
+        MixerKind::Qplex => return None,
+    }
+    Some(v)
+}
+
+/// The shape ceiling: each of the update's matmuls timed alone through burn on this thread
+/// (best of 10 after a warm-up), and the update's time if every matmul ran at the rate gemm
+/// reaches at its own shape with nothing else in between. Small per-step products reach far
+/// less than the 512^3 rate, so this, not the 512^3 rate, bounds what the update can reach.
+fn shape_ceiling(list: &[MatmulShape]) -> Vec<(MatmulShape, f64)> {
+    use burn::tensor::{Distribution, Tensor};
+    let dev = Device::default();
+    list.iter()
+        .map(|x| {
+            let best = if x.batch > 1 {
+                let l: Tensor<3> = Tensor::random([x.batch, x.m, x.k], Distribution::Default, &dev);
+                let r: Tensor<3> = Tensor::random([x.batch, x.k, x.n], Distribution::Default, &dev);
+                best_of(10, || {
+                    let _ = l.clone().matmul(r.clone()).into_data();
+                })
+            } else {
+                let l: Tensor<2> = if x.lhs_t {
+                    Tensor::random([x.k, x.m], Distribution::Default, &dev)
+                } else {
+                    Tensor::random([x.m, x.k], Distribution::Default, &dev)
+                };
+                let r: Tensor<2> = Tensor::random([x.k, x.n], Distribution::Default, &dev);
+                best_of(10, || {
+                    let l = if x.lhs_t { l.clone().transpose() } else { l.clone() };
+                    let _ = l.matmul(r.clone()).into_data();
+                })
+            };
+            (*x, best * 1e3)
+        })
+        .collect()
+}
+
+/// Best wall time of `k` calls of `f` (seconds), after two unmeasured ones.
+fn best_of(k: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    f();
+    (0..k)
+        .map(|_| {
+            let t0 = Instant::now();
+            f();
+            t0.elapsed().as_secs_f64()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
 /// Where one lmac update's time goes (median ms of `k` updates per phase): sampling the batch,
 /// the target network's agent unroll, the online agents' forward, the rest of the loss (mixers,
 /// targets, method terms), the backward pass, and clip + optimizer step.
@@ -604,6 +720,27 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     }
     let peak = peak_before.max(sgemm_gflops());
     eprintln!("lmac: single-thread sgemm through burn (512^3): {peak:.1} GFLOP/s");
+    // The plain agent's matmuls at their own shapes (methods add modules this list leaves out).
+    let ceilings: Vec<(MixerKind, Vec<(MatmulShape, f64)>)> = if method.is_some_and(|m| !matches!(m.agent, AgentConfig::Rnn)) {
+        Vec::new()
+    } else {
+        mixers
+            .iter()
+            .filter_map(|&m| {
+                update_matmuls(&o.shape, m, &LearnConfig { mixer: m, ..LearnConfig::default() }).map(|l| (m, shape_ceiling(&l)))
+            })
+            .collect()
+    };
+    let ceiling_ms = |c: &[(MatmulShape, f64)]| c.iter().map(|(x, ms)| x.reps as f64 * ms).sum::<f64>();
+    let ceiling_json: Vec<_> = ceilings
+        .iter()
+        .map(|(m, c)| {
+            serde_json::json!({"mixer": mixer_name(*m), "ms_if_every_matmul_ran_alone": ceiling_ms(c),
+                "matmuls": c.iter().map(|(x, ms)| serde_json::json!({"what": x.what, "m": x.m, "k": x.k, "n": x.n, "batch": x.batch,
+                    "lhs_transposed": x.lhs_t, "per_update": x.reps, "ms_each": ms,
+                    "gflops": 2.0 * (x.batch * x.m * x.k * x.n) as f64 / (ms * 1e-3) / 1e9})).collect::<Vec<_>>()})
+        })
+        .collect();
     let flops: Vec<_> = mixers
         .iter()
         .map(|&m| {
@@ -614,6 +751,7 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     let report = serde_json::json!({
         "shape": o.shape, "threads": threads, "rounds": o.rounds, "updates_per_round": o.updates,
         "sgemm_gflops_single_thread": peak, "torch_version": torch_version, "flops": flops, "figures": figures, "profiles": profiles,
+        "shape_ceiling": ceiling_json,
         "method": method.map(|m| m.settings.clone()),
     });
     if let Some(path) = &o.out {
@@ -652,6 +790,19 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
             f.gflops,
             100.0 * f.gflops / (peak * cores),
             torch.map(|t| format!("{:.2}", t / f.median_ms)).unwrap_or_else(|| "-".into())
+        );
+    }
+    for (m, c) in &ceilings {
+        let ideal = ceiling_ms(c);
+        let flops = update_flops(&o.shape, *m, &LearnConfig { mixer: *m, ..LearnConfig::default() }, method);
+        let one = figures.iter().find(|f| f.mixer == mixer_name(*m) && f.name == "lmac").map(|f| f.median_ms);
+        println!(
+            "{}: its {} matmuls, each timed alone at its own shape, take {ideal:.1} ms per update ({:.1} GFLOP/s, {:.0}% of the 512^3 rate){}",
+            mixer_name(*m),
+            c.iter().map(|(x, _)| x.reps).sum::<usize>(),
+            flops / (ideal * 1e-3) / 1e9,
+            100.0 * flops / (ideal * 1e-3) / 1e9 / peak,
+            one.map(|u| format!("; the update on one thread takes {u:.1} ms, {:.0}% of that ceiling's speed", 100.0 * ideal / u)).unwrap_or_default()
         );
     }
     Ok(0)
