@@ -478,7 +478,7 @@ fn update_matmuls(s: &Shape, mixer: MixerKind, cfg: &LearnConfig) -> Option<Vec<
         mm("GRU hidden, one step, input gradient", step_rows, 3 * h, h, s.steps),
         wg("fc1 weight gradient", s.input, r, h, 1),
         wg("GRU input weight gradient, one step", h, step_rows, 3 * h, s.steps),
-        wg("GRU hidden weight gradient", h, r, 3 * h, 1),
+        wg("GRU hidden weight gradient, one step", h, step_rows, 3 * h, s.steps.saturating_sub(1)),
         wg("fc2 weight gradient", h, r, a, 1),
     ];
     match mixer {
