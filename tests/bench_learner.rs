@@ -25,6 +25,21 @@ fn the_learner_bench_reports_each_mixer_and_refuses_what_it_cannot_run() {
     let phases = v["profiles"][0]["phases_ms"].as_array().unwrap();
     assert!(phases.iter().any(|p| p["phase"] == "backward"), "{phases:?}");
     assert_eq!(v["shape"]["batch"], 4);
+    // The shape ceiling lists the very matmuls the FLOP count counts (QMIX and VDN; none for
+    // QPLEX), each timed.
+    let ceilings = v["shape_ceiling"].as_array().expect("shape_ceiling");
+    let mixers: Vec<&str> = ceilings.iter().map(|c| c["mixer"].as_str().unwrap()).collect();
+    assert_eq!(mixers, ["qmix", "vdn"], "{}", v["shape_ceiling"]);
+    for c in ceilings {
+        let matmuls = c["matmuls"].as_array().unwrap();
+        let listed: f64 = matmuls
+            .iter()
+            .map(|m| ["m", "k", "n", "batch", "per_update"].iter().map(|k| m[*k].as_f64().unwrap()).product::<f64>() * 2.0 / 1e9)
+            .sum();
+        let counted = gflop(c["mixer"].as_str().unwrap());
+        assert!((listed - counted).abs() < 1e-9 * counted, "{}: the ceiling lists {listed} GFLOP, the count says {counted}", c["mixer"]);
+        assert!(matmuls.iter().all(|m| m["ms_each"].as_f64().unwrap() > 0.0) && c["ms_if_every_matmul_ran_alone"].as_f64().unwrap() > 0.0);
+    }
     // the FLOPs are those of the shape given (4 episodes x 5 steps), not of the default batch
     let small = gflop("vdn");
     let big = lmac()

@@ -478,7 +478,9 @@ fn update_matmuls(s: &Shape, mixer: MixerKind, cfg: &LearnConfig) -> Option<Vec<
         mm("GRU hidden, one step, input gradient", step_rows, 3 * h, h, s.steps),
         wg("fc1 weight gradient", s.input, r, h, 1),
         wg("GRU input weight gradient, one step", h, step_rows, 3 * h, s.steps),
-        wg("GRU hidden weight gradient, one step", h, step_rows, 3 * h, s.steps.saturating_sub(1)),
+        // (the first step's is a product with h_{-1} = 0, skipped by the kernel but counted by
+        // update_flops, which this list sums to exactly)
+        wg("GRU hidden weight gradient, one step", h, step_rows, 3 * h, s.steps),
         wg("fc2 weight gradient", h, r, a, 1),
     ];
     match mixer {
