@@ -51,23 +51,13 @@ impl FusedGru {
     pub fn sequence(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
         let [total, width] = x.dims();
         let rows = total / steps.max(1);
-        let device = x.device();
-        let zeros = || Tensor::zeros([3 * self.hidden_dim], &device);
-        let b_ih = self.input.bias.as_ref().map_or_else(zeros, |b| b.val());
-        let b_hh = self.hidden.bias.as_ref().map_or_else(zeros, |b| b.val());
+        let (b_ih, b_hh) = (self.bias(&self.input, &x.device()), self.bias(&self.hidden, &x.device()));
         gru_sequence_projected(x.reshape([steps, rows, width]), self.input.weight.val(), b_ih, self.hidden.weight.val(), b_hh)
     }
 
-    /// What both sequence forms feed the recurrence: every step's input projection [T, N, 3H]
-    /// and the hidden projection's bias (zeros when it has none).
-    fn input_projection(&self, x: Tensor<2>, steps: usize) -> (Tensor<3>, Tensor<1>) {
-        let rows = x.dims()[0] / steps.max(1);
-        let gi = self.input.forward(x).reshape([steps, rows, 3 * self.hidden_dim]);
-        let bias = match &self.hidden.bias {
-            Some(b) => b.val(),
-            None => Tensor::zeros([3 * self.hidden_dim], &gi.device()),
-        };
-        (gi, bias)
+    /// A projection's bias, zeros when it has none [3H].
+    fn bias(&self, layer: &Linear, device: &Device) -> Tensor<1> {
+        layer.bias.as_ref().map_or_else(|| Tensor::zeros([3 * self.hidden_dim], device), |b| b.val())
     }
 }
 
@@ -77,7 +67,8 @@ impl FusedGru {
     pub fn sequence_carry(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
         let rows = x.dims()[0] / steps.max(1);
         let res = x.clone().reshape([steps, rows, self.hidden_dim]);
-        let (gi, bias) = self.input_projection(x, steps);
+        let bias = self.bias(&self.hidden, &x.device());
+        let gi = self.input.forward(x).reshape([steps, rows, 3 * self.hidden_dim]);
         gru_sequence_carry(gi, self.hidden.weight.val(), bias, res)
     }
 }

@@ -28,7 +28,7 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
-use burn::backend::autodiff::Autodiff;
+use burn::backend::autodiff::{Autodiff, NodeId};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
@@ -198,16 +198,25 @@ impl<B: Backend> Backward<B, 5> for GruProjectedBackward {
         let (t, n, h) = (saved.steps, saved.rows, saved.hidden);
         let width = saved.projection.as_ref().map_or(0, |p| p.width);
         let parts = [
-            (node_x, g.x, vec![t, n, width]),
-            (node_w_ih, g.w_ih, vec![width, 3 * h]),
-            (node_b_ih, g.b_ih, vec![3 * h]),
-            (node_w, g.w_hh, vec![h, 3 * h]),
-            (node_b, g.b_hh, vec![3 * h]),
+            (node_x.map(|n| n.id), g.x, vec![t, n, width]),
+            (node_w_ih.map(|n| n.id), g.w_ih, vec![width, 3 * h]),
+            (node_b_ih.map(|n| n.id), g.b_ih, vec![3 * h]),
+            (node_w.map(|n| n.id), g.w_hh, vec![h, 3 * h]),
+            (node_b.map(|n| n.id), g.b_hh, vec![3 * h]),
         ];
-        for (node, values, shape) in parts {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, B::float_from_data(TensorData::new(values, shape), &device));
-            }
+        register::<B>(grads, &device, parts);
+    }
+}
+
+/// Hand each tracked parent its gradient (values with their shape); untracked parents get none.
+fn register<B: Backend>(
+    grads: &mut Gradients,
+    device: &B::Device,
+    parts: impl IntoIterator<Item = (Option<NodeId>, Vec<f32>, Vec<usize>)>,
+) {
+    for (node, values, shape) in parts {
+        if let Some(id) = node {
+            grads.register::<B>(id, B::float_from_data(TensorData::new(values, shape), device));
         }
     }
 }
@@ -226,15 +235,12 @@ impl<B: Backend> Backward<B, 3> for GruSequenceBackward {
         let d_h = host::<B>(grad);
         let g = saved.backward(&d_h);
         let (t, n, h) = (saved.steps, saved.rows, saved.hidden);
-        if let Some(node) = node_gi {
-            grads.register::<B>(node.id, B::float_from_data(TensorData::new(g.gi, [t, n, 3 * h]), &device));
-        }
-        if let Some(node) = node_w {
-            grads.register::<B>(node.id, B::float_from_data(TensorData::new(g.w_hh, [h, 3 * h]), &device));
-        }
-        if let Some(node) = node_b {
-            grads.register::<B>(node.id, B::float_from_data(TensorData::new(g.b_hh, [3 * h]), &device));
-        }
+        let parts = [
+            (node_gi.map(|n| n.id), g.gi, vec![t, n, 3 * h]),
+            (node_w.map(|n| n.id), g.w_hh, vec![h, 3 * h]),
+            (node_b.map(|n| n.id), g.b_hh, vec![3 * h]),
+        ];
+        register::<B>(grads, &device, parts);
     }
 }
 
@@ -252,16 +258,12 @@ impl<B: Backend> Backward<B, 4> for GruCarryBackward {
         let g = saved.backward(&host::<B>(grad));
         let (t, n, h) = (saved.steps, saved.rows, saved.hidden);
         let parts = [
-            (node_gi, g.gi, vec![t, n, 3 * h]),
-            (node_w, g.w_hh, vec![h, 3 * h]),
-            (node_b, g.b_hh, vec![3 * h]),
-            (node_res, g.res, vec![t, n, h]),
+            (node_gi.map(|n| n.id), g.gi, vec![t, n, 3 * h]),
+            (node_w.map(|n| n.id), g.w_hh, vec![h, 3 * h]),
+            (node_b.map(|n| n.id), g.b_hh, vec![3 * h]),
+            (node_res.map(|n| n.id), g.res, vec![t, n, h]),
         ];
-        for (node, values, shape) in parts {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, B::float_from_data(TensorData::new(values, shape), &device));
-            }
-        }
+        register::<B>(grads, &device, parts);
     }
 }
 
@@ -589,17 +591,9 @@ impl Saved {
                 // d(x_t) = d(gi_t) W_ih^T; dW_ih += x_t^T d(gi_t); db_ih += column sums of d(gi_t)
                 matmul(n, w, h3, &mut d_x[ti * n * w..], w, false, d_gi_t, (h3, 1), &p.w_ih, (1, h3));
                 matmul(w, h3, n, &mut d_w_ih, h3, ti + 1 < t, &p.x[ti * n * w..], (1, w), d_gi_t, (h3, 1));
-                for row in d_gi_t.chunks_exact(h3) {
-                    for (acc, v) in d_b_ih.iter_mut().zip(row) {
-                        *acc += v;
-                    }
-                }
+                add_column_sums(&mut d_b_ih, d_gi_t);
             }
-            for row in d_gh.chunks_exact(h3) {
-                for (acc, v) in d_b.iter_mut().zip(row) {
-                    *acc += v;
-                }
-            }
+            add_column_sums(&mut d_b, &d_gh);
             if ti > 0 {
                 // dh_{t-1} += d(gh_t) W_hh^T (W_hh [H, 3H] read transposed); dW_hh += h_{t-1}^T
                 // d(gh_t) (h_{-1} = 0 adds nothing; d_w starts at zero)
@@ -608,10 +602,19 @@ impl Saved {
             }
             std::mem::swap(&mut d_next, &mut d_prev);
         }
-        if proj.is_some() {
-            d_gi = Vec::new();
-        }
+        // with a projection d_gi was one step's scratch, not a gradient of any input
+        let d_gi = if proj.is_some() { Vec::new() } else { d_gi };
         SequenceGrads { gi: d_gi, x: d_x, w_ih: d_w_ih, b_ih: d_b_ih, w_hh: d_w, b_hh: d_b, res: d_res }
+    }
+}
+
+/// acc[j] += the sum over rows of rows[.., j] (rows laid out with acc.len() columns): a bias's
+/// gradient from its output's.
+fn add_column_sums(acc: &mut [f32], rows: &[f32]) {
+    for row in rows.chunks_exact(acc.len()) {
+        for (a, v) in acc.iter_mut().zip(row) {
+            *a += v;
+        }
     }
 }
 
@@ -632,6 +635,28 @@ mod tests {
         (a - b).abs().max().into_scalar::<f32>()
     }
 
+    /// burn's cell stepped by hand from zero over `xs`, each new state plus its input when
+    /// `carry`: every step's state, [T * N, H].
+    fn stepped(gru: &FusedGru, xs: &[Tensor<2>], carry: bool) -> Tensor<2> {
+        let [n, _] = xs[0].dims();
+        let mut h = Tensor::zeros([n, gru.hidden_dim], &xs[0].device());
+        let mut hs = Vec::new();
+        for x in xs {
+            h = gru.forward(x.clone(), h);
+            if carry {
+                h = h + x.clone();
+            }
+            hs.push(h.clone());
+        }
+        Tensor::cat(hs, 0)
+    }
+
+    /// The reference's and the fused form's gradients of one tensor agree to 1e-5.
+    fn assert_same_grad<const D: usize>(what: &str, reference: Option<Tensor<D>>, fused: Option<Tensor<D>>) {
+        let d = (reference.expect("reference gradient") - fused.expect("fused gradient")).abs().max().into_scalar::<f32>();
+        assert!(d < 1e-5, "{what}: gradients differ by {d}");
+    }
+
     /// The fused recurrence against the step-by-step burn cell: hidden states and the gradients
     /// of every parameter and of the inputs, to 1e-5, on the autodiff and the plain device.
     #[test]
@@ -644,13 +669,7 @@ mod tests {
         let weights = random(&mut rng, [t * n, hd], &dev);
 
         // reference: the cell step by step
-        let mut h = Tensor::zeros([n, hd], &dev);
-        let mut hs = Vec::new();
-        for x in &xs {
-            h = gru.forward(x.clone(), h);
-            hs.push(h.clone());
-        }
-        let reference = Tensor::cat(hs, 0);
+        let reference = stepped(&gru, &xs, false);
         let ref_grads = (reference.clone() * weights.clone()).sum().backward();
 
         // fused
@@ -660,20 +679,12 @@ mod tests {
         assert!(max_diff(reference.clone().inner(), fused.clone().inner()) < 1e-5);
         let grads = (fused * weights).sum().backward();
 
-        let w_in = &gru.input.weight;
-        let w_hh = &gru.hidden.weight;
-        for (name, a, b) in
-            [("w_hh", w_hh.val().grad(&ref_grads), w_hh.val().grad(&grads)), ("w_ih", w_in.val().grad(&ref_grads), w_in.val().grad(&grads))]
-        {
-            let d = max_diff(a.expect("reference gradient"), b.expect("fused gradient"));
-            assert!(d < 1e-5, "{name}: gradients differ by {d}");
+        for (name, p) in [("w_hh", &gru.hidden.weight), ("w_ih", &gru.input.weight)] {
+            assert_same_grad(name, p.val().grad(&ref_grads), p.val().grad(&grads));
         }
-        let (a, b) = (bias.grad(&ref_grads).expect("bias gradient"), bias.grad(&grads).expect("fused bias gradient"));
-        let d = (a - b).abs().max().into_scalar::<f32>();
-        assert!(d < 1e-5, "b_hh: gradients differ by {d}");
+        assert_same_grad("b_hh", bias.grad(&ref_grads), bias.grad(&grads));
         for (i, x) in xs.iter().enumerate() {
-            let d = max_diff(x.grad(&ref_grads).expect("x gradient"), x.grad(&grads).expect("fused x gradient"));
-            assert!(d < 1e-5, "input of step {i}: gradients differ by {d}");
+            assert_same_grad(&format!("input of step {i}"), x.grad(&ref_grads), x.grad(&grads));
         }
 
         // no autodiff: the same values
@@ -695,29 +706,20 @@ mod tests {
         let gru = FusedGru::new(&mut rng, width, hd, &dev);
         let xs: Vec<Tensor<2>> = (0..t).map(|_| random(&mut rng, [n, width], &dev).require_grad()).collect();
         let weights = random(&mut rng, [t * n, hd], &dev);
-        let mut h = Tensor::zeros([n, hd], &dev);
-        let mut hs = Vec::new();
-        for x in &xs {
-            h = gru.forward(x.clone(), h);
-            hs.push(h.clone());
-        }
-        let reference = Tensor::cat(hs, 0);
+        let reference = stepped(&gru, &xs, false);
         let ref_grads = (reference.clone() * weights.clone()).sum().backward();
         let fused = gru.sequence(Tensor::cat(xs.clone(), 0), t).reshape([t * n, hd]);
         assert!(max_diff(reference.clone().inner(), fused.clone().inner()) < 1e-5);
         let grads = (fused * weights).sum().backward();
         for (name, p) in [("w_ih", &gru.input.weight), ("w_hh", &gru.hidden.weight)] {
-            let d = max_diff(p.val().grad(&ref_grads).expect("reference"), p.val().grad(&grads).expect("fused"));
-            assert!(d < 1e-5, "{name}: gradients differ by {d}");
+            assert_same_grad(name, p.val().grad(&ref_grads), p.val().grad(&grads));
         }
         for (name, b) in [("b_ih", &gru.input.bias), ("b_hh", &gru.hidden.bias)] {
             let b = b.as_ref().expect("bias").val();
-            let d = (b.grad(&ref_grads).expect("reference") - b.grad(&grads).expect("fused")).abs().max().into_scalar::<f32>();
-            assert!(d < 1e-5, "{name}: gradients differ by {d}");
+            assert_same_grad(name, b.grad(&ref_grads), b.grad(&grads));
         }
         for (i, x) in xs.iter().enumerate() {
-            let d = max_diff(x.grad(&ref_grads).expect("x gradient"), x.grad(&grads).expect("fused x gradient"));
-            assert!(d < 1e-5, "input of step {i}: gradients differ by {d}");
+            assert_same_grad(&format!("input of step {i}"), x.grad(&ref_grads), x.grad(&grads));
         }
         let plain = gru.valid();
         let out = plain.sequence(Tensor::cat(xs.iter().map(|x| x.clone().inner()).collect(), 0), t).reshape([t * n, hd]);
@@ -736,23 +738,14 @@ mod tests {
         let gru = FusedGru::new(&mut rng, hd, hd, &dev);
         let xs: Vec<Tensor<2>> = (0..t).map(|_| random(&mut rng, [n, hd], &dev).require_grad()).collect();
         let weights = random(&mut rng, [t * n, hd], &dev);
-        let mut c = Tensor::zeros([n, hd], &dev);
-        let mut cs = Vec::new();
-        for x in &xs {
-            c = gru.forward(x.clone(), c) + x.clone();
-            cs.push(c.clone());
-        }
-        let reference = Tensor::cat(cs, 0);
+        let reference = stepped(&gru, &xs, true);
         let ref_grads = (reference.clone() * weights.clone()).sum().backward();
         let fused = gru.sequence_carry(Tensor::cat(xs.clone(), 0), t).reshape([t * n, hd]);
         assert!(max_diff(reference.inner(), fused.clone().inner()) < 1e-5);
         let grads = (fused * weights).sum().backward();
-        let w_hh = &gru.hidden.weight;
-        let d = max_diff(w_hh.val().grad(&ref_grads).expect("reference"), w_hh.val().grad(&grads).expect("fused"));
-        assert!(d < 1e-5, "w_hh: gradients differ by {d}");
+        assert_same_grad("w_hh", gru.hidden.weight.val().grad(&ref_grads), gru.hidden.weight.val().grad(&grads));
         for (i, x) in xs.iter().enumerate() {
-            let d = max_diff(x.grad(&ref_grads).expect("x gradient"), x.grad(&grads).expect("fused x gradient"));
-            assert!(d < 1e-5, "input of step {i} (through the GRU and the residual): gradients differ by {d}");
+            assert_same_grad(&format!("input of step {i} (through the GRU and the residual)"), x.grad(&ref_grads), x.grad(&grads));
         }
     }
 
