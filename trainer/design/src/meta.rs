@@ -348,6 +348,21 @@ pub struct Measured {
     pub dead_fields: Vec<super::dead_fields::DeadField>,
 }
 
+/// Recovery of `dims` on the held-out episodes by a discriminator trained with the messages of
+/// `phases` (not the no-message one: [`measure`] for both).
+pub fn recovery_with(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &DiscriminatorConfig, dims: &[usize]) -> Result<Recovery> {
+    let Some(data) = ctx.dataset else { bail!("measuring recovery needs the dataset B, which has not been collected yet") };
+    check_dataset(data, ctx)?;
+    cfg.validate()?;
+    let (train, test) = split_episodes(data.episodes.len(), cfg.holdout_fraction, ctx.seed)?;
+    let plan =
+        protocol::compile_plan(phases, ctx.env).map_err(|e| anyhow::anyhow!("compiling the protocol: {}", protocol::errors_to_text(&e)))?;
+    let messages = data.messages(&mut plan.clone());
+    let input = DiscInput::with_messages(data, &messages, plan.msg_dim());
+    let (d1, _) = Discriminator::train(&input, &train, cfg, ctx.seed ^ 0x1, &Device::default())?;
+    Recovery::measure(&d1, &input, &test, dims, ctx.schema.alpha)
+}
+
 /// Recompute the messages of `phases` on B with the runner's compiled plan, train D^(k) with
 /// and without them on the training episodes, and count chi on the held-out ones for `dims`
 /// (all state dims when empty). With no phases there are no messages and only the

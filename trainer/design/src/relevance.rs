@@ -89,6 +89,11 @@ impl ValueModel {
 pub struct Relevance {
     /// Permutation importance of each state dim (index = dim), >= 0.
     pub importance: Vec<f64>,
+    /// Permutation importance of each group of columns shuffled together (the steps' rows
+    /// move as one block): [`measure_joint_observation`]'s groups are the agents, so this is
+    /// how much the return depends on all an agent sees, however its columns correlate.
+    #[serde(default)]
+    pub groups: Vec<f64>,
     /// The value model's R^2 on the held-out steps (before any shuffling).
     pub held_out_r2: f64,
     pub gamma: f64,
@@ -128,8 +133,32 @@ fn returns_to_go(data: &Dataset, e: usize, gamma: f64) -> Vec<f32> {
 
 /// Fit the value model on B and measure every state dim's permutation importance.
 pub fn measure(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Result<Relevance> {
-    cfg.validate()?;
     let sd = data.header.state_dim;
+    measure_on(data, sd, &|e, t| &data.episodes[e].state[t * sd..(t + 1) * sd], &[], cfg, seed)
+}
+
+/// The same measurement on the team's joint observation (every agent's observation side by
+/// side, agent by agent: column j * obs_dim + d is agent j's o[d]): how much the return depends
+/// on what each agent sees. Correlated columns share their importance, so what several agents
+/// see alike ranks below what one agent alone sees (the offline designer's sender choice).
+pub fn measure_joint_observation(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Result<Relevance> {
+    let (n, od) = (data.header.n_agents, data.header.obs_dim);
+    let w = n * od;
+    let agents: Vec<Vec<usize>> = (0..n).map(|j| (j * od..(j + 1) * od).collect()).collect();
+    measure_on(data, w, &|e, t| &data.episodes[e].obs[t * w..(t + 1) * w], &agents, cfg, seed)
+}
+
+/// [`measure`] on the rows `row(episode, step)` of width `sd`, and of each group of columns in
+/// `groups` shuffled together.
+fn measure_on<'a>(
+    data: &'a Dataset,
+    sd: usize,
+    row: &dyn Fn(usize, usize) -> &'a [f32],
+    groups: &[Vec<usize>],
+    cfg: &RelevanceConfig,
+    seed: u64,
+) -> Result<Relevance> {
+    cfg.validate()?;
     let (train, test) = split_episodes(data.episodes.len(), cfg.holdout_fraction, seed ^ 0x5E1E_0000_0000_0001)?;
     let start = std::time::Instant::now();
     let steps =
@@ -139,13 +168,14 @@ pub fn measure(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Result<Relev
         bail!("relevance: the dataset's training or held-out episodes have no steps");
     }
     let g: Vec<Vec<f32>> = (0..data.episodes.len()).map(|e| returns_to_go(data, e, cfg.gamma)).collect();
-    let state = |&(e, t): &(usize, usize)| &data.episodes[e].state[t * sd..(t + 1) * sd];
+    let state = |&(e, t): &(usize, usize)| row(e, t);
     let inputs = Standardize::fit(sd, train_rows.iter().map(|r| state(r).to_vec()));
     let ys: Vec<f64> = train_rows.iter().map(|&(e, t)| g[e][t] as f64).collect();
     if lmac_learn::stats::variance(&ys) < 1e-12 {
         // A constant return (no reward on B): nothing depends on any dim.
         return Ok(Relevance {
             importance: vec![0.0; sd],
+            groups: vec![0.0; groups.len()],
             held_out_r2: 0.0,
             gamma: cfg.gamma,
             train_episodes: train.len(),
@@ -225,8 +255,19 @@ pub fn measure(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Result<Relev
             shuffled[k * sd + d] = x[k * sd + d];
         }
     }
+    let mut group_importance = Vec::with_capacity(groups.len());
+    for g in groups {
+        for k in 0..n {
+            for &d in g {
+                shuffled[k * sd + d] = x[perm[k] * sd + d];
+            }
+        }
+        group_importance.push(((mse(&shuffled)? - base) / var_y).max(0.0));
+        shuffled.copy_from_slice(&x);
+    }
     Ok(Relevance {
         importance,
+        groups: group_importance,
         held_out_r2: 1.0 - base / var_y,
         gamma: cfg.gamma,
         train_episodes: train.len(),
@@ -241,6 +282,22 @@ mod tests {
     use super::*;
     use lmac_run::dataset::{DatasetHeader, Trajectory};
 
+    /// A dataset of `episodes` with these sizes (2 actions, random policy).
+    fn synthetic(n_agents: usize, obs_dim: usize, state_dim: usize, len: usize, episodes: Vec<Trajectory>) -> Dataset {
+        let header = DatasetHeader {
+            env: "synthetic".into(),
+            n_agents,
+            obs_dim,
+            state_dim,
+            n_actions: 2,
+            episode_limit: len,
+            protocol: String::new(),
+            policy: "random".into(),
+            seed: 0,
+        };
+        Dataset { header, episodes }
+    }
+
     /// A dataset whose reward depends on state dim 1 only (dims 0 and 2 are noise of the same
     /// scale): dim 1 must rank first, with most of the importance, and the model must fit.
     #[test]
@@ -254,18 +311,7 @@ mod tests {
                 Trajectory { len, obs: vec![0.0; len * 2], state, actions: vec![0; len * 2], reward, terminated: true, truncated: false }
             })
             .collect();
-        let header = DatasetHeader {
-            env: "synthetic".into(),
-            n_agents: 2,
-            obs_dim: 1,
-            state_dim: sd,
-            n_actions: 2,
-            episode_limit: len,
-            protocol: String::new(),
-            policy: "random".into(),
-            seed: 0,
-        };
-        let data = Dataset { header, episodes };
+        let data = synthetic(2, 1, sd, len, episodes);
         // gamma 0: the target is the step's own reward, a step function of dim 1.
         let cfg = RelevanceConfig { gamma: 0.0, updates: 1500, ..Default::default() };
         let r = measure(&data, &cfg, 3).unwrap();
@@ -275,5 +321,29 @@ mod tests {
         assert_eq!(r.rank_of(1), 1);
         // Deterministic for a seed.
         assert_eq!(measure(&data, &cfg, 3).unwrap().importance, r.importance);
+    }
+
+    /// The joint observation: the reward depends on agent 1's o[0]; agent 0's two values and
+    /// agent 1's o[1] are noise. Agent 1 ranks first as a group, its o[0] first as a column.
+    #[test]
+    fn the_agent_that_sees_what_the_return_depends_on_ranks_first() {
+        let (n, od, len) = (2, 2, 20);
+        let mut rng = LearnRng::seed_from(11);
+        let episodes: Vec<Trajectory> = (0..120)
+            .map(|_| {
+                let obs: Vec<f32> = (0..len * n * od).map(|_| rng.uniform() * 2.0 - 1.0).collect();
+                let reward: Vec<f32> = (0..len).map(|t| if obs[(t * n + 1) * od] > 0.0 { 1.0 } else { 0.0 }).collect();
+                Trajectory { len, obs, state: vec![0.0; len], actions: vec![0; len * n], reward, terminated: true, truncated: false }
+            })
+            .collect();
+        let data = synthetic(n, od, 1, len, episodes);
+        let cfg = RelevanceConfig { gamma: 0.0, updates: 1500, ..Default::default() };
+        let r = measure_joint_observation(&data, &cfg, 3).unwrap();
+        assert_eq!(r.importance.len(), n * od);
+        assert_eq!(r.ranking()[0], od, "agent 1's o[0] is column {od}: {r:?}");
+        assert_eq!(r.groups.len(), n);
+        assert!(r.groups[1] > 5.0 * r.groups[0], "{r:?}");
+        // The group holds at least what its best column does.
+        assert!(r.groups[1] >= 0.9 * r.importance[od], "{r:?}");
     }
 }

@@ -5,7 +5,7 @@
 use burn::tensor::Device;
 use lmac_design::discriminator::{split_episodes, DiscInput, Discriminator, DiscriminatorConfig};
 use lmac_design::meta::{self, MetaConfig, Recovery};
-use lmac_design::offline::{CriticalBy, OfflineConfig, OfflineDesigner};
+use lmac_design::offline::{CriticalBy, FieldsBy, OfflineConfig, OfflineDesigner};
 use lmac_design::{DesignContext, Designer, PhaseProtocol};
 use lmac_protocol_runner::builtin::FullComm;
 use lmac_protocol_runner::plan::{MessagePlan, StepView};
@@ -784,4 +784,42 @@ fn offline_designer_chooses_what_the_return_depends_on() {
     let mut old =
         OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), critical_by: CriticalBy::Recovery, ..Default::default() });
     assert_eq!(old.initial(&c).unwrap().validated.critical_dims, vec![0, 3, 4]);
+}
+
+/// Issue 28, `fields_by = observation-relevance`: the return depends on hidden value B, which
+/// only agent 1 sees (its o[2]). Sending all of agent 1's observation raises agent 0's recovery
+/// of s[3]; agent 0's observation tells agent 1 nothing it lacks. So agent 1 is the one
+/// sender, and o[2] is among what it sends, to agent 0.
+#[test]
+fn observation_relevance_chooses_the_agent_that_sees_what_matters() {
+    let data = synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 });
+    let schema = synthetic_schema(30);
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    let c = ctx(&schema, &env, &data);
+    let cfg = OfflineConfig { discriminator: quick_disc(), fields_by: FieldsBy::ObservationRelevance, ..Default::default() };
+    let mut designer = OfflineDesigner::new(cfg);
+    let p0 = designer.initial(&c).unwrap();
+    assert_eq!(p0.validated.critical_dims, vec![3], "{}", p0.reasoning);
+    let t = designer.transcript();
+    let obs_rel = t.iter().find(|e| e.kind == "observation_relevance").expect("the ranking is in the transcript");
+    assert!(obs_rel.reply.contains("agent 1: all it sees") && obs_rel.reply.contains("a SENDER"), "{}", obs_rel.reply);
+    let sender_line = obs_rel.reply.lines().find(|l| l.contains("a SENDER")).unwrap();
+    assert!(sender_line.starts_with("agent 1:"), "{}", obs_rel.reply);
+    assert!(
+        p0.protocol.message_design_instruction.contains("by the relevance of what each agent sees"),
+        "{}",
+        p0.protocol.message_design_instruction
+    );
+    let json = serde_json::to_value(&p0.protocol).unwrap();
+    for f in json["fields"].as_array().unwrap() {
+        assert_eq!(f["senders"], serde_json::json!([1]), "{f}");
+    }
+    let sent: Vec<u64> = json["fields"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|f| f["value"]["obs"].as_array().cloned().unwrap_or_default())
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    assert!(sent.contains(&2), "agent 1's view of hidden value B is sent: {json}");
 }

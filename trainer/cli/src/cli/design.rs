@@ -82,6 +82,28 @@ pub(crate) struct DesignArgs {
     /// without messages) or `recovery` (the hardest to recover, its first rule)
     #[arg(long, default_value = "relevance")]
     pub(crate) critical_by: lmac_design::offline::CriticalBy,
+    /// Most task-critical dims the offline designer's relevance rule lists for phase 0 (the
+    /// authors' GPT-4.1 designs name 4-12)
+    #[arg(long, default_value_t = 12, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    pub(crate) critical_dims: usize,
+    /// Most agents that send one field of the offline designer (0: any). 1 gives each piece of
+    /// information one sender (the one whose values explain the most), as the authors' designs do
+    #[arg(long, default_value_t = 0)]
+    pub(crate) senders_per_field: usize,
+    /// How the offline designer chooses phase 0's message fields: `least-squares` (the sender
+    /// features that best explain the critical dims beyond what receivers see) or
+    /// `observation-relevance` (the agent whose whole observation, sent to the others, most
+    /// raises their recovery of the critical dims sends the values of it that the team's return
+    /// depends on most, by a value model of the joint observation)
+    #[arg(long, default_value = "least-squares")]
+    pub(crate) fields_by: lmac_design::offline::FieldsBy,
+    /// Most observation values `--fields-by observation-relevance` sends in phase 0
+    #[arg(long, default_value_t = 6, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    pub(crate) relevant_values: usize,
+    /// Most agents that send in phase 0 with `--fields-by observation-relevance` (those whose
+    /// whole observation raises the others' recovery of the critical dims most)
+    #[arg(long, default_value_t = 1, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    pub(crate) relevant_senders: usize,
     #[arg(long, default_value_t = 0)]
     pub(crate) seed: u64,
     /// Where design directories go.
@@ -143,6 +165,11 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             discriminator: meta_cfg.discriminator.clone(),
             phases: a.phases,
             critical_by: a.critical_by,
+            max_relevant_dims: a.critical_dims,
+            senders_per_field: a.senders_per_field,
+            fields_by: a.fields_by,
+            max_relevant_values: a.relevant_values,
+            relevant_senders: a.relevant_senders,
             ..Default::default()
         };
         Box::new(OfflineDesigner::new(cfg))

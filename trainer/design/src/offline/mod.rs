@@ -82,6 +82,19 @@ pub struct OfflineConfig {
     /// on 1o_10b) is preferred to a value broadcast by 10 senders (120); false: its width in one
     /// sender block, as the designer did first (it sent 183 columns in phase 0 on 1o_10b).
     pub count_sender_columns: bool,
+    /// Most agents that send one field (0: any number). 1 is the paper's "unique" principle as
+    /// the authors' designs follow it: each piece of information has one sender, the agent
+    /// that observes it best (on 1o_10b the Overseer alone reports the Roach); the sender whose
+    /// links explain the most of the targets summed over its receivers is kept.
+    pub senders_per_field: usize,
+    /// How phase 0 chooses its message fields.
+    pub fields_by: FieldsBy,
+    /// Most observation values [`FieldsBy::ObservationRelevance`] sends in phase 0 (the
+    /// authors' 1o_10b design sends 3, one agent's).
+    pub max_relevant_values: usize,
+    /// Most agents that send in phase 0 with [`FieldsBy::ObservationRelevance`] (the authors'
+    /// 1o_10b design: 1, the Overseer).
+    pub relevant_senders: usize,
     /// How phase 0 chooses the task-critical dims.
     pub critical_by: CriticalBy,
     /// The value model behind [`CriticalBy::Relevance`].
@@ -111,6 +124,33 @@ pub enum CriticalBy {
     Recovery,
 }
 
+/// How phase 0 chooses its message fields.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FieldsBy {
+    /// Greedy least squares: the sender features that best explain the critical dims beyond
+    /// what each receiver sees (the module doc, step 3).
+    LeastSquares,
+    /// One agent sends what the return depends on: for each agent, a discriminator measures how
+    /// much all it sees, sent to the others, raises their recovery of the critical dims
+    /// (nonlinear, so an offset the agent sees counts however the state writes positions,
+    /// where least squares on absolute state dims cannot use it); the best agent(s) send their
+    /// observation values that a value model of the team's joint observation finds the return
+    /// depends on most (permutation importance), to every other agent.
+    ObservationRelevance,
+}
+
+impl std::str::FromStr for FieldsBy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "least-squares" => Ok(FieldsBy::LeastSquares),
+            "observation-relevance" => Ok(FieldsBy::ObservationRelevance),
+            _ => Err(format!("{s:?}: use least-squares or observation-relevance")),
+        }
+    }
+}
+
 impl std::str::FromStr for CriticalBy {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
@@ -135,6 +175,10 @@ impl Default for OfflineConfig {
             link_fraction: 0.1,
             phases: 3,
             count_sender_columns: true,
+            senders_per_field: 0,
+            fields_by: FieldsBy::LeastSquares,
+            max_relevant_values: 6,
+            relevant_senders: 1,
             critical_by: CriticalBy::Relevance,
             relevance: Default::default(),
             min_relevance: 0.01,
@@ -227,18 +271,33 @@ impl OfflineDesigner {
         if rows < 2 {
             bail!("offline designer: the dataset has {rows} usable steps; it needs at least 2");
         }
-        let kept = prescreen(&mut s, &cands, &targets.weights, self.cfg.prescreen)?;
-        let mut cols: Vec<usize> = kept.iter().flat_map(|&k| cands[k].col..cands[k].col + cands[k].width).collect();
-        cols.sort_unstable();
-        let stats = covariance(&mut s, cols)?;
+        let by_relevance = phase == 0 && self.cfg.fields_by == FieldsBy::ObservationRelevance;
+        let chosen = if by_relevance { self.fields_by_observation_relevance(ctx, &cands, per_block, critical)? } else { None };
+        let by_relevance = chosen.is_some();
+        let (picks, steps, kept_count, how) = if let Some((picks, steps, how)) = chosen {
+            (picks, steps, cands.len(), how)
+        } else {
+            let kept = prescreen(&mut s, &cands, &targets.weights, self.cfg.prescreen)?;
+            let mut cols: Vec<usize> = kept.iter().flat_map(|&k| cands[k].col..cands[k].col + cands[k].width).collect();
+            cols.sort_unstable();
+            let stats = covariance(&mut s, cols)?;
+            let cfg = OfflineConfig { min_gain: self.cfg.min_gain * self.gain_scale, ..self.cfg.clone() };
+            let (picks, steps) = select(stats, &cands, &kept, &targets.weights, per_block, &cfg);
+            let total_gain: f64 = picks.iter().map(|p| p.gain).sum();
+            let how = format!(
+                "Together these explain an estimated {:.1}% of the weighted variance of the {} target state dims that receivers could not explain from their own observation{} (linear R^2 on {} sampled steps).",
+                100.0 * total_gain,
+                targets.dims.len(),
+                if prev.is_empty() { "" } else { " and the earlier phases' messages" },
+                rows,
+            );
+            (picks, steps, kept.len(), how)
+        };
         drop(s);
-        let cfg = OfflineConfig { min_gain: self.cfg.min_gain * self.gain_scale, ..self.cfg.clone() };
-        let (picks, steps) = select(stats, &cands, &kept, &targets.weights, per_block, &cfg);
         if picks.is_empty() {
             bail!("offline designer: no candidate feature fits the {per_block} value columns per sender block of phase {phase}");
         }
         let fields = fields_from(&picks, &cands, env);
-        let total_gain: f64 = picks.iter().map(|p| p.gain).sum();
         let names = ctx.schema.state_meanings();
         let target_text: Vec<String> = targets.dims.iter().take(8).map(|&d| meta::dim_label(d, &names)).map(|l| short(&l)).collect();
         let goal = match phase {
@@ -248,13 +307,10 @@ impl OfflineDesigner {
         };
         let field_text: Vec<String> = fields.iter().map(|f| format!("'{}': {}", f.name, f.description)).collect();
         let instruction = format!(
-            "offline designer: phase {phase} ({goal}), chosen by greedy least squares on the dataset, not by an LLM. {} Each agent sends: {}. Together these explain an estimated {:.1}% of the weighted variance of the {} target state dims that receivers could not explain from their own observation{} (linear R^2 on {} sampled steps). Each sender's values reach a receiver after the sender's one-hot id (once per sender in the compact layout).",
+            "offline designer: phase {phase} ({goal}), chosen {} on the dataset, not by an LLM. {} Each agent sends: {}. {how} Each sender's values reach a receiver after the sender's one-hot id (once per sender in the compact layout).",
+            if by_relevance { "by the relevance of what each agent sees to the return" } else { "by greedy least squares" },
             targets.why,
             field_text.join("; "),
-            100.0 * total_gain,
-            targets.dims.len(),
-            if prev.is_empty() { "" } else { " and the earlier phases' messages" },
-            rows,
         );
         let mut crit: Vec<usize> = critical.to_vec();
         crit.sort_unstable();
@@ -275,13 +331,14 @@ impl OfflineDesigner {
         let validated = protocol::validate_phase(&p, env, &prev)
             .map_err(|e| anyhow!("offline designer: its phase {phase} protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
         let reasoning = format!(
-            "# Offline designer, phase {phase} ({goal})\n\nThis protocol was built by a deterministic algorithm (greedy least-squares feature selection over the dataset), not by a language model.\n\n## Targets\n{}\n\n{}\n\n## Budget\n{left} message columns left of {}; this phase's share is {share} ({phases_left} phase(s) left), i.e. {per_block} value columns per sender block after the {n}-column sender one-hot.\n\n## Candidates\n{} candidate features ({}), {} kept by the marginal-correlation prescreen, {} sampled steps.\n\n## Selection\n{}\n\nResulting width: {} columns per receiving agent.\n",
+            "# Offline designer, phase {phase} ({goal})\n\nThis protocol was built by a deterministic algorithm ({}), not by a language model.\n\n## Targets\n{}\n\n{}\n\n## Budget\n{left} message columns left of {}; this phase's share is {share} ({phases_left} phase(s) left), i.e. {per_block} value columns per sender block after the {n}-column sender one-hot.\n\n## Candidates\n{} candidate features ({}), {} kept by the marginal-correlation prescreen, {} sampled steps.\n\n## Selection\n{}\n\nResulting width: {} columns per receiving agent.\n",
+            if by_relevance { "the relevance of each agent's observation to the return, from a value model fitted on the dataset" } else { "greedy least-squares feature selection over the dataset" },
             targets.dims.iter().map(|&d| format!("- {}", meta::dim_label(d, &names))).collect::<Vec<_>>().join("\n"),
             targets.why,
             env.message_budget,
             cands.len(),
             kinds.iter().map(|k| k.words().0).collect::<Vec<_>>().join(", "),
-            kept.len(),
+            kept_count,
             rows,
             steps.iter().map(|l| format!("- {l}")).collect::<Vec<_>>().join("\n"),
             validated.width,
@@ -300,6 +357,161 @@ impl OfflineDesigner {
 }
 
 impl OfflineDesigner {
+    /// [`FieldsBy::ObservationRelevance`]: phase 0's picks (one sender per value, to every other
+    /// agent), the selection's log and the sentence saying how they were chosen; None (said in
+    /// the log and the transcript) when the value model explains too little of the return or
+    /// no observation value is relevant, and least squares chooses instead.
+    #[allow(clippy::type_complexity)]
+    fn fields_by_observation_relevance(
+        &mut self,
+        ctx: &DesignContext,
+        cands: &[Candidate],
+        per_block: usize,
+        critical: &[usize],
+    ) -> Result<Option<(Vec<Pick>, Vec<String>, String)>> {
+        let data = ctx.dataset.context("offline designer: ranking observation values by relevance needs the dataset B")?;
+        let (n, od) = (data.header.n_agents, data.header.obs_dim);
+        let rel = super::relevance::measure_joint_observation(data, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0001)
+            .context("offline designer: measuring each agent's observation values' relevance to the return")?;
+        let min_rel = self.cfg.min_relevance;
+        let obs_cand = |d: usize| cands.iter().position(|c| c.kind == Kind::Obs && c.dim == Some(d));
+        let label = |col: usize| {
+            let (j, d) = (col / od, col % od);
+            format!("agent {j}'s o[{d}] ({})", ctx.env.obs_names.get(d).map(|s| short(s)).unwrap_or_else(|| "unnamed".into()))
+        };
+        let mut per_sender = vec![0usize; n];
+        let mut picks: Vec<Pick> = Vec::new();
+        let mut lines = Vec::new();
+        let usable = rel.held_out_r2 >= self.cfg.min_value_r2;
+        // The senders: the agents whose whole observation, sent to the others, makes the
+        // critical dims most recoverable (a discriminator trained per candidate sender: what
+        // an agent sees counts in whatever frame it sees it, where least squares on the state's
+        // frame cannot use an offset).
+        let gains = self.sender_gains(ctx, critical)?;
+        let mut agents: Vec<usize> = (0..n).collect();
+        agents.sort_by(|&a, &b| gains[b].total_cmp(&gains[a]).then(a.cmp(&b)));
+        let senders: Vec<usize> = agents.iter().copied().filter(|&j| gains[j] > 0.0).take(self.cfg.relevant_senders.max(1)).collect();
+        let mut agent_lines: Vec<String> = agents
+            .iter()
+            .map(|&j| {
+                let verdict = if senders.contains(&j) { "a SENDER".to_string() } else { "not a sender".to_string() };
+                format!(
+                    "agent {j}: all it sees, sent to the others, raises their recovery of the critical dims by {:+.3}; relevance of all it sees to the return {:.4}; {verdict}",
+                    gains[j], rel.groups[j]
+                )
+            })
+            .collect();
+        lines.append(&mut agent_lines);
+        let ranked: Vec<usize> = rel.ranking().into_iter().filter(|c| senders.contains(&(c / od))).collect();
+        for col in ranked.into_iter().take(3 * self.cfg.max_relevant_values) {
+            let (j, d) = (col / od, col % od);
+            let imp = rel.importance[col];
+            let verdict = if !usable {
+                "not chosen: the value model explains too little".to_string()
+            } else if picks.len() >= self.cfg.max_relevant_values {
+                format!("not chosen: beyond the {} values kept", self.cfg.max_relevant_values)
+            } else if imp <= 0.0 {
+                "not chosen: shuffling it costs nothing".to_string()
+            } else if per_sender[j] >= per_block {
+                format!("not chosen: agent {j}'s block is full ({per_block} values)")
+            } else if let Some(k) = obs_cand(d) {
+                per_sender[j] += 1;
+                let links = (0..n).map(|s| (0..n).map(|i| s == j && i != j).collect()).collect();
+                picks.push(Pick { cand: k, links, gain: imp });
+                "CHOSEN: sent by this agent to every other agent".into()
+            } else {
+                "not chosen: constant on the dataset".into()
+            };
+            lines.push(format!("{}. {}: relevance {imp:.4}; {verdict}", rel.rank_of(col), label(col)));
+        }
+        let head = format!(
+            "A value model of the team's joint observation (every agent's observation side by side; an MLP predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); an observation value's relevance is the share of that variance lost when it is shuffled across {} held-out steps, an agent's when all it sees is shuffled at once. The senders are the {} agent(s) whose observation is most relevant; each sends its most relevant values.",
+            rel.gamma,
+            100.0 * rel.held_out_r2,
+            rel.train_episodes,
+            rel.held_out_episodes,
+            rel.eval_rows,
+            senders.len()
+        );
+        self.log(
+            0,
+            "observation_relevance",
+            "offline designer: fit a value model of the joint observation on B and rank every agent's observation values by permutation importance".into(),
+            format!("{head}\nMost relevant observation values:\n{}", lines.join("\n")),
+        );
+        eprintln!("lmac: offline designer: {head}");
+        for line in lines.iter().take(n.min(4) + 8) {
+            eprintln!("lmac:   {line}");
+        }
+        if picks.is_empty() {
+            let reason = if usable {
+                format!("no agent's observation has a relevance of at least {min_rel}")
+            } else {
+                format!("the value model explains less than {:.1}%", 100.0 * self.cfg.min_value_r2)
+            };
+            eprintln!("lmac: offline designer: phase 0's fields by least squares instead: {reason}");
+            self.log(0, "fields_by", "offline designer: choose phase 0's fields".into(), format!("By least squares instead: {reason}."));
+            return Ok(None);
+        }
+        let total: f64 = picks.iter().map(|p| p.gain).sum();
+        let how = format!(
+            "{head} Phase 0 sends the {} most relevant values of agent(s) {} (relevance {total:.3} summed), each from the agent that sees it to every other agent.",
+            picks.len(),
+            senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
+        );
+        let steps = lines.into_iter().take(n + picks.len().max(8)).collect();
+        Ok(Some((picks, steps, how)))
+    }
+
+    /// Per agent j: how much sending all of j's observation to every other agent raises their
+    /// recovery of `dims` (mean E_t[chi] over the dims and the receivers, with against without
+    /// messages; a discriminator trained for each j on B's training episodes, measured on the
+    /// held-out ones).
+    fn sender_gains(&mut self, ctx: &DesignContext, dims: &[usize]) -> Result<Vec<f64>> {
+        let env = ctx.env;
+        let n = env.n_agents;
+        let disc = &self.cfg.discriminator;
+        let without = meta::measure(ctx, &[], disc, dims).context("offline designer: recovery without messages")?.without;
+        let mut gains = Vec::with_capacity(n);
+        for j in 0..n {
+            let p = Protocol {
+                name: Some(format!("offline_sender_probe_{j}")),
+                phase: Some(0),
+                message_design_instruction: format!("probe: agent {j} sends its whole observation"),
+                critical_state_dims: dims.iter().map(|&d| DimSpec::Dim(d)).collect(),
+                critical_state_reasoning: None,
+                sender_one_hot: true,
+                history_padding: HistoryPadding::default(),
+                layout: MessageLayout::default(),
+                fields: vec![Field {
+                    name: "all".into(),
+                    description: "probe".into(),
+                    senders: Senders::List(vec![j]),
+                    receivers: Receivers::Peer(vec![PeerLink { from: j, to: (0..n).filter(|&i| i != j).collect() }]),
+                    value: Expr::Obs((0..env.obs_dim).collect()),
+                }],
+                env: None,
+                schema_fingerprint: None,
+            };
+            let v = protocol::validate_phase(&p, env, &[])
+                .map_err(|e| anyhow!("offline designer: its sender probe is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
+            let with = meta::recovery_with(ctx, &[v], disc, dims)
+                .with_context(|| format!("offline designer: recovery with agent {j}'s observation"))?;
+            let mut sum = 0.0;
+            for k in 0..dims.len() {
+                for i in (0..n).filter(|&i| i != j) {
+                    sum += with.rate(k, i) - without.rate(k, i);
+                }
+            }
+            gains.push(sum / (dims.len() * (n - 1)).max(1) as f64);
+            eprintln!(
+                "lmac: offline designer: agent {j}'s whole observation to the others: recovery of the critical dims {:+.3}",
+                gains[j]
+            );
+        }
+        Ok(gains)
+    }
+
     /// [`CriticalBy::Relevance`]: the dims that are relevant to the return and poorly recovered
     /// without messages, most relevant x worst recovered first, with the reason (Err: why the
     /// ranking cannot be used). `all` is (dim, skill without messages, per-agent failures).

@@ -463,6 +463,14 @@ pub(super) fn select(
                     pair[j][i] = score(&cond[i], i, &vars(c, j));
                 }
             }
+            if cfg.senders_per_field > 0 && cfg.senders_per_field < n {
+                // Keep the senders whose links explain the most summed over their receivers.
+                let mut by_total: Vec<(f64, usize)> = pair.iter().enumerate().map(|(j, row)| (row.iter().sum::<f64>(), j)).collect();
+                by_total.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+                for &(_, j) in &by_total[cfg.senders_per_field..] {
+                    pair[j].iter_mut().for_each(|x| *x = 0.0);
+                }
+            }
             let top = pair.iter().flatten().cloned().fold(0f64, f64::max);
             let mut links: Vec<Vec<bool>> =
                 (0..n).map(|j| (0..n).map(|i| i != j && top > 0.0 && pair[j][i] >= cfg.link_fraction * top).collect()).collect();
@@ -799,6 +807,28 @@ mod tests {
                 assert_eq!(log, dlog);
             }
         }
+    }
+
+    /// `senders_per_field = 1`: every pick has one sender (the unique principle), and it is one
+    /// of the senders the unrestricted pick used.
+    #[test]
+    fn one_sender_per_field() {
+        let (mut s, cands, w) = problem(7);
+        let kept = prescreen(&mut s, &cands, &w, 6).unwrap();
+        let mut cols: Vec<usize> = kept.iter().flat_map(|&k| cands[k].col..cands[k].col + cands[k].width).collect();
+        cols.sort_unstable();
+        let any = OfflineConfig { min_gain: 0.0005, ..OfflineConfig::default() };
+        let one = OfflineConfig { senders_per_field: 1, ..any.clone() };
+        let (free, _) = select(covariance(&mut s, cols.clone()).unwrap(), &cands, &kept, &w, 5, &any);
+        let (picks, _) = select(covariance(&mut s, cols).unwrap(), &cands, &kept, &w, 5, &one);
+        assert!(!picks.is_empty());
+        let senders = |p: &Pick| (0..p.links.len()).filter(|&j| p.links[j].iter().any(|&l| l)).collect::<Vec<_>>();
+        assert!(free.iter().any(|p| senders(p).len() > 1), "the problem has fields with several senders unrestricted: {free:?}");
+        for p in &picks {
+            assert_eq!(senders(p).len(), 1, "{p:?}");
+        }
+        let first = free.iter().find(|p| p.cand == picks[0].cand).expect("the first pick is a candidate the free selection took");
+        assert!(senders(first).contains(&senders(&picks[0])[0]));
     }
 
     /// What a receiver already knows changes the picks: with bases that carry nothing (all
