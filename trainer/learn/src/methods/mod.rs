@@ -394,6 +394,24 @@ pub fn leaky_relu<const D: usize>(x: Tensor<D>, slope: f64) -> Tensor<D> {
     burn::tensor::activation::relu(x.clone()).mul_scalar(1.0 - slope) + x.mul_scalar(slope)
 }
 
+/// `layer` applied to every row of `x` [.., in] as one [rows, in] x [in, out] matmul. burn's
+/// `Linear` on a 3-d input keeps the leading dim as a batch when each batch's rows fill its row
+/// tiles (LMAC's [T = 50, N = 352, in]: 50 small matmuls forward, and in the backward 50 weight
+/// products summed over a [T, in, out] temporary); the rows of one matmul are what the weight
+/// sees either way, so the values are the same up to float summation order.
+pub fn linear_rows<const D: usize>(layer: &burn::nn::Linear, x: Tensor<D>) -> Tensor<D> {
+    let dims = x.dims();
+    if D <= 2 {
+        return layer.forward(x);
+    }
+    let d_in = dims[D - 1];
+    let rows = dims[..D - 1].iter().product::<usize>();
+    let y = layer.forward(x.reshape([rows, d_in]));
+    let mut out = dims;
+    out[D - 1] = y.dims()[1];
+    y.reshape(out)
+}
+
 /// Dropout with a mask drawn on the host from `rng` (inverted: kept units scaled by 1/(1-p)),
 /// so a seed fixes it exactly (burn's device RNG is process-global).
 pub fn dropout<const D: usize>(x: Tensor<D>, p: f32, rng: &mut LearnRng) -> Tensor<D> {

@@ -30,7 +30,7 @@ use super::{AuxLayout, EncoderKind, LatentReduction, LmacConfig};
 use crate::agent::{FusedGru, RnnAgent};
 use crate::config::LearnConfig;
 use crate::init::linear;
-use crate::methods::{dropout, AuxTerm, MethodHooks, TrainContext};
+use crate::methods::{dropout, linear_rows, AuxTerm, MethodHooks, TrainContext};
 use crate::window_attention::window_attention;
 use crate::{InputLayout, LearnRng};
 
@@ -271,13 +271,13 @@ impl LmacAgent {
 
     /// [`decode`](Self::decode) with the `released` layout's dropout when `rng` is given.
     fn decode_with(&self, z: Tensor<3>, rng: Option<&mut LearnRng>) -> (Tensor<3>, Tensor<3>) {
-        let h1 = relu(self.dec1.forward(z));
+        let h1 = relu(linear_rows(&self.dec1, z));
         let h1 = match rng {
             Some(r) if self.cfg.settings.aux_layout == AuxLayout::Released => dropout(h1, self.cfg.settings.dropout, r),
             _ => h1,
         };
-        let h = relu(self.dec2.forward(h1));
-        (self.dec_state.forward(h.clone()), self.dec_meta.forward(h))
+        let h = relu(linear_rows(&self.dec2, h1));
+        (linear_rows(&self.dec_state, h.clone()), linear_rows(&self.dec_meta, h))
     }
 
     /// The cycle encoder: z_hat from (s_hat, sigmoid(xi_hat)) (deterministic).
@@ -287,10 +287,10 @@ impl LmacAgent {
 
     /// [`cycle`](Self::cycle) with the `released` layout's dropout when `rng` is given.
     fn cycle_with(&self, s_hat: Tensor<3>, xi_logit: Tensor<3>, rng: Option<&mut LearnRng>) -> Tensor<3> {
-        let h = relu(self.cycle1.forward(Tensor::cat(vec![s_hat, sigmoid(xi_logit)], 2)));
+        let h = relu(linear_rows(&self.cycle1, Tensor::cat(vec![s_hat, sigmoid(xi_logit)], 2)));
         let h = match (&self.cycle_norm, &self.cycle_mid) {
             (Some(norm), Some(mid)) => {
-                let h = relu(mid.forward(norm.forward(h)));
+                let h = relu(linear_rows(mid, norm.forward(h)));
                 match rng {
                     Some(r) => dropout(h, self.cfg.settings.dropout, r),
                     None => h,
@@ -298,7 +298,7 @@ impl LmacAgent {
             }
             _ => h,
         };
-        self.cycle2.forward(h)
+        linear_rows(&self.cycle2, h)
     }
 
     /// z [T, N, L] with N = B * n (batch-major rows); the context's state and mask are per
@@ -393,9 +393,9 @@ fn window_attend(w: &WindowEncoder, x: Tensor<2>, entries: &[Tensor<2>], valid: 
 fn window_attend_all(w: &WindowEncoder, x: Tensor<3>) -> Tensor<2> {
     let [t, n, _] = x.dims();
     let a = w.query.weight.dims()[1];
-    let q = w.query.forward(x.clone());
-    let k = w.key.forward(x.clone());
-    let v = w.value.forward(x);
+    let q = linear_rows(&w.query, x.clone());
+    let k = linear_rows(&w.key, x.clone());
+    let v = linear_rows(&w.value, x);
     let out = window_attention(q, k, v, w.heads, w.window);
     w.out.forward(out.reshape([t * n, a]))
 }
