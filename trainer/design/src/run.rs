@@ -90,19 +90,21 @@ pub fn fixed_dims(phase0: &ValidatedProtocol) -> (Vec<usize>, &'static str) {
     (fixed, source)
 }
 
-/// Evaluate phases 0..=k (`phases`) on B and write `meta.json` and `recovery.json` into
+/// Evaluate design phase k with the phases kept before it (`phases`, k's last) on B and write `meta.json` and `recovery.json` into
 /// `phase_dir`; log the result. Returns the meta-information (for the designer) and the phase's
 /// `summary.json` line.
 pub fn evaluate_phase(
     ctx: &DesignContext,
     phases: &[ValidatedProtocol],
+    k: usize,
     fixed: &[usize],
     meta_cfg: &MetaConfig,
     phase_dir: &Path,
 ) -> Result<(super::meta_info::MetaInfo, PhaseEvaluation)> {
-    let k = phases.len().saturating_sub(1);
-    let Evaluation { meta, dims } =
-        evaluate_all(ctx, phases, meta_cfg).with_context(|| format!("evaluating phases 0..={k} on the dataset"))?;
+    // `k` names the design phase: after a dropped phase, `phases` (the ones kept, this one
+    // last) is shorter than k + 1.
+    let Evaluation { meta, dims } = evaluate_all(ctx, phases, meta_cfg)
+        .with_context(|| format!("evaluating phase {k} with the {} phase(s) kept on the dataset", phases.len()))?;
     std::fs::create_dir_all(phase_dir).with_context(|| format!("creating {}", phase_dir.display()))?;
     write(&phase_dir.join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
     let recovery = serde_json::json!({ "alpha": ctx.schema.alpha, "dims": dims });
@@ -252,7 +254,7 @@ pub fn run_design(
     let mut kept: Option<(super::meta_info::MetaInfo, PhaseEvaluation)> = None;
     for k in 0..opts.phases {
         let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
-        let (mut meta, mut ev) = evaluate_phase(&ctx, &validated, &fixed, meta_cfg, &dir.join(format!("phase{k}")))?;
+        let (mut meta, mut ev) = evaluate_phase(&ctx, &validated, k, &fixed, meta_cfg, &dir.join(format!("phase{k}")))?;
         meta.verdicts.push(format!("phases 0..={k}: {}", ev.verdict.text));
         if let (true, Some((kept_meta, kept_ev))) = (k > 0, &kept) {
             let added = ev.message_columns.saturating_sub(kept_ev.message_columns);

@@ -734,8 +734,8 @@ fn phase_evaluation_reads_the_trend_on_fixed_dims_with_both_definitions() {
     let cfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 8, ..Default::default() };
     let dir = tmp_dir("trend");
     let c = ctx(&schema, &env, &data);
-    let (_, e0) = evaluate_phase(&c, &[p0.clone()], &fixed, &cfg, &dir.join("phase0")).unwrap();
-    let (_, e1) = evaluate_phase(&c, &[p0, p1], &fixed, &cfg, &dir.join("phase1")).unwrap();
+    let (_, e0) = evaluate_phase(&c, &[p0.clone()], 0, &fixed, &cfg, &dir.join("phase0")).unwrap();
+    let (_, e1) = evaluate_phase(&c, &[p0, p1], 1, &fixed, &cfg, &dir.join("phase1")).unwrap();
     assert_eq!((e0.fixed_dims.dims, e1.fixed_dims.dims), (2, 2));
     assert_eq!(e1.all_dims.dims, 5);
     // Phase 1 brings s[3] to agent 0: the fixed-dim recovery of agent 0 rises with messages, not

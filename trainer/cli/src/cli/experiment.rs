@@ -49,6 +49,10 @@ pub(crate) struct ExperimentArgs {
     /// Discriminator updates per design phase (default: the designer's).
     #[arg(long)]
     disc_updates: Option<usize>,
+    /// Drop a design phase whose messages add nothing to the earlier phases' (as `lmac design
+    /// --drop-unhelpful-phases`; the design's log and summary.json say which and why)
+    #[arg(long)]
+    drop_unhelpful_phases: bool,
     /// Use this design directory instead of designing one; `paper`: the LMAC authors' design
     /// for --env shipped in protocols/paper/ (an error naming the env when none is shipped).
     #[arg(long)]
@@ -254,6 +258,7 @@ fn shared_design(a: &ExperimentArgs, dir: &Path, interrupted: std::sync::Arc<std
     d.pretrain_steps = a.design_steps;
     d.dataset_episodes = a.dataset_episodes;
     d.disc_updates = a.disc_updates;
+    d.drop_unhelpful_phases = a.drop_unhelpful_phases;
     d.seed = a.seeds.first().copied().unwrap_or(0);
     let p = std::fs::canonicalize(design_dir(&d, interrupted)?)?;
     std::fs::write(&note, p.display().to_string())?;

@@ -184,7 +184,7 @@ fn measure(
     let (fixed, source) = if dims.is_empty() { run::fixed_dims(&phases[0]) } else { (dims, "--dims") };
     let mut evaluations = Vec::new();
     for k in 0..phases.len() {
-        let (_, ev) = run::evaluate_phase(&ctx, &phases[..=k], &fixed, &cfg, &out.join(format!("phase{k}")))?;
+        let (_, ev) = run::evaluate_phase(&ctx, &phases[..=k], k, &fixed, &cfg, &out.join(format!("phase{k}")))?;
         evaluations.push(ev);
     }
     let summary = serde_json::json!({

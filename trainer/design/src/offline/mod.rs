@@ -373,7 +373,6 @@ impl OfflineDesigner {
         let (n, od) = (data.header.n_agents, data.header.obs_dim);
         let rel = super::relevance::measure_joint_observation(data, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0001)
             .context("offline designer: measuring each agent's observation values' relevance to the return")?;
-        let min_rel = self.cfg.min_relevance;
         let obs_cand = |d: usize| cands.iter().position(|c| c.kind == Kind::Obs && c.dim == Some(d));
         let label = |col: usize| {
             let (j, d) = (col / od, col % od);
@@ -444,8 +443,10 @@ impl OfflineDesigner {
             eprintln!("lmac:   {line}");
         }
         if picks.is_empty() {
-            let reason = if usable {
-                format!("no agent's observation has a relevance of at least {min_rel}")
+            let reason = if usable && senders.is_empty() {
+                "no agent's observation, sent to the others, raises their recovery of the critical dims".to_string()
+            } else if usable {
+                "no value of the senders' observation costs the value model anything when shuffled".to_string()
             } else {
                 format!("the value model explains less than {:.1}%", 100.0 * self.cfg.min_value_r2)
             };
