@@ -235,14 +235,19 @@ pub fn resolve_paper_spec(spec: &str, env: &str) -> Result<String> {
 }
 
 /// The protocol files of `spec`: a design directory gives its `phase<i>/protocol.json` for
-/// i = 0..=k (all phases present when `k` is absent); files joined by '+' give the first k + 1.
+/// i = 0..=k (all phases present when `k` is absent) except the phases its `summary.json` says
+/// were dropped (`lmac design --drop-unhelpful-phases` keeps their files for the record); files
+/// joined by '+' give the first k + 1.
 pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
     let path = Path::new(spec);
     let files: Vec<String> = if path.is_dir() {
+        let dropped = dropped_phases(path)?;
         let found: Vec<String> = (0..)
             .map(|i| path.join(format!("phase{i}")).join("protocol.json"))
             .take_while(|p| p.exists())
-            .map(|p| p.display().to_string())
+            .enumerate()
+            .filter(|(i, _)| !dropped.contains(i))
+            .map(|(_, p)| p.display().to_string())
             .collect();
         if found.is_empty() {
             bail!("run.protocol: {spec} is a directory without phase0/protocol.json (not a design directory)");
@@ -256,6 +261,18 @@ pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
         Some(k) => Ok(files[..=k].to_vec()),
         None => Ok(files),
     }
+}
+
+/// The phases a design directory's `summary.json` marks as dropped (its i-th evaluation is
+/// design phase i); none when it has no summary (a directory of hand-written phases).
+fn dropped_phases(dir: &Path) -> Result<Vec<usize>> {
+    let file = dir.join("summary.json");
+    let Ok(text) = std::fs::read_to_string(&file) else { return Ok(Vec::new()) };
+    let doc: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("run.protocol: {} is not valid JSON", file.display()))?;
+    let Some(evals) = doc.get("evaluations") else { return Ok(Vec::new()) };
+    let evals = evals.as_array().with_context(|| format!("run.protocol: {}: \"evaluations\" is not a list", file.display()))?;
+    Ok(evals.iter().enumerate().filter(|(_, e)| e.get("dropped").and_then(|d| d.as_bool()) == Some(true)).map(|(i, _)| i).collect())
 }
 
 /// The value of a `key=value` override: a TOML value, else the text as a string. Exactly one
@@ -448,6 +465,29 @@ impl TrainConfig {
 
 #[cfg(test)]
 mod tests {
+
+    /// A design directory's phases minus those its summary.json marks dropped; a corrupt
+    /// summary is an error naming the file, no summary keeps every phase.
+    #[test]
+    fn dropped_design_phases_are_not_trained_with() {
+        let dir = std::env::temp_dir().join(format!("lmac-config-dropped-{}", std::process::id()));
+        for k in 0..3 {
+            std::fs::create_dir_all(dir.join(format!("phase{k}"))).unwrap();
+            std::fs::write(dir.join(format!("phase{k}/protocol.json")), "{}").unwrap();
+        }
+        let spec = dir.to_str().unwrap();
+        assert_eq!(protocol_files(spec, None).unwrap().len(), 3);
+        let summary = r#"{"evaluations": [{"phase": 0, "dropped": false}, {"phase": 1, "dropped": true}, {"phase": 2, "dropped": false}]}"#;
+        std::fs::write(dir.join("summary.json"), summary).unwrap();
+        let files = protocol_files(spec, None).unwrap();
+        assert_eq!(files.len(), 2, "{files:?}");
+        assert!(files[0].ends_with("phase0/protocol.json") && files[1].ends_with("phase2/protocol.json"), "{files:?}");
+        std::fs::write(dir.join("summary.json"), "{not json").unwrap();
+        let err = format!("{:#}", protocol_files(spec, None).unwrap_err());
+        assert!(err.contains("summary.json") && err.contains("not valid JSON"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
     use super::*;
 
     #[test]
