@@ -109,7 +109,7 @@ impl RnnAgent {
     /// Unroll over time from a zero hidden state. `inputs[t]` is [N, in] (N = batch * agents);
     /// returns Q-values [T, N, A].
     pub fn unroll(&self, inputs: Vec<Tensor<2>>) -> Tensor<3> {
-        self.fc2.forward(self.hidden_states(&inputs))
+        crate::methods::linear_rows(&self.fc2, self.hidden_states(&inputs))
     }
 
     /// The GRU's hidden states over time from zero: `inputs[t]` [N, in] -> [T, N, H] (what
@@ -138,7 +138,7 @@ impl RnnAgent {
             let inputs: Vec<Tensor<2>> = x.split(n.max(1), 0);
             self.hidden_states_stepwise(&inputs)
         };
-        self.fc2.forward(hs)
+        crate::methods::linear_rows(&self.fc2, hs)
     }
 
     /// The same hidden states with burn's per-step cell (the reference of the fused path).

@@ -20,7 +20,7 @@ use super::{agreement_and_entropy, classes, ColaConfig, ConsensusInput};
 use crate::agent::{FusedGru, RnnAgent};
 use crate::config::LearnConfig;
 use crate::init::linear;
-use crate::methods::{standard_normal, AuxTerm, MethodHooks, TrainContext};
+use crate::methods::{linear_rows, standard_normal, AuxTerm, MethodHooks, TrainContext};
 use crate::{InputLayout, LearnRng};
 
 /// The student's (or the teacher's) network: input -> 2W -> ReLU -> W ("view"), then W -> W ->
@@ -226,7 +226,7 @@ impl ColaAgent {
         let logits = self.student.forward(src.clone());
         let cls = classes(&host(logits.clone().detach()), self.cfg.settings.classes, &alive);
         let code = self.code(&cls, &device).reshape([t_len, rows, hd]);
-        let q = self.q.forward(Tensor::cat(vec![hs, code], 2));
+        let q = linear_rows(&self.q, Tensor::cat(vec![hs, code], 2));
         let aux = match train {
             Some(ctx) => self.losses(logits, src, &alive, &cls, ctx),
             None => Vec::new(),

@@ -17,7 +17,7 @@ use super::{BatchNormMode, EntropyAttention, MaicConfig, MessageInput, MiAction,
 use crate::agent::RnnAgent;
 use crate::config::LearnConfig;
 use crate::init::linear;
-use crate::methods::{leaky_relu, standard_normal, AuxTerm, MethodHooks, TrainContext};
+use crate::methods::{leaky_relu, linear_rows, standard_normal, AuxTerm, MethodHooks, TrainContext};
 use crate::{InputLayout, LearnRng};
 
 const LEAK: f64 = 0.01; // torch's LeakyReLU default
@@ -207,16 +207,16 @@ impl MaicAgent {
         let n = self.n_agents;
         let (b, l, a) = (rows / n, s.latent_dim, self.agent.n_actions);
         let device = h.device();
-        let q_local = self.agent.fc2.forward(h.clone());
+        let q_local = linear_rows(&self.agent.fc2, h.clone());
 
         // Teammate models.
-        let e = self.embed1.forward(h.clone());
+        let e = linear_rows(&self.embed1, h.clone());
         let e = match (&train, s.batch_norm) {
             (Some((ctx, _)), mode) => self.embed_norm.forward_masked(e, Self::row_mask(ctx, t, n), mode == BatchNormMode::Running),
             (None, BatchNormMode::Running) => self.embed_norm.forward_running(e),
             (None, BatchNormMode::Batch) => self.embed_norm.forward_over(e.reshape([t, b, n, s.hidden]), 2).reshape([t, rows, s.hidden]),
         };
-        let e = self.embed2.forward(leaky_relu(e, LEAK));
+        let e = linear_rows(&self.embed2, leaky_relu(e, LEAK));
         let mu = e.clone().narrow(2, 0, n * l).reshape([t, b, n, n, l]);
         let var = e.narrow(2, n * l, n * l).exp().clamp_min(s.var_floor).reshape([t, b, n, n, l]);
         let (train, z) = match train {
@@ -232,7 +232,7 @@ impl MaicAgent {
             MessageInput::Receiver => 2,
         };
         let pre = pair_linear(&self.msg1, h.clone().reshape([t * b * n, hd]), z.clone(), [t, b, n], pair_axis);
-        let msg = self.msg2.forward(leaky_relu(pre, LEAK)).reshape([t, b, n, n, a]);
+        let msg = linear_rows(&self.msg2, leaky_relu(pre, LEAK)).reshape([t, b, n, n, a]);
 
         // Attention of each sender over its teammates.
         let alpha = self.attention(h.clone(), z.clone(), [t, b, n]);
@@ -249,8 +249,8 @@ impl MaicAgent {
     /// [T, B, n, n]: the unscaled scores W_q h_i . W_k z_ij.
     fn scores(&self, h: Tensor<3>, z: Tensor<5>, [t, b, n]: [usize; 3]) -> Tensor<4> {
         let att = self.cfg.settings.attention_dim;
-        let query = self.query.forward(h).reshape([t, b, n, 1, att]);
-        let key = self.key.forward(z);
+        let query = linear_rows(&self.query, h).reshape([t, b, n, 1, att]);
+        let key = linear_rows(&self.key, z);
         (query * key).sum_dim(4).reshape([t, b, n, n])
     }
 
@@ -291,7 +291,7 @@ impl MaicAgent {
             self.cfg.settings.hidden,
         ]);
         let x = self.infer_norm.forward_masked(x, Self::row_mask(ctx, t, n * n), s.batch_norm == BatchNormMode::Running);
-        let x = self.infer2.forward(leaky_relu(x, LEAK)).reshape([t, b, n, n, 2 * l]);
+        let x = linear_rows(&self.infer2, leaky_relu(x, LEAK)).reshape([t, b, n, n, 2 * l]);
         let mu2 = x.clone().narrow(4, 0, l);
         let var2 = x.narrow(4, l, l).exp().clamp_min(s.var_floor);
         let kl =

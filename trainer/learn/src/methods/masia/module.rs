@@ -19,7 +19,7 @@ use super::MasiaConfig;
 use crate::agent::{FusedGru, RnnAgent};
 use crate::config::LearnConfig;
 use crate::init::linear;
-use crate::methods::{AuxTerm, MethodHooks, TrainContext};
+use crate::methods::{linear_rows, AuxTerm, MethodHooks, TrainContext};
 use crate::{InputLayout, LearnRng};
 
 /// Linear -> ReLU -> Linear.
@@ -35,7 +35,7 @@ impl Mlp {
     }
 
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
-        self.l2.forward(relu(self.l1.forward(x)))
+        linear_rows(&self.l2, relu(linear_rows(&self.l1, x)))
     }
 }
 
@@ -275,7 +275,7 @@ impl MasiaAgent {
         let z = self.encoder.sequence(row.clone(), t_len);
         let (x, gate) = self.agent_input(row.clone(), own, extra, z.clone());
         let hs = self.agent.gru.sequence(relu(self.agent.fc1.forward(x)), t_len);
-        let q = self.agent.fc2.forward(hs);
+        let q = linear_rows(&self.agent.fc2, hs);
         let aux = match train {
             Some(ctx) => {
                 let [groups, w] = z.dims();
@@ -299,7 +299,7 @@ impl MasiaAgent {
     /// ẑ' = ẑ + F([E_z(ẑ) | E_a(a)]): z [T', B, n * L], actions one-hot [T', B, n, A].
     fn advance(&self, z: Tensor<3>, actions: Tensor<4>) -> Tensor<3> {
         let [t, b, n, _] = actions.dims();
-        let ae = relu(self.action_embed.forward(actions)).reshape([t, b, n * self.cfg.settings.action_embed]);
+        let ae = relu(linear_rows(&self.action_embed, actions)).reshape([t, b, n * self.cfg.settings.action_embed]);
         let x = Tensor::cat(vec![self.latent_embed.forward(z.clone()), self.joint_action.forward(ae)], 2);
         z + self.transition.forward(x)
     }
@@ -319,7 +319,7 @@ impl MasiaAgent {
         // Reconstruction of the state: squared error averaged over its dims.
         let sd = ctx.state.dims()[1];
         let state: Tensor<3> = ctx.state.clone().reshape([t, b, sd]);
-        let recon = self.decoder.forward(z.clone()).sub(state).square().mean_dim(2);
+        let recon = linear_rows(&self.decoder, z.clone()).sub(state).square().mean_dim(2);
         let recon = masked_mean(recon, &mask, &mask_host, b, 0);
 
         // Latent and reward prediction, k = 0 .. pred_len steps ahead.

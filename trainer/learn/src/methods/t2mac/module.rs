@@ -19,7 +19,7 @@ use super::{Evidence, Selector, T2macConfig};
 use crate::agent::RnnAgent;
 use crate::config::LearnConfig;
 use crate::init::linear;
-use crate::methods::{AuxTerm, MethodHooks, TrainContext};
+use crate::methods::{linear_rows, AuxTerm, MethodHooks, TrainContext};
 use crate::{InputLayout, LearnRng};
 
 #[derive(Module, Debug)]
@@ -105,19 +105,19 @@ impl T2macAgent {
         let device = h.device();
 
         // Attention over all agents' values (keys of every agent concatenated to each query).
-        let keys = self.key.forward(h.clone()).reshape([t, b, 1, n * k]).expand([t, b, n, n * k]);
-        let query = self.query.forward(h.clone()).reshape([t, b, n, k]);
-        let w = softmax(self.attend.forward(Tensor::cat(vec![query, keys], 3)), 3); // [t, b, n, n]
-        let attended = w.matmul(self.value.forward(h.clone()).reshape([t, b, n, k]));
-        let merged = relu(self.merge.forward(Tensor::cat(vec![attended, h.reshape([t, b, n, hd])], 3)));
-        let q_raw = self.agent.fc2.forward(merged);
+        let keys = linear_rows(&self.key, h.clone()).reshape([t, b, 1, n * k]).expand([t, b, n, n * k]);
+        let query = linear_rows(&self.query, h.clone()).reshape([t, b, n, k]);
+        let w = softmax(linear_rows(&self.attend, Tensor::cat(vec![query, keys], 3)), 3); // [t, b, n, n]
+        let attended = w.matmul(linear_rows(&self.value, h.clone()).reshape([t, b, n, k]));
+        let merged = relu(linear_rows(&self.merge, Tensor::cat(vec![attended, h.reshape([t, b, n, hd])], 3)));
+        let q_raw = linear_rows(&self.agent.fc2, merged);
         let own = match s.evidence {
             Evidence::Relu => relu(q_raw),
             Evidence::Softplus => softplus(q_raw, 1.0),
         }; // [t, b, n, a]
 
         // Selector and fusion (no gradient through either's decisions).
-        let logits = self.select2.forward(relu(self.select1.forward(u))).reshape([t, b, n, n]);
+        let logits = linear_rows(&self.select2, relu(linear_rows(&self.select1, u))).reshape([t, b, n, n]);
         let host = |x: Tensor<4>| x.detach().into_data().try_into_vec::<f32>().expect("f32 values");
         let min_drop = labels.then_some(s.min_uncertainty_drop);
         let fused = fuse(&host(own.clone()), &host(softmax(logits.clone(), 3)), n, a, s.send_threshold, min_drop);
