@@ -166,12 +166,9 @@ fn measure_on<'a>(
     // Every 10th training episode checks the fit while it trains (the model kept is the one
     // that predicted those best): on a small B (400 training episodes) the full schedule
     // overfits, to a negative held-out R^2 on LBF 8x8's main-job dataset.
-    let (fit, check): (Vec<usize>, Vec<usize>) = if train.len() >= 10 {
-        let (c, f): (Vec<(usize, usize)>, Vec<(usize, usize)>) = train.iter().copied().enumerate().partition(|(k, _)| k % 10 == 9);
-        (f.into_iter().map(|x| x.1).collect(), c.into_iter().map(|x| x.1).collect())
-    } else {
-        (train.clone(), Vec::new())
-    };
+    let checked = |k: usize| train.len() >= 10 && k % 10 == 9;
+    let fit: Vec<usize> = train.iter().enumerate().filter(|&(k, _)| !checked(k)).map(|(_, &e)| e).collect();
+    let check: Vec<usize> = train.iter().enumerate().filter(|&(k, _)| checked(k)).map(|(_, &e)| e).collect();
     let (train_rows, test_rows, check_rows) = (steps(&fit), steps(&test), steps(&check));
     if train_rows.is_empty() || test_rows.is_empty() {
         bail!("relevance: the dataset's training or held-out episodes have no steps");
@@ -179,6 +176,16 @@ fn measure_on<'a>(
     let g: Vec<Vec<f32>> = (0..data.episodes.len()).map(|e| returns_to_go(data, e, cfg.gamma)).collect();
     let state = |&(e, t): &(usize, usize)| row(e, t);
     let inputs = Standardize::fit(sd, train_rows.iter().map(|r| state(r).to_vec()));
+    // The standardised rows of `rows`, side by side.
+    let standardized = |rows: &[(usize, usize)]| -> Vec<f32> {
+        let mut x = vec![0f32; rows.len() * sd];
+        for (k, r) in rows.iter().enumerate() {
+            let row = &mut x[k * sd..(k + 1) * sd];
+            row.copy_from_slice(state(r));
+            inputs.apply(row);
+        }
+        x
+    };
     let ys: Vec<f64> = train_rows.iter().map(|&(e, t)| g[e][t] as f64).collect();
     if lmac_learn::stats::variance(&ys) < 1e-12 {
         // A constant return (no reward on B): nothing depends on any dim.
@@ -206,14 +213,9 @@ fn measure_on<'a>(
     let mut optim = AdamConfig::new().init();
     let mut rng = LearnRng::seed_from(seed ^ 0x5E1E_0000_0000_0003);
     let check_every = (cfg.updates / 12).max(1);
-    let mut check_x = Vec::with_capacity(check_rows.len() * sd);
-    for r in &check_rows {
-        let at = check_x.len();
-        check_x.extend_from_slice(state(r));
-        inputs.apply(&mut check_x[at..]);
-    }
-    let check_y: Vec<f32> = check_rows.iter().map(target).collect();
-    let check_t: Tensor<2> = Tensor::from_data(TensorData::new(check_y.clone(), [check_y.len(), 1]), &dev);
+    let check_x: Tensor<2> = Tensor::from_data(TensorData::new(standardized(&check_rows), [check_rows.len(), sd]), &dev);
+    let check_t: Tensor<2> =
+        Tensor::from_data(TensorData::new(check_rows.iter().map(target).collect::<Vec<f32>>(), [check_rows.len(), 1]), &dev);
     let mut best: Option<(f32, ValueModel)> = None;
     let b = cfg.batch_size;
     let (mut xb, mut yb) = (vec![0f32; b * sd], vec![0f32; b]);
@@ -236,9 +238,9 @@ fn measure_on<'a>(
         }
         let grads = GradientsParams::from_grads(loss.backward(), &model);
         model = optim.step(cfg.lr, model, grads);
-        if !check_x.is_empty() && ((u + 1) % check_every == 0 || u + 1 == cfg.updates) {
+        if !check_rows.is_empty() && ((u + 1) % check_every == 0 || u + 1 == cfg.updates) {
             let m = model.valid();
-            let err = m.forward(Tensor::from_data(TensorData::new(check_x.clone(), [check_y.len(), sd]), &dev)) - check_t.clone();
+            let err = m.forward(check_x.clone()) - check_t.clone();
             let v: f32 = err.square().mean().into_scalar();
             if best.as_ref().is_none_or(|(b, _)| v < *b) {
                 best = Some((v, m));
@@ -254,12 +256,7 @@ fn measure_on<'a>(
     let stride = test_rows.len().div_ceil(cfg.max_eval_rows).max(1);
     let rows: Vec<(usize, usize)> = test_rows.iter().step_by(stride).copied().collect();
     let n = rows.len();
-    let mut x = vec![0f32; n * sd];
-    for (k, r) in rows.iter().enumerate() {
-        let row = &mut x[k * sd..(k + 1) * sd];
-        row.copy_from_slice(state(r));
-        inputs.apply(row);
-    }
+    let x = standardized(&rows);
     let y: Vec<f64> = rows.iter().map(|r| target(r) as f64).collect();
     let var_y = lmac_learn::stats::variance(&y).max(1e-12);
     let mse = |x: &[f32]| -> Result<f64> {

@@ -194,6 +194,8 @@ pub struct OfflineDesigner {
     transcript: Vec<TranscriptEntry>,
     /// Phase 0's relevance measurement (None before it, or with [`CriticalBy::Recovery`]).
     relevance: Option<super::relevance::Relevance>,
+    /// Phase 0's recovery of every state dim without messages (None before it).
+    without: Option<Recovery>,
     /// Factor on [`OfflineConfig::min_gain`]: doubled each time a phase added nothing to the
     /// phases before it, so the next one sends only what explains more per column.
     gain_scale: f64,
@@ -201,7 +203,7 @@ pub struct OfflineDesigner {
 
 impl OfflineDesigner {
     pub fn new(cfg: OfflineConfig) -> Self {
-        OfflineDesigner { cfg, transcript: Vec::new(), relevance: None, gain_scale: 1.0 }
+        OfflineDesigner { cfg, transcript: Vec::new(), relevance: None, without: None, gain_scale: 1.0 }
     }
 
     pub fn config(&self) -> &OfflineConfig {
@@ -271,8 +273,11 @@ impl OfflineDesigner {
         if rows < 2 {
             bail!("offline designer: the dataset has {rows} usable steps; it needs at least 2");
         }
-        let by_relevance = phase == 0 && self.cfg.fields_by == FieldsBy::ObservationRelevance;
-        let chosen = if by_relevance { self.fields_by_observation_relevance(ctx, &cands, per_block, critical)? } else { None };
+        let chosen = if phase == 0 && self.cfg.fields_by == FieldsBy::ObservationRelevance {
+            self.fields_by_observation_relevance(ctx, &cands, per_block, critical)?
+        } else {
+            None
+        };
         let by_relevance = chosen.is_some();
         let (picks, steps, kept_count, how) = if let Some((picks, steps, how)) = chosen {
             (picks, steps, cands.len(), how)
@@ -424,7 +429,7 @@ impl OfflineDesigner {
             lines.push(format!("{}. {}: relevance {imp:.4}; {verdict}", rel.rank_of(col), label(col)));
         }
         let head = format!(
-            "A value model of the team's joint observation (every agent's observation side by side; an MLP predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); an observation value's relevance is the share of that variance lost when it is shuffled across {} held-out steps, an agent's when all it sees is shuffled at once. The senders are the {} agent(s) whose observation is most relevant; each sends its most relevant values.",
+            "A value model of the team's joint observation (every agent's observation side by side; an MLP predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); an observation value's relevance is the share of that variance lost when it is shuffled across {} held-out steps, an agent's when all it sees is shuffled at once. The senders are the {} agent(s) whose whole observation, sent to the others, most raises their recovery of the critical dims; each sends its most relevant values.",
             rel.gamma,
             100.0 * rel.held_out_r2,
             rel.train_episodes,
@@ -467,12 +472,12 @@ impl OfflineDesigner {
     /// Per agent j: how much sending all of j's observation to every other agent raises their
     /// recovery of `dims` (mean E_t[chi] over the dims and the receivers, with against without
     /// messages; a discriminator trained for each j on B's training episodes, measured on the
-    /// held-out ones).
-    fn sender_gains(&mut self, ctx: &DesignContext, dims: &[usize]) -> Result<Vec<f64>> {
+    /// held-out ones; "without" is phase 0's own measurement).
+    fn sender_gains(&self, ctx: &DesignContext, dims: &[usize]) -> Result<Vec<f64>> {
         let env = ctx.env;
         let n = env.n_agents;
         let disc = &self.cfg.discriminator;
-        let without = meta::measure(ctx, &[], disc, dims).context("offline designer: recovery without messages")?.without;
+        let without = self.without.as_ref().context("offline designer: phase 0's recovery without messages is not measured yet")?;
         let mut gains = Vec::with_capacity(n);
         for j in 0..n {
             let p = Protocol {
@@ -499,9 +504,10 @@ impl OfflineDesigner {
             let with = meta::recovery_with(ctx, &[v], disc, dims)
                 .with_context(|| format!("offline designer: recovery with agent {j}'s observation"))?;
             let mut sum = 0.0;
-            for k in 0..dims.len() {
+            for (k, &d) in dims.iter().enumerate() {
+                let kw = without.position(d).with_context(|| format!("offline designer: s[{d}] has no recovery without messages"))?;
                 for i in (0..n).filter(|&i| i != j) {
-                    sum += with.rate(k, i) - without.rate(k, i);
+                    sum += with.rate(k, i) - without.rate(kw, i);
                 }
             }
             gains.push(sum / (dims.len() * (n - 1)).max(1) as f64);
@@ -692,6 +698,7 @@ impl Designer for OfflineDesigner {
             format!("offline designer: train the no-message discriminator on {} training episodes and measure E_t[chi] on {} held-out episodes for every state dim", m.without_report.train_episodes, m.held_out.len()),
             format!("{why}\n{}", listing.join("\n")),
         );
+        self.without = Some(m.without);
         self.design(ctx, 0, &[], Targets { dims, weights, why }, &critical)
     }
 
