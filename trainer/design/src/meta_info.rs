@@ -272,25 +272,45 @@ impl SetTrend {
     /// phases 0..k on the same dims. It helps when recovery with all k + 1 phases' messages is
     /// above recovery with the first k phases' (both discriminators trained on the same B).
     pub fn marginal_verdict(&self, before: &SetTrend, phase: usize, columns: usize) -> Verdict {
-        let (now, then) = (self.with_messages.mean_recovery, before.with_messages.mean_recovery);
+        let with = format!("with phases 0..={phase}");
+        let against = format!("with phases 0..{phase}");
+        self.adds_to(
+            before.with_messages.mean_recovery,
+            phase,
+            [&with, &against, "the earlier phases", "more message columns", "nothing more"],
+            columns,
+        )
+    }
+
+    /// Does phase `phase` add anything when no earlier phase was kept? `self`: that phase's
+    /// messages alone on the fixed dims. It helps when recovery with them is above recovery
+    /// without messages (a discriminator retrained without them), as
+    /// [`marginal_verdict`](Self::marginal_verdict) asks of a later phase against the earlier.
+    pub fn adds_over_no_messages(&self, phase: usize, columns: usize) -> Verdict {
+        let with = format!("with phase {phase}'s messages");
+        let none = self.without_retrained.mean_recovery;
+        self.adds_to(none, phase, [&with, "without messages", "no messages", "message columns", "nothing"], columns)
+    }
+
+    /// The verdict of recovery with the phase's messages against `then`, worded by `words`:
+    /// [how "now" is named, how "then" is named, what is added to, the columns' noun, what the
+    /// messages recover when they do not help].
+    fn adds_to(&self, then: f64, phase: usize, words: [&str; 5], columns: usize) -> Verdict {
+        let [with, against, base, noun, recover] = words;
+        let now = self.with_messages.mean_recovery;
         let r4 = |x: f64| (x * 1e4).round() / 1e4;
-        let over_before = skill(now, then);
+        let over = skill(now, then);
         let helps = now > then;
         let numbers = format!(
-            "recovery on the {} fixed dims {:.3} with phases 0..={phase} against {:.3} with phases 0..{phase}: skill {:.3} over the earlier phases, for {columns} more message columns",
-            self.dims, now, then, over_before
+            "recovery on the {} fixed dims {now:.3} {with} against {then:.3} {against}: skill {over:.3} over {base}, for {columns} {noun}",
+            self.dims
         );
         let text = if helps {
-            format!("phase {phase} adds to the earlier phases ({numbers})")
+            format!("phase {phase} adds to {base} ({numbers})")
         } else {
-            format!("phase {phase} does NOT add to the earlier phases ({numbers}); its messages cost columns and recover nothing more")
+            format!("phase {phase} does NOT add to {base} ({numbers}); its messages cost columns and recover {recover}")
         };
-        Verdict {
-            messages_help: helps,
-            skill_over_no_messages: r4(over_before),
-            skill_over_constant_guess: r4(self.with_messages.skill),
-            text,
-        }
+        Verdict { messages_help: helps, skill_over_no_messages: r4(over), skill_over_constant_guess: r4(self.with_messages.skill), text }
     }
 
     /// One line for logs and the CLI.

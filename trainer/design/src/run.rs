@@ -51,8 +51,11 @@ pub struct DesignOptions {
     pub phases: usize,
     /// Which "without messages" the designer is shown (both are measured).
     pub without: super::meta::NoMessages,
-    /// Drop a phase whose messages add nothing to the earlier phases' on the fixed dims (its
-    /// verdict says so either way); off keeps the paper's three phases.
+    /// Drop a phase whose messages add nothing to the kept earlier phases' on the fixed dims
+    /// (phase 0, or any phase when none before it was kept: nothing to recovery without
+    /// messages); its verdict says so either way. When every phase goes, the one that recovered
+    /// the fixed dims best is kept and `summary.json` says why. Off keeps the paper's three
+    /// phases.
     pub drop_unhelpful_phases: bool,
 }
 
@@ -73,11 +76,16 @@ pub struct PhaseEvaluation {
     /// Do the messages of phases 0..=k help on the fixed dims (against the no-message baseline
     /// and a constant guess)?
     pub verdict: Verdict,
-    /// Phase k >= 1: does it add to phases 0..k on the fixed dims?
+    /// Does it add to the phases kept before it on the fixed dims (to no messages when none
+    /// was kept)? Phase 0 is judged so only with [`DesignOptions::drop_unhelpful_phases`].
     #[serde(skip_serializing_if = "Option::is_none")]
     pub adds: Option<Verdict>,
     /// Dropped from the final protocol (see [`DesignOptions::drop_unhelpful_phases`]).
     pub dropped: bool,
+    /// Why a phase that does not add is in the final protocol anyway (every phase failed, and
+    /// a design sends something: this one recovered the fixed dims best).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kept_because: Option<String>,
 }
 
 /// The dims the trend is read on, fixed at phase 0: its task-critical dims (all dims when it
@@ -122,6 +130,7 @@ pub fn evaluate_phase(
         verdict,
         adds: None,
         dropped: false,
+        kept_because: None,
     };
     eprintln!("lmac: phase {k}: {}", meta.summary_line());
     for d in &meta.dead_fields {
@@ -252,26 +261,41 @@ pub fn run_design(
     // The evaluation of the phases kept so far, with its meta-information (what a dropped
     // phase's successor is designed from).
     let mut kept: Option<(super::meta_info::MetaInfo, PhaseEvaluation)> = None;
+    // The dropped phases (design phase, protocol, file), in case every phase goes.
+    let mut set_aside: Vec<(usize, PhaseProtocol, PathBuf)> = Vec::new();
     for k in 0..opts.phases {
         let validated: Vec<ValidatedProtocol> = phases.iter().map(|p| p.validated.clone()).collect();
         let (mut meta, mut ev) = evaluate_phase(&ctx, &validated, k, &fixed, meta_cfg, &dir.join(format!("phase{k}")))?;
         meta.verdicts.push(format!("phases 0..={k}: {}", ev.verdict.text));
-        if let (true, Some((kept_meta, kept_ev))) = (k > 0, &kept) {
-            let added = ev.message_columns.saturating_sub(kept_ev.message_columns);
-            let adds = ev.fixed_dims.marginal_verdict(&kept_ev.fixed_dims, k, added);
+        // Phase k against the phases kept before it (against no messages when none was kept).
+        let adds = match &kept {
+            Some((_, kept_ev)) => {
+                let added = ev.message_columns.saturating_sub(kept_ev.message_columns);
+                Some(ev.fixed_dims.marginal_verdict(&kept_ev.fixed_dims, k, added))
+            }
+            None if k > 0 || opts.drop_unhelpful_phases => Some(ev.fixed_dims.adds_over_no_messages(k, ev.message_columns)),
+            None => None,
+        };
+        if let Some(adds) = adds {
             eprintln!("lmac: phase {k}: {}", adds.text);
             if !adds.messages_help && opts.drop_unhelpful_phases {
                 eprintln!("lmac: phase {k}: dropped from the final protocol (--drop-unhelpful-phases)");
-                phases.pop();
-                files.pop();
+                let phase = phases.pop().context("a phase to drop")?;
+                let file = files.pop().context("a phase file to drop")?;
+                set_aside.push((k, phase, file));
                 ev.dropped = true;
                 // The next phase is designed on the phases kept, told why this one went.
-                meta = kept_meta.clone();
-                meta.verdicts.push(format!("{}; it was dropped, so the next phase builds on phases before it", adds.text));
+                if let Some((kept_meta, _)) = &kept {
+                    meta = kept_meta.clone();
+                }
+                let base = if kept.is_some() { "the phases before it" } else { "no earlier phase" };
+                meta.verdicts.push(format!("{}; it was dropped, so the next phase builds on {base}", adds.text));
             } else {
                 meta.verdicts.push(adds.text.clone());
             }
-            meta.newest_phase_added = Some(adds.messages_help);
+            if k > 0 {
+                meta.newest_phase_added = Some(adds.messages_help);
+            }
             ev.adds = Some(adds);
         }
         if !ev.dropped {
@@ -296,6 +320,22 @@ pub fn run_design(
         phases.push(next);
     }
     persist_transcript(designer)?;
+    if phases.is_empty() {
+        // Every phase was dropped. LMAC is a method that communicates, so the design keeps the
+        // phase whose messages recovered the fixed dims best, and says that none helped.
+        let recovery = |k: usize| evaluations[k].fixed_dims.with_messages.mean_recovery;
+        let best = (0..set_aside.len()).max_by(|&a, &b| recovery(set_aside[a].0).total_cmp(&recovery(set_aside[b].0)).then(b.cmp(&a)));
+        let (k, phase, file) = set_aside.swap_remove(best.context("a dropped phase to keep")?);
+        let why = format!(
+            "no phase's messages add to recovery without messages on the fixed dims, and a design must send something: phase {k} recovered them best ({:.3}); its messages should not be expected to help",
+            recovery(k)
+        );
+        eprintln!("lmac: phase {k}: kept in the final protocol after all: {why}");
+        evaluations[k].dropped = false;
+        evaluations[k].kept_because = Some(why);
+        phases.push(phase);
+        files.push(file);
+    }
 
     let all: Vec<_> = phases.iter().map(|p| p.protocol.clone()).collect();
     write(&dir.join("final.txt"), &protocol::explain_phases(&all, Some(ctx.env)))?;

@@ -823,3 +823,60 @@ fn observation_relevance_chooses_the_agent_that_sees_what_matters() {
         .collect();
     assert!(sent.contains(&2), "agent 1's view of hidden value B is sent: {json}");
 }
+
+/// `--drop-unhelpful-phases` on a dataset whose state is noise (no message can help recover
+/// it): every phase, phase 0 included, is judged against what was kept before it (no messages
+/// for phase 0); a phase in the final protocol either adds or says why it is there anyway; the
+/// training side reads exactly the phases kept; and something is always kept.
+#[test]
+fn a_design_keeps_only_phases_that_add_or_says_why() {
+    let dir = tmp_dir("drop-phases");
+    let data = lbf_like(160, 21);
+    data.save(&dir.join("dataset")).unwrap();
+    let opts = lmac_design::run::DesignOptions {
+        env: "lbf:8x8-2p-2f-s1-coop".into(),
+        out: dir.join("designs"),
+        seed: 3,
+        pretrain_steps: 0,
+        dataset_episodes: 0,
+        dataset_epsilon: None,
+        envs: 1,
+        servers: 1,
+        dataset: Some(dir.join("dataset")),
+        phases: 3,
+        without: meta::NoMessages::Retrained,
+        drop_unhelpful_phases: true,
+    };
+    let disc = DiscriminatorConfig { updates: 300, batch_size: 64, lr: 2e-3, ..Default::default() };
+    let mut designer = OfflineDesigner::new(OfflineConfig { discriminator: disc.clone(), ..Default::default() });
+    let mcfg = MetaConfig { discriminator: disc, ..Default::default() };
+    let design = lmac_design::run::run_design(&opts, &mut designer, &mcfg, Default::default()).unwrap();
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(design.join("summary.json")).unwrap()).unwrap();
+    let evals = summary["evaluations"].as_array().unwrap();
+    assert_eq!(evals.len(), 3);
+    let mut kept = Vec::new();
+    for (k, e) in evals.iter().enumerate() {
+        let adds = &e["adds"];
+        let text = adds["text"].as_str().unwrap_or_else(|| panic!("phase {k} has no verdict on what it adds: {e}"));
+        let helps = adds["messages_help"].as_bool().unwrap();
+        let dropped = e["dropped"].as_bool().unwrap();
+        assert!(text.contains("adds to") || text.contains("does NOT add to"), "{text}");
+        if dropped {
+            assert!(!helps, "phase {k} helps but was dropped: {text}");
+        } else {
+            kept.push(k);
+            assert!(helps || e["kept_because"].as_str().is_some_and(|w| w.contains("a design must send something")), "phase {k}: {e}");
+        }
+    }
+    assert!(!kept.is_empty(), "{summary}");
+    // Phase 0 is judged against no messages.
+    assert!(evals[0]["adds"]["text"].as_str().unwrap().contains("no messages"), "{}", evals[0]);
+    // Training reads the kept phases, in order.
+    let files = lmac_run::train::protocol_files(design.to_str().unwrap(), None).unwrap();
+    let expected: Vec<String> = kept.iter().map(|k| design.join(format!("phase{k}")).join("protocol.json").display().to_string()).collect();
+    assert_eq!(files, expected);
+    eprintln!(
+        "kept phases {kept:?}: {}",
+        evals.iter().map(|e| e["adds"]["text"].as_str().unwrap().to_string()).collect::<Vec<_>>().join("\n")
+    );
+}

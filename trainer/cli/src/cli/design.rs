@@ -72,9 +72,11 @@ pub(crate) struct DesignArgs {
     /// discriminator given zeroed messages). Both are measured and written to recovery.json.
     #[arg(long, default_value = "retrained")]
     pub(crate) without: lmac_design::meta::NoMessages,
-    /// Drop a phase whose messages add nothing to the earlier phases' on the fixed dims (every
-    /// phase's verdict is printed and in summary.json either way; without this flag the final
-    /// protocol keeps all phases, as the paper's does)
+    /// Drop a phase whose messages add nothing to the kept earlier phases' on the fixed dims
+    /// (phase 0, and a phase with none kept before it, against recovery without messages).
+    /// Every phase's verdict is printed and in summary.json either way; when every phase fails,
+    /// the one that recovered the fixed dims best is kept and summary.json says why. Without this
+    /// flag the final protocol keeps all phases, as the paper's does
     #[arg(long)]
     pub(crate) drop_unhelpful_phases: bool,
     /// How the offline designer chooses phase 0's task-critical dims: `relevance` (what the

@@ -429,12 +429,14 @@ impl OfflineDesigner {
             lines.push(format!("{}. {}: relevance {imp:.4}; {verdict}", rel.rank_of(col), label(col)));
         }
         let head = format!(
-            "A value model of the team's joint observation (every agent's observation side by side; an MLP predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); an observation value's relevance is the share of that variance lost when it is shuffled across {} held-out steps, an agent's when all it sees is shuffled at once. The senders are the {} agent(s) whose whole observation, sent to the others, most raises their recovery of the critical dims; each sends its most relevant values.",
+            "A value model of the team's joint observation (every agent's observation side by side; {} predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); an observation value's relevance is the share of that variance lost when it is shuffled across {} held-out steps, an agent's when all it sees is shuffled at once.{} The senders are the {} agent(s) whose whole observation, sent to the others, most raises their recovery of the critical dims; each sends its most relevant values.",
+            rel.model.describe(),
             rel.gamma,
             100.0 * rel.held_out_r2,
             rel.train_episodes,
             rel.held_out_episodes,
             rel.eval_rows,
+            rel.model_choice(),
             senders.len()
         );
         self.log(
@@ -538,12 +540,14 @@ impl OfflineDesigner {
         chosen.truncate(self.cfg.max_relevant_dims);
         let relevant = rel.importance.iter().filter(|&&x| x >= min_rel).count();
         let head = format!(
-            "A value model of the state (an MLP predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); a dim's relevance is the share of that variance lost when the dim is shuffled across {} held-out steps. {relevant} dim(s) have a relevance of at least {min_rel}.",
+            "A value model of the state ({} predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); a dim's relevance is the share of that variance lost when the dim is shuffled across {} held-out steps.{} {relevant} dim(s) have a relevance of at least {min_rel}.",
+            rel.model.describe(),
             rel.gamma,
             100.0 * rel.held_out_r2,
             rel.train_episodes,
             rel.held_out_episodes,
-            rel.eval_rows
+            rel.eval_rows,
+            rel.model_choice()
         );
         let ranking: Vec<String> = rel
             .ranking()
@@ -877,6 +881,8 @@ impl Designer for OfflineDesigner {
             "relevance": {
                 "what": "permutation importance of each state dim for a value model of the return-to-go fitted on B: the share of the held-out return's variance lost when the dim is shuffled",
                 "held_out_r2": (r.held_out_r2 * 1e4).round() / 1e4,
+                "model": r.model,
+                "check_r2": r.check_r2.iter().map(|(k, v)| serde_json::json!({ "model": k, "r2": (v * 1e4).round() / 1e4 })).collect::<Vec<_>>(),
                 "gamma": r.gamma,
                 "train_episodes": r.train_episodes,
                 "held_out_episodes": r.held_out_episodes,
