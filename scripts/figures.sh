@@ -82,6 +82,11 @@ if want learner; then
   bash "$ROOT/benches/torch/setup.sh"
   "$LMAC" bench learner --shape lbf8x8 --against torch --rounds 3 --updates 10 --profile --out "$OUT/learner_vs_torch_lbf8x8.json"
   "$LMAC" bench learner --shape 1o10b --against torch --rounds 5 --updates 5 --profile --out "$OUT/learner_vs_torch_1o10b.json"
+  log "bench learner: LMAC's update against its matmuls' shape ceiling (1o_10b, the authors' design and the offline one)"
+  "$LMAC" bench learner --shape 1o10b --algo lmac --input 159 --messages 56 --critical 4 --mixers qmix --no-stepwise \
+    --rounds 3 --updates 4 --out "$OUT/lmac_shape_ceiling_1o10b_paper.json"
+  "$LMAC" bench learner --shape 1o10b --algo lmac --input 314 --messages 211 --critical 48 --mixers qmix --no-stepwise \
+    --rounds 3 --updates 4 --out "$OUT/lmac_shape_ceiling_1o10b_offline.json"
 fi
 
 if want methods; then

@@ -126,6 +126,20 @@ fn the_learner_bench_times_a_methods_agent_network() {
     let names: Vec<&str> = two["figures"].as_array().unwrap().iter().map(|f| f["name"].as_str().unwrap()).collect();
     assert_eq!(names, ["lmac", "lmac-two-cores"], "{}", two["figures"]);
     assert!(two["figures"][1]["median_ms"].as_f64().unwrap() > 0.0);
+    // LMAC's shape ceiling (window encoder) lists its matmuls: with the window attention's
+    // FLOPs (no matmul: per row 2 x 2 x min(W, T) x attention width, in the online forward,
+    // twice in the backward and in the target forward), exactly the FLOP count.
+    let ceiling = &two["shape_ceiling"][0];
+    let listed = ceiling["gflop_of_these_matmuls"].as_f64().unwrap();
+    let rows = 4.0 * 5.0 * 2.0; // 4 episodes x 5 steps x 2 agents (lbf8x8)
+    let attention = rows * (2.0 * 2.0 * 5.0 * 64.0) * 4.0 / 1e9;
+    assert!((listed + attention - gflop(&two)).abs() < 1e-9 * gflop(&two), "{listed} + {attention} vs {}", gflop(&two));
+    assert!(
+        ceiling["matmuls"].as_array().unwrap().iter().any(|m| m["what"].as_str().unwrap().starts_with("LMAC window q, k, v")),
+        "{ceiling}"
+    );
+    // The gru-gate encoder has no list.
+    assert_eq!(lmac_v["shape_ceiling"].as_array().unwrap().len(), 0, "{}", lmac_v["shape_ceiling"]);
 
     let fixed = ok(&run(&["--algo", "qplex"]));
     let mixers: Vec<&str> = fixed["figures"].as_array().unwrap().iter().map(|f| f["mixer"].as_str().unwrap()).collect();
