@@ -28,7 +28,7 @@ use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor, TensorData};
 use lmac_learn::{init::linear, LearnRng};
-use lmac_run::dataset::Dataset;
+use lmac_run::dataset::{Dataset, DatasetHeader, Trajectory};
 use serde::{Deserialize, Serialize};
 
 /// The value model and its measurement.
@@ -216,6 +216,84 @@ pub fn measure_joint_observation(data: &Dataset, cfg: &RelevanceConfig, seed: u6
     let w = n * od;
     let agents: Vec<Vec<usize>> = (0..n).map(|j| (j * od..(j + 1) * od).collect()).collect();
     measure_on(data, w, &|e, t| &data.episodes[e].obs[t * w..(t + 1) * w], &agents, cfg, seed)
+}
+
+/// What one agent's observation adds, for the others, to predicting the team's return: the
+/// held-out R^2 of a value model of the return-to-go on a receiver's own observation and the
+/// sender's side by side, against one on the receiver's alone ([`receiver_return_gains`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReturnGain {
+    pub sender: usize,
+    pub r2_with: f64,
+    pub r2_without: f64,
+    /// Permutation importance of each of the sender's observation values in the model with
+    /// them (index = observation dim): which of what it sees the receivers' prediction uses.
+    pub sender_importance: Vec<f64>,
+}
+
+impl ReturnGain {
+    pub fn gain(&self) -> f64 {
+        self.r2_with - self.r2_without
+    }
+}
+
+/// The sender question asked of the task (issue 28): for each agent j, how much its whole
+/// observation, put beside another agent's own, raises a value model's held-out R^2 of the
+/// return-to-go. Each episode of B is seen by one receiver i != j, the receivers taken in turn
+/// over the episodes (so an episode is never in both the training and the held-out half, and
+/// every receiver counts alike), with rows [o_i | o_j] against [o_i]; both models see the same
+/// episodes and the same split. An agent that alone sees what the return depends on scores
+/// high; one whose view the receivers share, or that sees nothing the return moves with, near 0.
+pub fn receiver_return_gains(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Result<Vec<ReturnGain>> {
+    let (n, od) = (data.header.n_agents, data.header.obs_dim);
+    if n < 2 {
+        bail!("relevance: a sender needs another agent to receive (the dataset has {n} agent)");
+    }
+    (0..n)
+        .map(|j| {
+            let with = measure(&receiver_view(data, j, true), cfg, seed)?;
+            let without = measure(&receiver_view(data, j, false), cfg, seed)?;
+            let sender_importance = with.importance[od..].to_vec();
+            Ok(ReturnGain { sender: j, r2_with: with.held_out_r2, r2_without: without.held_out_r2, sender_importance })
+        })
+        .collect::<Result<Vec<_>>>()
+        .map_err(|e| {
+            e.context(format!("relevance: measuring what each of the {n} agents' observation adds to the others' ({od} values each)"))
+        })
+}
+
+/// B as receivers other than `j` see it, one receiver per episode in turn: each step's row is
+/// the receiver's observation, then (`with_sender`) agent j's; rewards as in B.
+fn receiver_view(data: &Dataset, j: usize, with_sender: bool) -> Dataset {
+    let (n, od) = (data.header.n_agents, data.header.obs_dim);
+    let receivers: Vec<usize> = (0..n).filter(|&i| i != j).collect();
+    let w = if with_sender { 2 * od } else { od };
+    let episodes = data
+        .episodes
+        .iter()
+        .enumerate()
+        .map(|(e, ep)| {
+            let i = receivers[e % receivers.len()];
+            let mut state = Vec::with_capacity(ep.len * w);
+            for t in 0..ep.len {
+                let obs = |a: usize| &ep.obs[(t * n + a) * od..(t * n + a + 1) * od];
+                state.extend_from_slice(obs(i));
+                if with_sender {
+                    state.extend_from_slice(obs(j));
+                }
+            }
+            Trajectory {
+                len: ep.len,
+                obs: Vec::new(),
+                state,
+                actions: Vec::new(),
+                reward: ep.reward.clone(),
+                terminated: ep.terminated,
+                truncated: ep.truncated,
+            }
+        })
+        .collect();
+    Dataset { header: DatasetHeader { state_dim: w, ..data.header.clone() }, episodes }
 }
 
 /// [`measure`] on the rows `row(episode, step)` of width `sd`, and of each group of columns in
@@ -446,6 +524,31 @@ mod tests {
         assert_eq!(r.rank_of(1), 1);
         // Deterministic for a seed.
         assert_eq!(measure(&data, &cfg, 3).unwrap().importance, r.importance);
+    }
+
+    /// Three agents, the reward depends on agent 2's o[0]: what agent 2 sees adds to the others'
+    /// prediction of the return; what agents 0 and 1 see (noise) adds nothing.
+    #[test]
+    fn the_agent_whose_view_the_return_needs_adds_most_for_the_others() {
+        let (n, od, len) = (3, 2, 20);
+        let mut rng = LearnRng::seed_from(13);
+        let episodes: Vec<Trajectory> = (0..150)
+            .map(|_| {
+                let obs: Vec<f32> = (0..len * n * od).map(|_| rng.uniform() * 2.0 - 1.0).collect();
+                let reward: Vec<f32> = (0..len).map(|t| obs[(t * n + 2) * od]).collect();
+                Trajectory { len, obs, state: vec![0.0; len], actions: vec![0; len * n], reward, terminated: true, truncated: false }
+            })
+            .collect();
+        let data = synthetic(n, od, 1, len, episodes);
+        let g = receiver_return_gains(&data, &RelevanceConfig { gamma: 0.0, updates: 1500, ..Default::default() }, 4).unwrap();
+        assert_eq!(g.iter().map(|x| x.sender).collect::<Vec<_>>(), vec![0, 1, 2]);
+        assert!(g[2].gain() > 0.5, "{g:?}");
+        assert!(g[0].gain() < 0.2 && g[1].gain() < 0.2, "{g:?}");
+        // Half of agent 0's episodes are seen by agent 2, who needs nothing from it.
+        assert!(g[0].r2_without > 0.2 && g[0].r2_with < g[0].r2_without + 0.2, "{g:?}");
+        // Of agent 2's view, the receivers' model uses its o[0].
+        assert_eq!(g[2].sender_importance.len(), od);
+        assert!(g[2].sender_importance[0] > 5.0 * g[2].sender_importance[1], "{g:?}");
     }
 
     /// A return that moves linearly with dim 2, plus noise, on few episodes: the linear model

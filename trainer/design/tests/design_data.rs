@@ -824,6 +824,37 @@ fn observation_relevance_chooses_the_agent_that_sees_what_matters() {
     assert!(sent.contains(&2), "agent 1's view of hidden value B is sent: {json}");
 }
 
+/// The same task with `--senders-by return`: the agent whose view the others need to predict
+/// the return is the sender (a value model on a receiver's observation with and without it),
+/// and it sends the value of its view that model uses.
+#[test]
+fn senders_by_return_chooses_the_agent_whose_view_the_return_needs() {
+    let data = synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 });
+    let schema = synthetic_schema(30);
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    let c = ctx(&schema, &env, &data);
+    let cfg = OfflineConfig {
+        discriminator: quick_disc(),
+        fields_by: FieldsBy::ObservationRelevance,
+        senders_by: lmac_design::offline::SendersBy::Return,
+        ..Default::default()
+    };
+    let mut designer = OfflineDesigner::new(cfg);
+    let p0 = designer.initial(&c).unwrap();
+    let t = designer.transcript();
+    let obs_rel = t.iter().find(|e| e.kind == "observation_relevance").expect("the ranking is in the transcript");
+    assert!(obs_rel.reply.contains("most helps the others predict the team's return"), "{}", obs_rel.reply);
+    let sender_line = obs_rel.reply.lines().find(|l| l.contains("a SENDER")).unwrap();
+    assert!(sender_line.starts_with("agent 1: all it sees, beside another agent's own observation"), "{}", obs_rel.reply);
+    let json = serde_json::to_value(&p0.protocol).unwrap();
+    let mut sent = Vec::new();
+    for f in json["fields"].as_array().unwrap() {
+        assert_eq!(f["senders"], serde_json::json!([1]), "{f}");
+        sent.extend(f["value"]["obs"].as_array().cloned().unwrap_or_default().into_iter().map(|v| v.as_u64().unwrap()));
+    }
+    assert!(sent.contains(&2), "agent 1's view of hidden value B is sent: {json}");
+}
+
 /// `--drop-unhelpful-phases` on a dataset whose state is noise (no message can help recover
 /// it): every phase, phase 0 included, is judged against what was kept before it (no messages
 /// for phase 0); a phase in the final protocol either adds or says why it is there anyway; the

@@ -106,6 +106,12 @@ pub(crate) struct DesignArgs {
     /// whole observation raises the others' recovery of the critical dims most)
     #[arg(long, default_value_t = 1, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub(crate) relevant_senders: usize,
+    /// How `--fields-by observation-relevance` ranks the senders: `recovery` (how much all an
+    /// agent sees, sent to the others, raises their recovery of the critical dims) or `return`
+    /// (how much it raises a value model's prediction of the team's return from another agent's
+    /// own observation)
+    #[arg(long, default_value = "recovery")]
+    pub(crate) senders_by: lmac_design::offline::SendersBy,
     #[arg(long, default_value_t = 0)]
     pub(crate) seed: u64,
     /// Where design directories go.
@@ -172,6 +178,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             fields_by: a.fields_by,
             max_relevant_values: a.relevant_values,
             relevant_senders: a.relevant_senders,
+            senders_by: a.senders_by,
             ..Default::default()
         };
         Box::new(OfflineDesigner::new(cfg))

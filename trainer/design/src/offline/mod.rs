@@ -95,6 +95,8 @@ pub struct OfflineConfig {
     /// Most agents that send in phase 0 with [`FieldsBy::ObservationRelevance`] (the authors'
     /// 1o_10b design: 1, the Overseer).
     pub relevant_senders: usize,
+    /// How [`FieldsBy::ObservationRelevance`] ranks the agents as senders.
+    pub senders_by: SendersBy,
     /// How phase 0 chooses the task-critical dims.
     pub critical_by: CriticalBy,
     /// The value model behind [`CriticalBy::Relevance`].
@@ -140,6 +142,30 @@ pub enum FieldsBy {
     ObservationRelevance,
 }
 
+/// How [`FieldsBy::ObservationRelevance`] ranks the agents as senders.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SendersBy {
+    /// By how much all an agent sees, sent to the others, raises their recovery of the
+    /// critical dims (a discriminator per candidate sender).
+    Recovery,
+    /// By how much all an agent sees, put beside another agent's own observation, raises a
+    /// value model's held-out R^2 of the team's return ([`super::relevance::receiver_return_gains`]):
+    /// what the others need of it for the task, whatever the state's dims.
+    Return,
+}
+
+impl std::str::FromStr for SendersBy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "recovery" => Ok(SendersBy::Recovery),
+            "return" => Ok(SendersBy::Return),
+            _ => Err(format!("{s:?}: use recovery or return")),
+        }
+    }
+}
+
 impl std::str::FromStr for FieldsBy {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
@@ -179,6 +205,7 @@ impl Default for OfflineConfig {
             fields_by: FieldsBy::LeastSquares,
             max_relevant_values: 6,
             relevant_senders: 1,
+            senders_by: SendersBy::Recovery,
             critical_by: CriticalBy::Relevance,
             relevance: Default::default(),
             min_relevance: 0.01,
@@ -391,7 +418,47 @@ impl OfflineDesigner {
         // critical dims most recoverable (a discriminator trained per candidate sender: what
         // an agent sees counts in whatever frame it sees it, where least squares on the state's
         // frame cannot use an offset).
-        let gains = self.sender_gains(ctx, critical)?;
+        // Or (`--senders-by return`) the agents whose whole observation most helps the others
+        // predict the team's return.
+        // With `return`, a sender's values are ranked by what the receivers' model uses of them
+        // (importance per sender and observation dim); with `recovery`, by the joint model's.
+        let mut value_importance: Option<Vec<Vec<f64>>> = None;
+        let (gains, gain_text): (Vec<f64>, Vec<String>) = match self.cfg.senders_by {
+            SendersBy::Recovery => {
+                let g = self.sender_gains(ctx, critical)?;
+                let text = g
+                    .iter()
+                    .map(|x| format!("all it sees, sent to the others, raises their recovery of the critical dims by {x:+.3}"))
+                    .collect();
+                (g, text)
+            }
+            SendersBy::Return => {
+                let g = super::relevance::receiver_return_gains(data, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0002)
+                    .context("offline designer: measuring what each agent's observation adds to the others' prediction of the return")?;
+                let text = g
+                    .iter()
+                    .map(|x| {
+                        format!(
+                            "all it sees, beside another agent's own observation, raises a value model's held-out R^2 of the return by {:+.3} ({:.3} -> {:.3})",
+                            x.gain(),
+                            x.r2_without,
+                            x.r2_with
+                        )
+                    })
+                    .collect();
+                value_importance = Some(g.iter().map(|x| x.sender_importance.clone()).collect());
+                (g.iter().map(|x| x.gain()).collect(), text)
+            }
+        };
+        // Importance of column j * od + d (agent j's o[d]) by the measure in use.
+        let importance = |col: usize| match &value_importance {
+            Some(v) => v[col / od][col % od],
+            None => rel.importance[col],
+        };
+        let rank_of = |col: usize| {
+            let x = importance(col);
+            1 + (0..n * od).filter(|&c| importance(c) > x || (importance(c) == x && c < col)).count()
+        };
         let mut agents: Vec<usize> = (0..n).collect();
         agents.sort_by(|&a, &b| gains[b].total_cmp(&gains[a]).then(a.cmp(&b)));
         let senders: Vec<usize> = agents.iter().copied().filter(|&j| gains[j] > 0.0).take(self.cfg.relevant_senders.max(1)).collect();
@@ -399,17 +466,15 @@ impl OfflineDesigner {
             .iter()
             .map(|&j| {
                 let verdict = if senders.contains(&j) { "a SENDER".to_string() } else { "not a sender".to_string() };
-                format!(
-                    "agent {j}: all it sees, sent to the others, raises their recovery of the critical dims by {:+.3}; relevance of all it sees to the return {:.4}; {verdict}",
-                    gains[j], rel.groups[j]
-                )
+                format!("agent {j}: {}; relevance of all it sees to the return {:.4}; {verdict}", gain_text[j], rel.groups[j])
             })
             .collect();
         lines.append(&mut agent_lines);
-        let ranked: Vec<usize> = rel.ranking().into_iter().filter(|c| senders.contains(&(c / od))).collect();
+        let mut ranked: Vec<usize> = (0..n * od).filter(|c| senders.contains(&(c / od))).collect();
+        ranked.sort_by(|&a, &b| importance(b).total_cmp(&importance(a)).then(a.cmp(&b)));
         for col in ranked.into_iter().take(3 * self.cfg.max_relevant_values) {
             let (j, d) = (col / od, col % od);
-            let imp = rel.importance[col];
+            let imp = importance(col);
             let verdict = if !usable {
                 "not chosen: the value model explains too little".to_string()
             } else if picks.len() >= self.cfg.max_relevant_values {
@@ -426,10 +491,10 @@ impl OfflineDesigner {
             } else {
                 "not chosen: constant on the dataset".into()
             };
-            lines.push(format!("{}. {}: relevance {imp:.4}; {verdict}", rel.rank_of(col), label(col)));
+            lines.push(format!("{}. {}: relevance {imp:.4}; {verdict}", rank_of(col), label(col)));
         }
         let head = format!(
-            "A value model of the team's joint observation (every agent's observation side by side; {} predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); an observation value's relevance is the share of that variance lost when it is shuffled across {} held-out steps, an agent's when all it sees is shuffled at once.{} The senders are the {} agent(s) whose whole observation, sent to the others, most raises their recovery of the critical dims; each sends its most relevant values.",
+            "A value model of the team's joint observation (every agent's observation side by side; {} predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); an observation value's relevance is the share of that variance lost when it is shuffled across {} held-out steps, an agent's when all it sees is shuffled at once.{} The senders are the {} agent(s) whose whole observation {}.",
             rel.model.describe(),
             rel.gamma,
             100.0 * rel.held_out_r2,
@@ -437,7 +502,11 @@ impl OfflineDesigner {
             rel.held_out_episodes,
             rel.eval_rows,
             rel.model_choice(),
-            senders.len()
+            senders.len(),
+            match self.cfg.senders_by {
+                SendersBy::Recovery => "sent to the others most raises their recovery of the critical dims; each sends its values most relevant to the joint observation's value model",
+                SendersBy::Return => "most helps the others predict the team's return (a value model on a receiver's observation with and without it); each sends the values of its view that model uses most (their relevance below is in that model)",
+            }
         );
         self.log(
             0,
@@ -451,7 +520,12 @@ impl OfflineDesigner {
         }
         if picks.is_empty() {
             let reason = if usable && senders.is_empty() {
-                "no agent's observation, sent to the others, raises their recovery of the critical dims".to_string()
+                match self.cfg.senders_by {
+                    SendersBy::Recovery => {
+                        "no agent's observation, sent to the others, raises their recovery of the critical dims".to_string()
+                    }
+                    SendersBy::Return => "no agent's observation helps the others predict the return".to_string(),
+                }
             } else if usable {
                 "no value of the senders' observation costs the value model anything when shuffled".to_string()
             } else {
