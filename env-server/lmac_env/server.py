@@ -251,6 +251,11 @@ def serve(args) -> int:
                 if u.open:
                     u.serve_one()
         dt = time.perf_counter() - t0
+        if not stop["flag"] and units:
+            # Every unit forwarded the trainer's goodbye to the protocol runner; it stays
+            # readable only while this process lives, so wait until the runner is gone (it
+            # exits once every member's goodbye is in) before closing the ports.
+            units[0].port.wait_downstream_gone(5.0)
         steps = sum(u.seq * u.env.num_envs for u in units)
         episodes = sum(u.driver.episodes_done for u in units)
         waited, stepped = sum(u.waited for u in units), sum(u.stepped for u in units)

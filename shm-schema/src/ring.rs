@@ -620,14 +620,36 @@ impl Port {
     /// After goodbyes: wait until no expected peer is alive any more (or `timeout`), so the
     /// messages this process published stay readable until they are taken.
     pub fn wait_peers_gone(&mut self, timeout: Duration) -> bool {
+        let peers: Vec<String> = self.peers.keys().cloned().collect();
+        self.wait_gone(&peers, timeout)
+    }
+
+    /// After forwarding a goodbye: wait until the stage this process posts to (an env server's
+    /// protocol runner, a runner's trainer, the trainer's env servers) is gone, or `timeout`.
+    /// The goodbye stays readable only while its publisher lives, and a runner that has not
+    /// yet taken it when the env server exits reports the env server gone without one (seen
+    /// with the machine loaded). Waiting on the upstream too would wait on the trainer, which
+    /// waits for its env servers to exit.
+    pub fn wait_downstream_gone(&mut self, timeout: Duration) -> bool {
+        let (run, n) = (self.spec.run.clone(), self.spec.n_members);
+        let downstream: Vec<String> = match self.spec.role {
+            Stage::Env => vec![node_name(&run, Stage::Runner, 0)],
+            Stage::Runner => vec![node_name(&run, Stage::Trainer, 0)],
+            Stage::Trainer => (0..n).map(|m| node_name(&run, Stage::Env, m)).collect(),
+        };
+        self.wait_gone(&downstream, timeout)
+    }
+
+    /// Wait until none of the nodes `names` is alive (true), or `timeout` (false).
+    fn wait_gone(&mut self, names: &[String], timeout: Duration) -> bool {
         let t0 = Instant::now();
         loop {
             let mut any = false;
-            let peers = &self.peers;
             let _ = Node::<ipc::Service>::list(self.node.config(), |state| {
                 if let NodeState::Alive(v) = &state {
                     if let Some(d) = v.details() {
-                        if peers.contains_key(&d.name().to_string()) {
+                        let name = d.name().to_string();
+                        if names.contains(&name) {
                             any = true;
                         }
                     }

@@ -381,6 +381,12 @@ impl Port {
     fn check_peers(&mut self) -> PyResult<()> {
         self.inner.check_peers().map_err(ring_err)
     }
+
+    /// After forwarding the trainer's goodbye: wait up to `timeout_s` until the protocol runner
+    /// is gone, so the goodbye stays readable until it has taken it. True when it is gone.
+    fn wait_downstream_gone(&mut self, timeout_s: f64) -> bool {
+        self.inner.wait_downstream_gone(Duration::from_secs_f64(timeout_s.max(0.0)))
+    }
 }
 
 /// Ask this process's waits to stop (call from a signal handler).
