@@ -7,8 +7,9 @@
 //! model, each kept at the point of its training where it best predicted a tenth of the
 //! training episodes set aside; the MLP is used only where it predicted those clearly better:
 //! on a small B (400 training episodes of LBF 8x8) the MLP can explain less than nothing on
-//! held-out episodes, where a linear model still ranks the dims the return moves with. A dim's relevance is its *permutation importance* on held-out
-//! steps: the rise of the model's squared error when that dim's column is shuffled across the
+//! held-out episodes, where a linear model still ranks the dims the return moves with.
+//!
+//! A dim's relevance is its *permutation importance* on held-out steps: the rise of the model's squared error when that dim's column is shuffled across the
 //! steps (breaking its link to the return while keeping its distribution), as a fraction of
 //! the held-out return's variance. 0 = the model does not use it; 0.05 = shuffling it costs 5%
 //! of the return's variance. The held-out R^2 of the unshuffled model says whether the ranking
@@ -74,6 +75,12 @@ impl RelevanceConfig {
         Ok(())
     }
 }
+
+/// How much better (in R^2 on the check episodes) the MLP must predict than the linear model to
+/// be used: a check set of a few dozen episodes cannot tell the two apart more finely, and on
+/// LBF 8x8 an MLP level with the linear model on its check episodes explained -34.5% of the
+/// held-out ones.
+const MLP_MARGIN: f64 = 0.05;
 
 /// The value model: an MLP with two hidden layers, or (no `hidden`) a linear model.
 #[derive(Module, Debug)]
@@ -174,8 +181,9 @@ impl Relevance {
         format!(
             " Of the two value models fitted, the {} on the check episodes (a tenth of the training episodes, set aside): R^2 {:.1}% for the MLP, {:.1}% for the linear model.",
             match self.model {
-                ValueModelKind::Mlp => "MLP is used: it predicted clearly better (by 5 points or more)",
-                ValueModelKind::Linear => "linear model is used, the MLP not predicting clearly better (by 5 points or more)",
+                ValueModelKind::Mlp => format!("MLP is used: it predicted clearly better (by {:.0} points or more)", 100.0 * MLP_MARGIN),
+                ValueModelKind::Linear =>
+                    format!("linear model is used, the MLP not predicting clearly better (by {:.0} points or more)", 100.0 * MLP_MARGIN),
             },
             100.0 * r2(ValueModelKind::Mlp),
             100.0 * r2(ValueModelKind::Linear)
@@ -408,12 +416,8 @@ fn measure_on<'a>(
     }
     let check_r2: Vec<(ValueModelKind, f64)> =
         best.iter().zip(&models).filter_map(|(b, m)| b.as_ref().map(|(v, _)| (m.kind(), 1.0 - *v as f64 / check_var))).collect();
-    // The MLP only where it predicted the check episodes clearly better than the linear model
-    // (by MLP_MARGIN of their variance): a check set of a few dozen episodes cannot tell the two
-    // apart more finely, and on LBF 8x8 an MLP level with the linear model on its check
-    // episodes explained -34.5% of the held-out episodes. Without check episodes, the MLP as
-    // trained.
-    const MLP_MARGIN: f64 = 0.05;
+    // The MLP only where it predicted the check episodes better by MLP_MARGIN of their
+    // variance; without check episodes, the MLP as trained.
     let model = match (best.pop().flatten(), best.pop().flatten()) {
         (Some((lin, lin_model)), Some((mlp, mlp_model))) => {
             if ((lin - mlp) as f64) / check_var > MLP_MARGIN {

@@ -564,6 +564,13 @@ fn lmac_update_matmuls(
     Some(v)
 }
 
+impl MatmulShape {
+    /// FLOPs of one of them (each of its `batch` products).
+    fn flops(&self) -> f64 {
+        2.0 * (self.batch * self.m * self.k * self.n) as f64
+    }
+}
+
 /// The shape ceiling: each of the update's matmuls timed alone through burn on this thread
 /// (best of 10 after a warm-up), and the update's time if every matmul ran at the rate gemm
 /// reaches at its own shape with nothing else in between. Small per-step products reach far
@@ -787,14 +794,14 @@ pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
         })
         .collect();
     let ceiling_ms = |c: &[(MatmulShape, f64)]| c.iter().map(|(x, ms)| x.reps as f64 * ms).sum::<f64>();
-    let list_flops = |c: &[(MatmulShape, f64)]| c.iter().map(|(x, _)| 2.0 * (x.reps * x.batch * x.m * x.k * x.n) as f64).sum::<f64>();
+    let list_flops = |c: &[(MatmulShape, f64)]| c.iter().map(|(x, _)| x.reps as f64 * x.flops()).sum::<f64>();
     let ceiling_json: Vec<_> = ceilings
         .iter()
         .map(|(m, c)| {
             serde_json::json!({"mixer": mixer_name(*m), "ms_if_every_matmul_ran_alone": ceiling_ms(c), "gflop_of_these_matmuls": list_flops(c) / 1e9,
                 "matmuls": c.iter().map(|(x, ms)| serde_json::json!({"what": x.what, "m": x.m, "k": x.k, "n": x.n, "batch": x.batch,
                     "lhs_transposed": x.lhs_t, "per_update": x.reps, "ms_each": ms,
-                    "gflops": 2.0 * (x.batch * x.m * x.k * x.n) as f64 / (ms * 1e-3) / 1e9})).collect::<Vec<_>>()})
+                    "gflops": x.flops() / (ms * 1e-3) / 1e9})).collect::<Vec<_>>()})
         })
         .collect();
     let flops: Vec<_> = mixers

@@ -414,14 +414,13 @@ impl OfflineDesigner {
         let mut picks: Vec<Pick> = Vec::new();
         let mut lines = Vec::new();
         let usable = rel.held_out_r2 >= self.cfg.min_value_r2;
-        // The senders: the agents whose whole observation, sent to the others, makes the
-        // critical dims most recoverable (a discriminator trained per candidate sender: what
-        // an agent sees counts in whatever frame it sees it, where least squares on the state's
-        // frame cannot use an offset).
-        // Or (`--senders-by return`) the agents whose whole observation most helps the others
-        // predict the team's return.
-        // With `return`, a sender's values are ranked by what the receivers' model uses of them
-        // (importance per sender and observation dim); with `recovery`, by the joint model's.
+        // The senders, by `--senders-by`: `recovery`, the agents whose whole observation, sent
+        // to the others, makes the critical dims most recoverable (a discriminator trained per
+        // candidate sender: what an agent sees counts in whatever frame it sees it, where least
+        // squares on the state's frame cannot use an offset), their values ranked by the joint
+        // observation's value model; `return`, the agents whose whole observation most helps
+        // the others predict the team's return, their values ranked by what that receivers'
+        // model uses of them (importance per sender and observation dim).
         let mut value_importance: Option<Vec<Vec<f64>>> = None;
         let (gains, gain_text): (Vec<f64>, Vec<String>) = match self.cfg.senders_by {
             SendersBy::Recovery => {
