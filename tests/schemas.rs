@@ -58,6 +58,29 @@ fn a_repeated_group_describes_one_block_per_entity() {
     assert!(e.contains("obs_dims[1]: meaning uses {r} but the group has no repeat"), "{e}");
 }
 
+/// The observation's entities follow the schema's groups: on 1o_10b the four move features
+/// are one, the Roach's eight values one, each of the ten teammate slots (a [10, 7] block) one,
+/// the own features one; every shipped schema's entities cover its observation once, in order.
+#[test]
+fn observation_entities_follow_the_schema_groups() {
+    let s = lmac_shm_schema::schema::load_env("smaclite:1o_10b_vs_1r").unwrap();
+    let e = s.obs_entities();
+    assert_eq!(e.len(), 1 + 1 + 10 + 1);
+    assert_eq!((e[0].clone(), e[1].clone(), e[2].clone(), e[11].clone(), e[12].clone()), (0..4, 4..12, 12..19, 75..82, 82..85));
+    for (path, r) in all_envs().unwrap() {
+        let s = r.unwrap();
+        let e = s.obs_entities();
+        assert!(!e.is_empty(), "{}", path.display());
+        assert!(e.windows(2).all(|w| w[0].end == w[1].start && !w[0].is_empty()), "{}: {e:?}", path.display());
+        assert_eq!((e[0].start, e[e.len() - 1].end), (0, s.obs_dim), "{}", path.display());
+    }
+    // A repeated group is one entity per repetition; a group without shape or repeat is one.
+    let text = GOOD.replace("count = 2\nmeaning = \"position {k}\"", "count = 1\nrepeat = 2\nmeaning = \"position {r}\"");
+    let s = EnvSchema::parse(&text, Path::new("x.toml")).unwrap();
+    assert_eq!(s.obs_entities(), vec![0..1, 1..2, 2..3]);
+    assert_eq!(EnvSchema::parse(GOOD, Path::new("x.toml")).unwrap().obs_entities(), vec![0..2, 2..3]);
+}
+
 #[test]
 fn missing_field_names_file_and_field() {
     let e = errors(&GOOD.replace("n_agents = 2\n", ""));

@@ -316,6 +316,34 @@ impl EnvSchema {
         expand(&self.state_dims)
     }
 
+    /// The observation's entities: runs of consecutive dims the schema describes as one thing
+    /// (one unit, one teammate slot, one ball), in order, covering every dim once. A group with a
+    /// shape of two or more indices is one entity per row (its last index runs over the row's
+    /// values: a `[10, 7]` teammate block is ten teammates of seven values); a repeated group is
+    /// one entity per repetition (split into rows likewise); any other group is one entity.
+    /// Empty on a schema whose groups do not add up (one that failed validation).
+    pub fn obs_entities(&self) -> Vec<std::ops::Range<usize>> {
+        let mut out = Vec::new();
+        let mut at = 0usize;
+        for g in &self.obs_dims {
+            let row = match g.shape.as_deref() {
+                Some(shape) if shape.len() >= 2 && shape[shape.len() - 1] > 0 => shape[shape.len() - 1],
+                _ => g.count,
+            };
+            if row == 0 || g.count % row != 0 {
+                return Vec::new();
+            }
+            for _ in 0..g.repeat.unwrap_or(1) * (g.count / row) {
+                out.push(at..at + row);
+                at += row;
+            }
+        }
+        if at != self.obs_dim {
+            return Vec::new();
+        }
+        out
+    }
+
     /// Message columns the built-in full-communication protocol needs per agent:
     /// every other agent's observation plus its one-hot id. 0 with one agent (no one to talk to),
     /// and 0 rather than an underflow for zero agents (a schema that failed validation).

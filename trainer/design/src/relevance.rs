@@ -237,6 +237,12 @@ pub struct ReturnGain {
     /// Permutation importance of each of the sender's observation values in the model with
     /// them (index = observation dim): which of what it sees the receivers' prediction uses.
     pub sender_importance: Vec<f64>,
+    /// Permutation importance of each of the sender's entities in that model (index = entity
+    /// of the `entities` measured with), the entity's values shuffled together: correlated
+    /// values of one thing (a unit's distance, offset and visibility) share their importance
+    /// one by one, and count in full together.
+    #[serde(default)]
+    pub entity_importance: Vec<f64>,
 }
 
 impl ReturnGain {
@@ -252,17 +258,36 @@ impl ReturnGain {
 /// every receiver counts alike), with rows [o_i | o_j] against [o_i]; both models see the same
 /// episodes and the same split. An agent that alone sees what the return depends on scores
 /// high; one whose view the receivers share, or that sees nothing the return moves with, near 0.
-pub fn receiver_return_gains(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Result<Vec<ReturnGain>> {
+/// `entities` are runs of observation dims measured as groups too (the schema's
+/// [`obs_entities`](lmac_shm_schema::schema::EnvSchema::obs_entities); may be empty).
+pub fn receiver_return_gains(
+    data: &Dataset,
+    entities: &[std::ops::Range<usize>],
+    cfg: &RelevanceConfig,
+    seed: u64,
+) -> Result<Vec<ReturnGain>> {
     let (n, od) = (data.header.n_agents, data.header.obs_dim);
     if n < 2 {
         bail!("relevance: a sender needs another agent to receive (the dataset has {n} agent)");
     }
+    if let Some(e) = entities.iter().find(|e| e.end > od || e.is_empty()) {
+        bail!("relevance: entity {e:?} is not a run of the observation's {od} dims");
+    }
+    // The sender's entities, in the columns of [o_i | o_j].
+    let groups: Vec<Vec<usize>> = entities.iter().map(|e| e.clone().map(|d| od + d).collect()).collect();
     (0..n)
         .map(|j| {
-            let with = measure(&receiver_view(data, j, true), cfg, seed)?;
+            let view = receiver_view(data, j, true);
+            let sd = view.header.state_dim;
+            let with = measure_on(&view, sd, &|e, t| &view.episodes[e].state[t * sd..(t + 1) * sd], &groups, cfg, seed)?;
             let without = measure(&receiver_view(data, j, false), cfg, seed)?;
-            let sender_importance = with.importance[od..].to_vec();
-            Ok(ReturnGain { sender: j, r2_with: with.held_out_r2, r2_without: without.held_out_r2, sender_importance })
+            Ok(ReturnGain {
+                sender: j,
+                r2_with: with.held_out_r2,
+                r2_without: without.held_out_r2,
+                sender_importance: with.importance[od..].to_vec(),
+                entity_importance: with.groups,
+            })
         })
         .collect::<Result<Vec<_>>>()
         .map_err(|e| {
@@ -544,7 +569,7 @@ mod tests {
             })
             .collect();
         let data = synthetic(n, od, 1, len, episodes);
-        let g = receiver_return_gains(&data, &RelevanceConfig { gamma: 0.0, updates: 1500, ..Default::default() }, 4).unwrap();
+        let g = receiver_return_gains(&data, &[], &RelevanceConfig { gamma: 0.0, updates: 1500, ..Default::default() }, 4).unwrap();
         assert_eq!(g.iter().map(|x| x.sender).collect::<Vec<_>>(), vec![0, 1, 2]);
         assert!(g[2].gain() > 0.5, "{g:?}");
         assert!(g[0].gain() < 0.2 && g[1].gain() < 0.2, "{g:?}");
@@ -553,6 +578,39 @@ mod tests {
         // Of agent 2's view, the receivers' model uses its o[0].
         assert_eq!(g[2].sender_importance.len(), od);
         assert!(g[2].sender_importance[0] > 5.0 * g[2].sender_importance[1], "{g:?}");
+    }
+
+    /// Agent 2 sees the value the return follows three times over, each copy noisy (one thing:
+    /// its entity o[0..3]), and a second value with half the weight (o[3], an entity of its
+    /// own): one by one the copies share their importance and each ranks below o[3]; shuffled
+    /// together the entity ranks first.
+    #[test]
+    fn an_entity_counts_in_full_what_its_values_share() {
+        let (n, od, len) = (3, 4, 20);
+        let mut rng = LearnRng::seed_from(17);
+        let mut u = move || rng.uniform() * 2.0 - 1.0;
+        let episodes: Vec<Trajectory> = (0..200)
+            .map(|_| {
+                let mut obs = Vec::with_capacity(len * n * od);
+                let mut reward = Vec::with_capacity(len);
+                for _ in 0..len {
+                    let (x, z) = (u(), u());
+                    obs.extend((0..2 * od).map(|_| u()));
+                    obs.extend((0..3).map(|_| x + 0.3 * u()));
+                    obs.push(z);
+                    reward.push(x + 0.6 * z);
+                }
+                Trajectory { len, obs, state: vec![0.0; len], actions: vec![0; len * n], reward, terminated: true, truncated: false }
+            })
+            .collect();
+        let data = synthetic(n, od, 1, len, episodes);
+        let cfg = RelevanceConfig { gamma: 0.0, updates: 2000, ..Default::default() };
+        let g = receiver_return_gains(&data, &[0..3, 3..4], &cfg, 6).unwrap();
+        let (v, e) = (&g[2].sender_importance, &g[2].entity_importance);
+        assert_eq!(e.len(), 2);
+        assert!(v[0].max(v[1]).max(v[2]) < v[3], "one by one a copy ranks below o[3]: {g:?}");
+        assert!(e[0] > 1.5 * e[1], "together the copies rank first: {g:?}");
+        assert!(receiver_return_gains(&data, &[3..5], &cfg, 6).unwrap_err().to_string().contains("not a run of the observation's 4 dims"));
     }
 
     /// A return that moves linearly with dim 2, plus noise, on few episodes: the linear model

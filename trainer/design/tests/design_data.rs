@@ -855,6 +855,50 @@ fn senders_by_return_chooses_the_agent_whose_view_the_return_needs() {
     assert!(sent.contains(&2), "agent 1's view of hidden value B is sent: {json}");
 }
 
+/// `--values-by entity`: the sender sends the whole entity of its view the receivers' value
+/// model needs first (here o[2..4], "what agent 1 sees of B", as the schema groups it), except a
+/// value that never varies for it (its o[3]: the flash only agent 0 sees), and the ranking names
+/// the entity. Entities need `--senders-by return`, which is said before anything is measured.
+#[test]
+fn values_by_entity_sends_the_whole_entity_the_return_needs() {
+    let data = synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 });
+    let mut schema = synthetic_schema(30);
+    schema.obs_dims.truncate(2);
+    schema.obs_dims.push(group(2, "what this agent sees of hidden value B and the flash: value {k}"));
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    let c = ctx(&schema, &env, &data);
+    let cfg = OfflineConfig {
+        discriminator: quick_disc(),
+        fields_by: FieldsBy::ObservationRelevance,
+        senders_by: lmac_design::offline::SendersBy::Return,
+        values_by: lmac_design::offline::ValuesBy::Entity,
+        ..Default::default()
+    };
+    let mut designer = OfflineDesigner::new(cfg.clone());
+    let p0 = designer.initial(&c).unwrap();
+    let t = designer.transcript();
+    let obs_rel = t.iter().find(|e| e.kind == "observation_relevance").expect("the ranking is in the transcript");
+    let line = obs_rel.reply.lines().find(|l| l.contains("CHOSEN")).unwrap_or_else(|| panic!("{}", obs_rel.reply));
+    assert!(
+        line.starts_with("agent 1's what this agent sees of hidden value B and the flash (o[2..4]): relevance")
+            && line.ends_with("CHOSEN: o[2] sent by this agent to every other agent"),
+        "{}",
+        obs_rel.reply
+    );
+    assert!(p0.protocol.message_design_instruction.contains("Phase 0 sends whole entities"), "{}", p0.protocol.message_design_instruction);
+    let json = serde_json::to_value(&p0.protocol).unwrap();
+    let mut sent = Vec::new();
+    for f in json["fields"].as_array().unwrap() {
+        assert_eq!(f["senders"], serde_json::json!([1]), "{f}");
+        sent.extend(f["value"]["obs"].as_array().cloned().unwrap_or_default().into_iter().map(|v| v.as_u64().unwrap()));
+    }
+    assert!(sent.contains(&2) && !sent.contains(&3), "o[2] is sent, o[3] (constant for agent 1) is not: {json}");
+
+    let recovery = OfflineConfig { senders_by: lmac_design::offline::SendersBy::Recovery, ..cfg };
+    let e = OfflineDesigner::new(recovery).initial(&c).unwrap_err();
+    assert!(format!("{e:#}").contains("--values-by entity) needs --senders-by return"), "{e:#}");
+}
+
 /// `--drop-unhelpful-phases` on a dataset whose state is noise (no message can help recover
 /// it): every phase, phase 0 included, is judged against what was kept before it (no messages
 /// for phase 0); a phase in the final protocol either adds or says why it is there anyway; the

@@ -1,7 +1,7 @@
 //! `lmac design`: the three-phase protocol design loop.
 
 use super::parse_steps;
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::Args;
 use lmac_run::workflow::{interrupt_flag, plot};
 
@@ -112,6 +112,12 @@ pub(crate) struct DesignArgs {
     /// own observation)
     #[arg(long, default_value = "recovery")]
     pub(crate) senders_by: lmac_design::offline::SendersBy,
+    /// What of a sender's view `--fields-by observation-relevance` sends: `value` (its values
+    /// one by one, most relevant to the return first) or `entity` (whole entities of the
+    /// schema, e.g. everything the sender sees of the Roach, the entity that matters most to
+    /// the receivers' value model first; needs `--senders-by return`)
+    #[arg(long, default_value = "value")]
+    pub(crate) values_by: lmac_design::offline::ValuesBy,
     #[arg(long, default_value_t = 0)]
     pub(crate) seed: u64,
     /// Where design directories go.
@@ -168,6 +174,9 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
     }
     meta_cfg.without = a.without;
     meta_cfg.discriminator.validate()?;
+    if a.values_by == lmac_design::offline::ValuesBy::Entity && a.senders_by != lmac_design::offline::SendersBy::Return {
+        bail!("--values-by entity needs --senders-by return (the entities are ranked in the receivers' value model of the return)");
+    }
     let mut designer: Box<dyn Designer> = if a.llm == "offline" {
         let cfg = OfflineConfig {
             discriminator: meta_cfg.discriminator.clone(),
@@ -179,6 +188,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             max_relevant_values: a.relevant_values,
             relevant_senders: a.relevant_senders,
             senders_by: a.senders_by,
+            values_by: a.values_by,
             ..Default::default()
         };
         Box::new(OfflineDesigner::new(cfg))

@@ -97,6 +97,8 @@ pub struct OfflineConfig {
     pub relevant_senders: usize,
     /// How [`FieldsBy::ObservationRelevance`] ranks the agents as senders.
     pub senders_by: SendersBy,
+    /// What of a sender's view [`FieldsBy::ObservationRelevance`] sends.
+    pub values_by: ValuesBy,
     /// How phase 0 chooses the task-critical dims.
     pub critical_by: CriticalBy,
     /// The value model behind [`CriticalBy::Relevance`].
@@ -155,6 +157,35 @@ pub enum SendersBy {
     Return,
 }
 
+/// What of a sender's view [`FieldsBy::ObservationRelevance`] sends.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ValuesBy {
+    /// Its values one by one, most relevant first.
+    Value,
+    /// Whole entities (the schema's units, slots, objects: [`EnvSchema::obs_entities`]), the
+    /// entity whose values shuffled together cost the receivers' value model most first, every
+    /// value of it that varies for the sender on B. A value model of the return reads progress
+    /// (a unit's health) before where things are, and correlated values (a unit's distance and
+    /// offset) share their importance one by one; an entity keeps them together, so the
+    /// receivers learn where the unit whose state the return follows is. Needs
+    /// [`SendersBy::Return`].
+    ///
+    /// [`EnvSchema::obs_entities`]: lmac_shm_schema::schema::EnvSchema::obs_entities
+    Entity,
+}
+
+impl std::str::FromStr for ValuesBy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "value" => Ok(ValuesBy::Value),
+            "entity" => Ok(ValuesBy::Entity),
+            _ => Err(format!("{s:?}: use value or entity")),
+        }
+    }
+}
+
 impl std::str::FromStr for SendersBy {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
@@ -206,6 +237,7 @@ impl Default for OfflineConfig {
             max_relevant_values: 6,
             relevant_senders: 1,
             senders_by: SendersBy::Recovery,
+            values_by: ValuesBy::Value,
             critical_by: CriticalBy::Relevance,
             relevance: Default::default(),
             min_relevance: 0.01,
@@ -388,6 +420,39 @@ impl OfflineDesigner {
     }
 }
 
+/// Whether agent `j`'s o[d] takes more than one value on B (a value constant for the sender
+/// would be a dead message field).
+fn varies_for(data: &lmac_run::dataset::Dataset, j: usize, d: usize) -> bool {
+    let (n, od) = (data.header.n_agents, data.header.obs_dim);
+    let mut first = None;
+    data.episodes.iter().flat_map(|ep| (0..ep.len).map(move |t| ep.obs[(t * n + j) * od + d])).any(|v| *first.get_or_insert(v) != v)
+}
+
+/// An entity's name: what its values' meanings share at the start, up to the labels ("enemy 0
+/// (Roach) as seen by this agent"), or its one value's meaning.
+fn entity_name(meanings: &[String]) -> String {
+    let Some(first) = meanings.first() else { return "unnamed".into() };
+    let mut len = first.len();
+    for m in &meanings[1..] {
+        len = first
+            .char_indices()
+            .zip(m.chars())
+            .take_while(|((_, a), b)| a == b)
+            .map(|((i, a), _)| i + a.len_utf8())
+            .last()
+            .unwrap_or(0)
+            .min(len);
+    }
+    // Up to the last ": " of the shared start (the labels follow it), else all of it.
+    let shared = &first[..len];
+    let name = shared.rfind(": ").map_or(shared, |i| &shared[..i]).trim_end_matches(|c: char| c.is_whitespace() || c == ',' || c == '(');
+    if name.is_empty() || meanings.len() == 1 {
+        first.clone()
+    } else {
+        name.to_string()
+    }
+}
+
 impl OfflineDesigner {
     /// [`FieldsBy::ObservationRelevance`]: phase 0's picks (one sender per value, to every other
     /// agent), the selection's log and the sentence saying how they were chosen; None (said in
@@ -403,6 +468,7 @@ impl OfflineDesigner {
     ) -> Result<Option<(Vec<Pick>, Vec<String>, String)>> {
         let data = ctx.dataset.context("offline designer: ranking observation values by relevance needs the dataset B")?;
         let (n, od) = (data.header.n_agents, data.header.obs_dim);
+        let entities = ctx.schema.obs_entities();
         let rel = super::relevance::measure_joint_observation(data, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0001)
             .context("offline designer: measuring each agent's observation values' relevance to the return")?;
         let obs_cand = |d: usize| cands.iter().position(|c| c.kind == Kind::Obs && c.dim == Some(d));
@@ -422,6 +488,8 @@ impl OfflineDesigner {
         // the others predict the team's return, their values ranked by what that receivers'
         // model uses of them (importance per sender and observation dim).
         let mut value_importance: Option<Vec<Vec<f64>>> = None;
+        // Per sender and entity (SendersBy::Return only).
+        let mut entity_importance: Vec<Vec<f64>> = Vec::new();
         let (gains, gain_text): (Vec<f64>, Vec<String>) = match self.cfg.senders_by {
             SendersBy::Recovery => {
                 let g = self.sender_gains(ctx, critical)?;
@@ -432,7 +500,7 @@ impl OfflineDesigner {
                 (g, text)
             }
             SendersBy::Return => {
-                let g = super::relevance::receiver_return_gains(data, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0002)
+                let g = super::relevance::receiver_return_gains(data, &entities, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0002)
                     .context("offline designer: measuring what each agent's observation adds to the others' prediction of the return")?;
                 let text = g
                     .iter()
@@ -446,6 +514,7 @@ impl OfflineDesigner {
                     })
                     .collect();
                 value_importance = Some(g.iter().map(|x| x.sender_importance.clone()).collect());
+                entity_importance = g.iter().map(|x| x.entity_importance.clone()).collect();
                 (g.iter().map(|x| x.gain()).collect(), text)
             }
         };
@@ -469,28 +538,74 @@ impl OfflineDesigner {
             })
             .collect();
         lines.append(&mut agent_lines);
-        let mut ranked: Vec<usize> = (0..n * od).filter(|c| senders.contains(&(c / od))).collect();
-        ranked.sort_by(|&a, &b| importance(b).total_cmp(&importance(a)).then(a.cmp(&b)));
-        for col in ranked.into_iter().take(3 * self.cfg.max_relevant_values) {
-            let (j, d) = (col / od, col % od);
-            let imp = importance(col);
-            let verdict = if !usable {
-                "not chosen: the value model explains too little".to_string()
-            } else if picks.len() >= self.cfg.max_relevant_values {
-                format!("not chosen: beyond the {} values kept", self.cfg.max_relevant_values)
-            } else if imp <= 0.0 {
-                "not chosen: shuffling it costs nothing".to_string()
-            } else if per_sender[j] >= per_block {
-                format!("not chosen: agent {j}'s block is full ({per_block} values)")
-            } else if let Some(k) = obs_cand(d) {
-                per_sender[j] += 1;
-                let links = (0..n).map(|s| (0..n).map(|i| s == j && i != j).collect()).collect();
-                picks.push(Pick { cand: k, links, gain: imp });
-                "CHOSEN: sent by this agent to every other agent".into()
-            } else {
-                "not chosen: constant on the dataset".into()
-            };
-            lines.push(format!("{}. {}: relevance {imp:.4}; {verdict}", rank_of(col), label(col)));
+        let links_from = |j: usize| -> Vec<Vec<bool>> { (0..n).map(|s| (0..n).map(|i| s == j && i != j).collect()).collect() };
+        if self.cfg.values_by == ValuesBy::Entity {
+            // The senders' entities, the costliest to shuffle first; each sends every value of
+            // it that varies for its sender on B, whole, while the budget has room for it (the
+            // first entity chosen fills what room there is with its most relevant values).
+            let mut ranked: Vec<(usize, usize)> = senders.iter().flat_map(|&j| (0..entities.len()).map(move |k| (j, k))).collect();
+            ranked.sort_by(|&(a, x), &(b, y)| entity_importance[b][y].total_cmp(&entity_importance[a][x]).then((a, x).cmp(&(b, y))));
+            let meanings = &ctx.env.obs_names;
+            for &(j, k) in ranked.iter().take(8) {
+                let e = entities[k].clone();
+                let imp = entity_importance[j][k];
+                let mut varying: Vec<usize> = e.clone().filter(|&d| varies_for(data, j, d) && obs_cand(d).is_some()).collect();
+                let room = self.cfg.max_relevant_values.saturating_sub(picks.len()).min(per_block.saturating_sub(per_sender[j]));
+                let verdict = if !usable {
+                    "not chosen: the value model explains too little".to_string()
+                } else if imp < self.cfg.min_relevance {
+                    format!("not chosen: shuffling it costs less than {}", self.cfg.min_relevance)
+                } else if varying.is_empty() {
+                    format!("not chosen: none of its values varies for agent {j} on B")
+                } else if room == 0 {
+                    format!("not chosen: the {} values kept are chosen", picks.len())
+                } else if varying.len() > room && !picks.is_empty() {
+                    format!("not chosen: its {} varying values do not fit the {room} left", varying.len())
+                } else {
+                    varying.sort_by(|&a, &b| importance(j * od + b).total_cmp(&importance(j * od + a)).then(a.cmp(&b)));
+                    varying.truncate(room);
+                    varying.sort_unstable();
+                    for &d in &varying {
+                        let cand = obs_cand(d).context("offline designer: a varying value has no candidate (a bug)")?;
+                        per_sender[j] += 1;
+                        picks.push(Pick { cand, links: links_from(j), gain: importance(j * od + d) });
+                    }
+                    format!(
+                        "CHOSEN: o[{}] sent by this agent to every other agent",
+                        varying.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")
+                    )
+                };
+                lines.push(format!(
+                    "agent {j}'s {} (o[{}..{}]): relevance {imp:.4} (its values one by one: {}); {verdict}",
+                    short(&entity_name(meanings.get(e.clone()).unwrap_or(&[]))),
+                    e.start,
+                    e.end,
+                    e.clone().map(|d| format!("{:.3}", importance(j * od + d))).collect::<Vec<_>>().join(", ")
+                ));
+            }
+        } else {
+            let mut ranked: Vec<usize> = (0..n * od).filter(|c| senders.contains(&(c / od))).collect();
+            ranked.sort_by(|&a, &b| importance(b).total_cmp(&importance(a)).then(a.cmp(&b)));
+            for col in ranked.into_iter().take(3 * self.cfg.max_relevant_values) {
+                let (j, d) = (col / od, col % od);
+                let imp = importance(col);
+                let verdict = if !usable {
+                    "not chosen: the value model explains too little".to_string()
+                } else if picks.len() >= self.cfg.max_relevant_values {
+                    format!("not chosen: beyond the {} values kept", self.cfg.max_relevant_values)
+                } else if imp <= 0.0 {
+                    "not chosen: shuffling it costs nothing".to_string()
+                } else if per_sender[j] >= per_block {
+                    format!("not chosen: agent {j}'s block is full ({per_block} values)")
+                } else if let Some(k) = obs_cand(d) {
+                    per_sender[j] += 1;
+                    picks.push(Pick { cand: k, links: links_from(j), gain: imp });
+                    "CHOSEN: sent by this agent to every other agent".into()
+                } else {
+                    "not chosen: constant on the dataset".into()
+                };
+                lines.push(format!("{}. {}: relevance {imp:.4}; {verdict}", rank_of(col), label(col)));
+            }
         }
         let head = format!(
             "A value model of the team's joint observation (every agent's observation side by side; {} predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); an observation value's relevance is the share of that variance lost when it is shuffled across {} held-out steps, an agent's when all it sees is shuffled at once.{} The senders are the {} agent(s) whose whole observation {}.",
@@ -535,11 +650,18 @@ impl OfflineDesigner {
             return Ok(None);
         }
         let total: f64 = picks.iter().map(|p| p.gain).sum();
-        let how = format!(
-            "{head} Phase 0 sends the {} most relevant values of agent(s) {} (relevance {total:.3} summed), each from the agent that sees it to every other agent.",
-            picks.len(),
-            senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
-        );
+        let how = match self.cfg.values_by {
+            ValuesBy::Value => format!(
+                "{head} Phase 0 sends the {} most relevant values of agent(s) {} (relevance {total:.3} summed), each from the agent that sees it to every other agent.",
+                picks.len(),
+                senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
+            ),
+            ValuesBy::Entity => format!(
+                "{head} Phase 0 sends whole entities (the schema's units and objects as the sender sees them), the one whose values shuffled together cost that model most first: {} value(s) of agent(s) {}, from the agent that sees them to every other agent.",
+                picks.len(),
+                senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
+            ),
+        };
         let steps = lines.into_iter().take(n + picks.len().max(8)).collect();
         Ok(Some((picks, steps, how)))
     }
@@ -693,6 +815,9 @@ impl Designer for OfflineDesigner {
     }
 
     fn initial(&mut self, ctx: &DesignContext) -> Result<PhaseProtocol> {
+        if self.cfg.values_by == ValuesBy::Entity && self.cfg.senders_by != SendersBy::Return {
+            bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return: the entities are ranked in the receivers' value model of the return");
+        }
         let m = meta::measure(ctx, &[], &self.cfg.discriminator, &[]).context("offline designer: measuring recovery without messages")?;
         let r: &Recovery = &m.without;
         let n = r.n_agents;
