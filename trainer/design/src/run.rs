@@ -36,8 +36,13 @@ pub struct DesignOptions {
     /// Parent of the design directory.
     pub out: PathBuf,
     pub seed: u64,
-    /// Env steps of the QMIX run whose epsilon-greedy policy collects B (the paper: 200k).
+    /// Env steps of the run whose epsilon-greedy policy collects B (the paper: 200k).
     pub pretrain_steps: u64,
+    /// The method that run trains: `qmix` (the paper's) or another message-free method, e.g.
+    /// `qmix-state`, whose agents see the global state: B's returns then show what knowing
+    /// something is worth to a policy that acts on it, where a QMIX policy that cannot see the
+    /// Roach on 1o_10b makes its position matter little to the return.
+    pub collect_algo: String,
     /// Episodes in B (the paper: 5000).
     pub dataset_episodes: usize,
     /// Epsilon while collecting (None: the schedule's value at the end of the QMIX run).
@@ -199,7 +204,7 @@ pub fn run_design(
         phases.push(p0);
     }
 
-    // The dataset B: collected by a short QMIX run with phase 0's protocol fixed (no messages
+    // The dataset B: collected by a short run (QMIX unless told) with phase 0's protocol fixed (no messages
     // when the designer needs data for phase 0), or reused.
     let data_dir = match &opts.dataset {
         Some(d) => d.clone(),
@@ -214,7 +219,7 @@ pub fn run_design(
             let cfg = lmac_run::train::TrainConfig {
                 run: lmac_run::train::RunSection {
                     env: opts.env.clone(),
-                    algo: "qmix".into(),
+                    algo: opts.collect_algo.clone(),
                     protocol,
                     steps: opts.pretrain_steps.max(1),
                     envs: opts.envs,
@@ -230,7 +235,10 @@ pub fn run_design(
             };
             cfg.check()?;
             write(&run_dir.join("config.toml"), &toml::to_string_pretty(&cfg)?)?;
-            eprintln!("lmac: collecting the dataset: QMIX for {} env steps, then {} episodes", opts.pretrain_steps, opts.dataset_episodes);
+            eprintln!(
+                "lmac: collecting the dataset: {} for {} env steps, then {} episodes",
+                opts.collect_algo, opts.pretrain_steps, opts.dataset_episodes
+            );
             lmac_run::workflow::train_dirs(std::slice::from_ref(&run_dir), interrupted).context("collecting the dataset")?;
             lmac_run::train::dataset_dir(&run_dir)
         }

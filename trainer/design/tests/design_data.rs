@@ -913,6 +913,7 @@ fn a_design_keeps_only_phases_that_add_or_says_why() {
         out: dir.join("designs"),
         seed: 3,
         pretrain_steps: 0,
+        collect_algo: "qmix".into(),
         dataset_episodes: 0,
         dataset_epsilon: None,
         envs: 1,

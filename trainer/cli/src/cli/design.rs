@@ -47,6 +47,11 @@ pub(crate) struct DesignArgs {
     /// Env steps of the QMIX run whose epsilon-greedy policy collects the dataset (paper: 200k).
     #[arg(long, default_value = "50k", value_parser = parse_steps)]
     pub(crate) pretrain_steps: u64,
+    /// The method trained to collect the dataset: `qmix` (the paper's) or another method without
+    /// messages, e.g. `qmix-state` (its agents see the global state, so the dataset's returns show
+    /// what knowing a thing is worth to a policy that acts on it; `lmac train --help` lists them)
+    #[arg(long, default_value = "qmix", value_name = "ALGO")]
+    pub(crate) collect_with: String,
     /// Episodes in the dataset (paper: 5000).
     #[arg(long, default_value_t = 1000)]
     pub(crate) dataset_episodes: usize,
@@ -157,6 +162,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
         out: a.out.clone(),
         seed: a.seed,
         pretrain_steps: a.pretrain_steps,
+        collect_algo: a.collect_with.clone(),
         dataset_episodes: a.dataset_episodes,
         dataset_epsilon: a.dataset_epsilon,
         envs: a.envs,
