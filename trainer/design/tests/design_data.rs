@@ -765,7 +765,7 @@ fn phase_evaluation_reads_the_trend_on_fixed_dims_with_both_definitions() {
 /// recover but the return does not depend on them. `critical_by = recovery` keeps the old rule.
 #[test]
 fn offline_designer_chooses_what_the_return_depends_on() {
-    let data = synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 });
+    let data = hidden_b_rewarded();
     let schema = synthetic_schema(30);
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
@@ -792,7 +792,7 @@ fn offline_designer_chooses_what_the_return_depends_on() {
 /// sender, and o[2] is among what it sends, to agent 0.
 #[test]
 fn observation_relevance_chooses_the_agent_that_sees_what_matters() {
-    let data = synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 });
+    let data = hidden_b_rewarded();
     let schema = synthetic_schema(30);
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
@@ -824,22 +824,32 @@ fn observation_relevance_chooses_the_agent_that_sees_what_matters() {
     assert!(sent.contains(&2), "agent 1's view of hidden value B is sent: {json}");
 }
 
+/// The split-view task rewarded when hidden value B (agent 1's o[2]) is 1 or more.
+fn hidden_b_rewarded() -> Dataset {
+    synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 })
+}
+
+/// Phase 0 by observation relevance with the senders ranked by the return.
+fn senders_by_return(values_by: lmac_design::offline::ValuesBy) -> OfflineConfig {
+    OfflineConfig {
+        discriminator: quick_disc(),
+        fields_by: FieldsBy::ObservationRelevance,
+        senders_by: lmac_design::offline::SendersBy::Return,
+        values_by,
+        ..Default::default()
+    }
+}
+
 /// The same task with `--senders-by return`: the agent whose view the others need to predict
 /// the return is the sender (a value model on a receiver's observation with and without it),
 /// and it sends the value of its view that model uses.
 #[test]
 fn senders_by_return_chooses_the_agent_whose_view_the_return_needs() {
-    let data = synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 });
+    let data = hidden_b_rewarded();
     let schema = synthetic_schema(30);
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
-    let cfg = OfflineConfig {
-        discriminator: quick_disc(),
-        fields_by: FieldsBy::ObservationRelevance,
-        senders_by: lmac_design::offline::SendersBy::Return,
-        ..Default::default()
-    };
-    let mut designer = OfflineDesigner::new(cfg);
+    let mut designer = OfflineDesigner::new(senders_by_return(lmac_design::offline::ValuesBy::Value));
     let p0 = designer.initial(&c).unwrap();
     let t = designer.transcript();
     let obs_rel = t.iter().find(|e| e.kind == "observation_relevance").expect("the ranking is in the transcript");
@@ -861,19 +871,13 @@ fn senders_by_return_chooses_the_agent_whose_view_the_return_needs() {
 /// the entity. Entities need `--senders-by return`, which is said before anything is measured.
 #[test]
 fn values_by_entity_sends_the_whole_entity_the_return_needs() {
-    let data = synthetic_rewarded(400, 8, |s| if s[3] >= 1.0 { 1.0 } else { 0.0 });
+    let data = hidden_b_rewarded();
     let mut schema = synthetic_schema(30);
     schema.obs_dims.truncate(2);
     schema.obs_dims.push(group(2, "what this agent sees of hidden value B and the flash: value {k}"));
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
-    let cfg = OfflineConfig {
-        discriminator: quick_disc(),
-        fields_by: FieldsBy::ObservationRelevance,
-        senders_by: lmac_design::offline::SendersBy::Return,
-        values_by: lmac_design::offline::ValuesBy::Entity,
-        ..Default::default()
-    };
+    let cfg = senders_by_return(lmac_design::offline::ValuesBy::Entity);
     let mut designer = OfflineDesigner::new(cfg.clone());
     let p0 = designer.initial(&c).unwrap();
     let t = designer.transcript();
