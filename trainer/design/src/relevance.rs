@@ -211,8 +211,13 @@ fn returns_to_go(data: &Dataset, e: usize, gamma: f64) -> Vec<f32> {
 
 /// Fit the value model on B and measure every state dim's permutation importance.
 pub fn measure(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Result<Relevance> {
+    measure_grouped(data, &[], cfg, seed)
+}
+
+/// [`measure`], and each group of state columns in `groups` shuffled together.
+fn measure_grouped(data: &Dataset, groups: &[Vec<usize>], cfg: &RelevanceConfig, seed: u64) -> Result<Relevance> {
     let sd = data.header.state_dim;
-    measure_on(data, sd, &|e, t| &data.episodes[e].state[t * sd..(t + 1) * sd], &[], cfg, seed)
+    measure_on(data, sd, &|e, t| &data.episodes[e].state[t * sd..(t + 1) * sd], groups, cfg, seed)
 }
 
 /// The same measurement on the team's joint observation (every agent's observation side by
@@ -277,9 +282,7 @@ pub fn receiver_return_gains(
     let groups: Vec<Vec<usize>> = entities.iter().map(|e| e.clone().map(|d| od + d).collect()).collect();
     (0..n)
         .map(|j| {
-            let view = receiver_view(data, j, true);
-            let sd = view.header.state_dim;
-            let with = measure_on(&view, sd, &|e, t| &view.episodes[e].state[t * sd..(t + 1) * sd], &groups, cfg, seed)?;
+            let with = measure_grouped(&receiver_view(data, j, true), &groups, cfg, seed)?;
             let without = measure(&receiver_view(data, j, false), cfg, seed)?;
             Ok(ReturnGain {
                 sender: j,

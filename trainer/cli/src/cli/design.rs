@@ -1,7 +1,7 @@
 //! `lmac design`: the three-phase protocol design loop.
 
 use super::parse_steps;
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Args;
 use lmac_run::workflow::{interrupt_flag, plot};
 
@@ -180,9 +180,6 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
     }
     meta_cfg.without = a.without;
     meta_cfg.discriminator.validate()?;
-    if a.values_by == lmac_design::offline::ValuesBy::Entity && a.senders_by != lmac_design::offline::SendersBy::Return {
-        bail!("--values-by entity needs --senders-by return (the entities are ranked in the receivers' value model of the return)");
-    }
     let mut designer: Box<dyn Designer> = if a.llm == "offline" {
         let cfg = OfflineConfig {
             discriminator: meta_cfg.discriminator.clone(),
@@ -197,6 +194,8 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             values_by: a.values_by,
             ..Default::default()
         };
+        // Before the dataset is collected, which the offline designer's phase 0 waits for.
+        cfg.check()?;
         Box::new(OfflineDesigner::new(cfg))
     } else {
         let mode: LlmMode = a.llm_mode.parse().map_err(anyhow::Error::msg)?;

@@ -219,6 +219,16 @@ impl std::str::FromStr for CriticalBy {
     }
 }
 
+impl OfflineConfig {
+    /// Combinations of options that cannot work, refused before anything is collected.
+    pub fn check(&self) -> Result<()> {
+        if self.values_by == ValuesBy::Entity && self.senders_by != SendersBy::Return {
+            bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return: the entities are ranked in the receivers' value model of the return");
+        }
+        Ok(())
+    }
+}
+
 impl Default for OfflineConfig {
     fn default() -> Self {
         OfflineConfig {
@@ -815,9 +825,7 @@ impl Designer for OfflineDesigner {
     }
 
     fn initial(&mut self, ctx: &DesignContext) -> Result<PhaseProtocol> {
-        if self.cfg.values_by == ValuesBy::Entity && self.cfg.senders_by != SendersBy::Return {
-            bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return: the entities are ranked in the receivers' value model of the return");
-        }
+        self.cfg.check()?;
         let m = meta::measure(ctx, &[], &self.cfg.discriminator, &[]).context("offline designer: measuring recovery without messages")?;
         let r: &Recovery = &m.without;
         let n = r.n_agents;
