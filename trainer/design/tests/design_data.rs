@@ -898,6 +898,27 @@ fn values_by_entity_sends_the_whole_entity_the_return_needs() {
     }
     assert!(sent.contains(&2) && !sent.contains(&3), "o[2] is sent, o[3] (constant for agent 1) is not: {json}");
 
+    // `--phase1-by frame`: agent 0 never sees B itself, so no step tells what would place it in
+    // agent 1's view; phase 1 says so and turns to least squares.
+    let frame = OfflineConfig { phase1_by: lmac_design::offline::Phase1By::Frame, ..cfg.clone() };
+    let mut designer = OfflineDesigner::new(frame.clone());
+    let p0 = designer.initial(&c).unwrap();
+    let mcfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 8, ..Default::default() };
+    let m = meta::evaluate(&c, std::slice::from_ref(&p0.validated), &mcfg).unwrap();
+    let fb = designer.feedback(&c, 1, std::slice::from_ref(&p0), &m).unwrap();
+    // Phase 0 already sends all of B, the one critical dim, so least squares finds nothing
+    // either, and says so.
+    let e = designer.refine(&c, 1, std::slice::from_ref(&p0), &fb, &m).unwrap_err();
+    assert!(format!("{e:#}").contains("phase 1 has nothing to send"), "{e:#}");
+    let t = designer.transcript();
+    let fit = t.iter().find(|e| e.kind == "frame").expect("the fits are in the transcript");
+    assert!(fit.reply.contains("agent 0: sees it together with agent 1 on 0 steps of B, too few to fit"), "{}", fit.reply);
+    let fallback = t.iter().find(|e| e.kind == "fields_by").expect("the fallback is in the transcript");
+    assert!(fallback.reply.starts_with("By least squares instead: no value of agent 1's view adds"), "{}", fallback.reply);
+    let by_value = OfflineConfig { values_by: lmac_design::offline::ValuesBy::Value, ..frame };
+    let e = OfflineDesigner::new(by_value).initial(&c).unwrap_err();
+    assert!(format!("{e:#}").contains("(--phase1-by frame) places the receivers"), "{e:#}");
+
     let recovery = OfflineConfig { senders_by: lmac_design::offline::SendersBy::Recovery, ..cfg };
     let e = OfflineDesigner::new(recovery).initial(&c).unwrap_err();
     assert!(format!("{e:#}").contains("--values-by entity) needs --senders-by return"), "{e:#}");

@@ -123,6 +123,12 @@ pub(crate) struct DesignArgs {
     /// the receivers' value model first; needs `--senders-by return`)
     #[arg(long, default_value = "value")]
     pub(crate) values_by: lmac_design::offline::ValuesBy,
+    /// How the offline designer chooses phase 1's fields: `least-squares` (the sender features
+    /// that best explain the state dims phase 0 leaves poorly recovered) or `frame` (the values
+    /// of phase 0's sender that place each receiver in its view, found by fitting each
+    /// receiver's own view of the entity phase 0 sends; needs `--values-by entity`)
+    #[arg(long, default_value = "least-squares")]
+    pub(crate) phase1_by: lmac_design::offline::Phase1By,
     #[arg(long, default_value_t = 0)]
     pub(crate) seed: u64,
     /// Where design directories go.
@@ -192,6 +198,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             relevant_senders: a.relevant_senders,
             senders_by: a.senders_by,
             values_by: a.values_by,
+            phase1_by: a.phase1_by,
             ..Default::default()
         };
         // Before the dataset is collected, which the offline designer's phase 0 waits for.

@@ -44,10 +44,12 @@ use std::collections::BTreeMap;
 
 mod assemble;
 mod candidates;
+mod frame;
 mod meta_dims;
 mod select;
 use assemble::*;
 use candidates::*;
+pub use frame::{frame_fit, FrameFit};
 use meta_dims::*;
 use select::*;
 
@@ -99,6 +101,13 @@ pub struct OfflineConfig {
     pub senders_by: SendersBy,
     /// What of a sender's view [`FieldsBy::ObservationRelevance`] sends.
     pub values_by: ValuesBy,
+    /// How phase 1 (recognition enhancement) chooses its fields.
+    pub phase1_by: Phase1By,
+    /// [`Phase1By::Frame`]: smallest share of a receiver's view of phase 0's entity a further
+    /// value of the sender's must explain to be sent.
+    pub frame_min_gain: f64,
+    /// [`Phase1By::Frame`]: most values one receiver's fit takes.
+    pub frame_values_per_receiver: usize,
     /// How phase 0 chooses the task-critical dims.
     pub critical_by: CriticalBy,
     /// The value model behind [`CriticalBy::Relevance`].
@@ -175,6 +184,29 @@ pub enum ValuesBy {
     Entity,
 }
 
+/// How phase 1 (recognition enhancement) chooses its fields.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Phase1By {
+    /// Greedy least squares on the state dims phase 0's messages leave poorly recovered.
+    LeastSquares,
+    /// The sender's further values that place each receiver in its view, so a receiver can
+    /// turn phase 0's entity, seen in the sender's frame, into its own (module `frame`: on
+    /// 1o_10b, where the Overseer sees each Baneling). Needs [`ValuesBy::Entity`].
+    Frame,
+}
+
+impl std::str::FromStr for Phase1By {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "least-squares" => Ok(Phase1By::LeastSquares),
+            "frame" => Ok(Phase1By::Frame),
+            _ => Err(format!("{s:?}: use least-squares or frame")),
+        }
+    }
+}
+
 impl std::str::FromStr for ValuesBy {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
@@ -225,6 +257,9 @@ impl OfflineConfig {
         if self.values_by == ValuesBy::Entity && self.senders_by != SendersBy::Return {
             bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return: the entities are ranked in the receivers' value model of the return");
         }
+        if self.phase1_by == Phase1By::Frame && (self.values_by != ValuesBy::Entity || self.fields_by != FieldsBy::ObservationRelevance) {
+            bail!("offline designer: phase 1 by the sender's frame (--phase1-by frame) places the receivers in the view of the sender of phase 0's entity, so it needs --fields-by observation-relevance --values-by entity");
+        }
         Ok(())
     }
 }
@@ -248,6 +283,9 @@ impl Default for OfflineConfig {
             relevant_senders: 1,
             senders_by: SendersBy::Recovery,
             values_by: ValuesBy::Value,
+            phase1_by: Phase1By::LeastSquares,
+            frame_min_gain: 0.05,
+            frame_values_per_receiver: 4,
             critical_by: CriticalBy::Relevance,
             relevance: Default::default(),
             min_relevance: 0.01,
@@ -268,11 +306,21 @@ pub struct OfflineDesigner {
     /// Factor on [`OfflineConfig::min_gain`]: doubled each time a phase added nothing to the
     /// phases before it, so the next one sends only what explains more per column.
     gain_scale: f64,
+    /// The first entity phase 0 sent whole ([`ValuesBy::Entity`]), for [`Phase1By::Frame`].
+    sent_entity: Option<SentEntity>,
+}
+
+/// An entity phase 0 sent: by whom, which of its values, and its name.
+#[derive(Clone, Debug)]
+struct SentEntity {
+    sender: usize,
+    values: Vec<usize>,
+    name: String,
 }
 
 impl OfflineDesigner {
     pub fn new(cfg: OfflineConfig) -> Self {
-        OfflineDesigner { cfg, transcript: Vec::new(), relevance: None, without: None, gain_scale: 1.0 }
+        OfflineDesigner { cfg, transcript: Vec::new(), relevance: None, without: None, gain_scale: 1.0, sent_entity: None }
     }
 
     pub fn config(&self) -> &OfflineConfig {
@@ -342,12 +390,15 @@ impl OfflineDesigner {
         if rows < 2 {
             bail!("offline designer: the dataset has {rows} usable steps; it needs at least 2");
         }
-        let chosen = if phase == 0 && self.cfg.fields_by == FieldsBy::ObservationRelevance {
-            self.fields_by_observation_relevance(ctx, &cands, per_block, critical)?
+        let (chosen, chosen_by) = if phase == 0 && self.cfg.fields_by == FieldsBy::ObservationRelevance {
+            (self.fields_by_observation_relevance(ctx, &cands, per_block, critical)?, "relevance")
+        } else if phase == 1 && self.cfg.phase1_by == Phase1By::Frame {
+            // One sender: its block may take this phase's whole share but its one-hot.
+            (self.fields_by_frame(ctx, &cands, share.saturating_sub(n))?, "frame")
         } else {
-            None
+            (None, "")
         };
-        let by_relevance = chosen.is_some();
+        let chosen_by = if chosen.is_some() { chosen_by } else { "least-squares" };
         let (picks, steps, kept_count, how) = if let Some((picks, steps, how)) = chosen {
             (picks, steps, cands.len(), how)
         } else {
@@ -369,7 +420,11 @@ impl OfflineDesigner {
         };
         drop(s);
         if picks.is_empty() {
-            bail!("offline designer: no candidate feature fits the {per_block} value columns per sender block of phase {phase}");
+            bail!(
+                "offline designer: phase {phase} has nothing to send: no candidate feature that fits its {per_block} value columns per sender block explains any of its {} target dims beyond what the receivers already know ({})",
+                targets.dims.len(),
+                steps.join("; ")
+            );
         }
         let fields = fields_from(&picks, &cands, env);
         let names = ctx.schema.state_meanings();
@@ -382,7 +437,11 @@ impl OfflineDesigner {
         let field_text: Vec<String> = fields.iter().map(|f| format!("'{}': {}", f.name, f.description)).collect();
         let instruction = format!(
             "offline designer: phase {phase} ({goal}), chosen {} on the dataset, not by an LLM. {} Each agent sends: {}. {how} Each sender's values reach a receiver after the sender's one-hot id (once per sender in the compact layout).",
-            if by_relevance { "by the relevance of what each agent sees to the return" } else { "by greedy least squares" },
+            match chosen_by {
+                "relevance" => "by the relevance of what each agent sees to the return",
+                "frame" => "by where each receiver is in the sender's view",
+                _ => "by greedy least squares",
+            },
             targets.why,
             field_text.join("; "),
         );
@@ -406,7 +465,11 @@ impl OfflineDesigner {
             .map_err(|e| anyhow!("offline designer: its phase {phase} protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
         let reasoning = format!(
             "# Offline designer, phase {phase} ({goal})\n\nThis protocol was built by a deterministic algorithm ({}), not by a language model.\n\n## Targets\n{}\n\n{}\n\n## Budget\n{left} message columns left of {}; this phase's share is {share} ({phases_left} phase(s) left), i.e. {per_block} value columns per sender block after the {n}-column sender one-hot.\n\n## Candidates\n{} candidate features ({}), {} kept by the marginal-correlation prescreen, {} sampled steps.\n\n## Selection\n{}\n\nResulting width: {} columns per receiving agent.\n",
-            if by_relevance { "the relevance of each agent's observation to the return, from a value model fitted on the dataset" } else { "greedy least-squares feature selection over the dataset" },
+            match chosen_by {
+                "relevance" => "the relevance of each agent's observation to the return, from a value model fitted on the dataset",
+                "frame" => "linear fits on the dataset of each receiver's own view of phase 0's entity on the sender's view",
+                _ => "greedy least-squares feature selection over the dataset",
+            },
             targets.dims.iter().map(|&d| format!("- {}", meta::dim_label(d, &names))).collect::<Vec<_>>().join("\n"),
             targets.why,
             env.message_budget,
@@ -575,6 +638,10 @@ impl OfflineDesigner {
                     varying.sort_by(|&a, &b| importance(j * od + b).total_cmp(&importance(j * od + a)).then(a.cmp(&b)));
                     varying.truncate(room);
                     varying.sort_unstable();
+                    if self.sent_entity.is_none() {
+                        let name = short(&entity_name(meanings.get(e.clone()).unwrap_or(&[])));
+                        self.sent_entity = Some(SentEntity { sender: j, values: varying.clone(), name });
+                    }
                     for &d in &varying {
                         let cand = obs_cand(d).context("offline designer: a varying value has no candidate (a bug)")?;
                         per_sender[j] += 1;
@@ -826,6 +893,7 @@ impl Designer for OfflineDesigner {
 
     fn initial(&mut self, ctx: &DesignContext) -> Result<PhaseProtocol> {
         self.cfg.check()?;
+        self.sent_entity = None;
         let m = meta::measure(ctx, &[], &self.cfg.discriminator, &[]).context("offline designer: measuring recovery without messages")?;
         let r: &Recovery = &m.without;
         let n = r.n_agents;

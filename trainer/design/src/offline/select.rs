@@ -504,6 +504,12 @@ pub(super) fn select(
             }
         }
         let Some((per_col, pick)) = best else { break };
+        if !pick.links.iter().flatten().any(|&l| l) {
+            // Not one link explains anything of the targets (e.g. earlier phases already send
+            // them): a field with no sender is no field.
+            log.push("stopped: no candidate explains any of the targets beyond what the receivers know".into());
+            break;
+        }
         if per_col < cfg.min_gain && !picks.is_empty() {
             log.push(format!("stopped: the best remaining candidate gains {per_col:.4} per column (< min_gain {})", cfg.min_gain));
             break;

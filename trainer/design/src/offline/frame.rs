@@ -1,0 +1,287 @@
+//! Phase 1 by the sender's frame (`--phase1-by frame`, after a whole-entity phase 0).
+//!
+//! What an agent sees of a unit it sees in its own frame: an offset from itself. Phase 0 sends
+//! the sender's view of the entity the return needs (on `smaclite:1o_10b_vs_1r` the Overseer's
+//! offset to the Roach); a receiver can act on it only when it also knows where it is itself in
+//! the sender's view. So phase 1 finds, from B, which further values of the sender's view turn
+//! phase 0's message into each receiver's own view of that entity: on the steps where the
+//! receiver sees the entity too (its view is the target), a linear fit of the receiver's view on
+//! phase 0's values, then greedily on each other value the sender sees, keeps the values that
+//! explain a share of the receiver's view on top. On 1o_10b the receiver's view of the Roach is
+//! the Overseer's minus where the Overseer sees that receiver, so the fit names each Baneling's
+//! teammate slot in the Overseer's view: the authors' phase 1, derived from data.
+
+#[allow(unused_imports)]
+use super::*;
+use lmac_run::dataset::Dataset;
+
+/// What one receiver needs of the sender's view to read phase 0's message in its own frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameFit {
+    pub receiver: usize,
+    /// Steps where the receiver and the sender both see the entity (some of its values non-zero).
+    pub rows: usize,
+    /// Share of the variance of the receiver's own view of the entity that phase 0's values
+    /// explain (linear R^2 on those steps).
+    pub r2_sent: f64,
+    /// The sender's further values, in the order chosen, with the share each adds.
+    pub picks: Vec<(usize, f64)>,
+}
+
+impl FrameFit {
+    pub fn r2(&self) -> f64 {
+        self.r2_sent + self.picks.iter().map(|p| p.1).sum::<f64>()
+    }
+}
+
+/// For each receiver (every agent but `sender`): which of `candidates` (the sender's o[d])
+/// explain the receiver's own view of the entity (its o[d] for d in `sent`) on top of the
+/// sender's view of it (the sender's o[sent]), greedily, each adding at least `min_gain` of the
+/// target's variance, at most `max_picks`. Fewer than `min_rows` shared steps: no picks.
+/// Over whole episodes spread evenly over B until about `max_rows` steps.
+pub fn frame_fit(
+    data: &Dataset,
+    sender: usize,
+    sent: &[usize],
+    candidates: &[usize],
+    max_rows: usize,
+    max_picks: usize,
+    min_gain: f64,
+) -> Vec<FrameFit> {
+    let (n, od) = (data.header.n_agents, data.header.obs_dim);
+    let (b, k) = (sent.len(), candidates.len());
+    let p = 2 * b + k;
+    let total: usize = data.steps();
+    let stride = total.div_ceil(max_rows.max(1)).max(1);
+    let min_rows = 20;
+    let mut fits = Vec::new();
+    for i in (0..n).filter(|&i| i != sender) {
+        // Sums and cross-products of [sender's o[sent], sender's o[candidates], receiver's o[sent]].
+        let (mut sum, mut cross, mut rows) = (vec![0f64; p], vec![0f64; p * p], 0usize);
+        let mut row = vec![0f64; p];
+        for ep in data.episodes.iter().step_by(stride) {
+            for t in 0..ep.len {
+                let oj = &ep.obs[(t * n + sender) * od..(t * n + sender + 1) * od];
+                let oi = &ep.obs[(t * n + i) * od..(t * n + i + 1) * od];
+                if !sent.iter().any(|&d| oj[d] != 0.0) || !sent.iter().any(|&d| oi[d] != 0.0) {
+                    continue;
+                }
+                for (x, &d) in row.iter_mut().zip(sent.iter().chain(candidates)) {
+                    *x = oj[d] as f64;
+                }
+                for (x, &d) in row[b + k..].iter_mut().zip(sent) {
+                    *x = oi[d] as f64;
+                }
+                for r in 0..p {
+                    sum[r] += row[r];
+                    let xr = row[r];
+                    for (c, &xc) in cross[r * p..(r + 1) * p].iter_mut().zip(&row) {
+                        *c += xr * xc;
+                    }
+                }
+                rows += 1;
+            }
+        }
+        let mut fit = FrameFit { receiver: i, rows, r2_sent: 0.0, picks: Vec::new() };
+        if rows < min_rows {
+            fits.push(fit);
+            continue;
+        }
+        let m = rows as f64;
+        let mut cov: Vec<f64> = (0..p * p).map(|x| cross[x] / m - sum[x / p] * sum[x % p] / (m * m)).collect();
+        let orig: Vec<f64> = (0..p).map(|r| cov[r * p + r]).collect();
+        let targets: Vec<usize> = (b + k..p).collect();
+        let target_var: f64 = targets.iter().map(|&t| orig[t]).sum();
+        if target_var <= 1e-12 {
+            fits.push(fit);
+            continue;
+        }
+        for s in 0..b {
+            select::sweep(&mut cov, p, s, orig[s]);
+        }
+        let left = |cov: &[f64]| targets.iter().map(|&t| cov[t * p + t].max(0.0)).sum::<f64>();
+        fit.r2_sent = 1.0 - left(&cov) / target_var;
+        while fit.picks.len() < max_picks {
+            let best = (b..b + k)
+                .filter(|&c| !fit.picks.iter().any(|x| x.0 == candidates[c - b]))
+                .filter(|&c| cov[c * p + c] > 1e-9 * orig[c].max(1e-12))
+                .map(|c| (c, targets.iter().map(|&t| cov[c * p + t].powi(2)).sum::<f64>() / cov[c * p + c] / target_var))
+                .max_by(|x, y| x.1.total_cmp(&y.1).then(y.0.cmp(&x.0)));
+            match best {
+                Some((c, gain)) if gain >= min_gain => {
+                    select::sweep(&mut cov, p, c, orig[c]);
+                    fit.picks.push((candidates[c - b], gain));
+                }
+                _ => break,
+            }
+        }
+        fits.push(fit);
+    }
+    fits
+}
+
+impl OfflineDesigner {
+    /// [`Phase1By::Frame`]: phase 1's picks (the sender's values that place each receiver in
+    /// its view, to every other agent), the log and how they were chosen; None (said in the log
+    /// and the transcript) when phase 0 sent no entity or no value places any receiver, and
+    /// least squares chooses instead.
+    #[allow(clippy::type_complexity)]
+    pub(super) fn fields_by_frame(
+        &mut self,
+        ctx: &DesignContext,
+        cands: &[Candidate],
+        room: usize,
+    ) -> Result<Option<(Vec<Pick>, Vec<String>, String)>> {
+        let data = ctx.dataset.context("offline designer: placing the receivers in the sender's view needs the dataset B")?;
+        let n = data.header.n_agents;
+        let obs_cand = |d: usize| cands.iter().position(|c| c.kind == Kind::Obs && c.dim == Some(d));
+        let label = |d: usize| ctx.env.obs_names.get(d).map(|s| short(s)).unwrap_or_else(|| "unnamed".into());
+        let Some(sent) = self.sent_entity.clone() else {
+            let reason = "phase 0 sent no whole entity (its fields were chosen by least squares)";
+            eprintln!("lmac: offline designer: phase 1's fields by least squares instead: {reason}");
+            self.log(1, "fields_by", "offline designer: choose phase 1's fields".into(), format!("By least squares instead: {reason}."));
+            return Ok(None);
+        };
+        let j = sent.sender;
+        let candidates: Vec<usize> =
+            (0..data.header.obs_dim).filter(|d| !sent.values.contains(d) && obs_cand(*d).is_some() && varies_for(data, j, *d)).collect();
+        let fits = frame_fit(
+            data,
+            j,
+            &sent.values,
+            &candidates,
+            self.cfg.max_samples,
+            self.cfg.frame_values_per_receiver,
+            self.cfg.frame_min_gain,
+        );
+        // Each value by the share it adds, summed over the receivers it places.
+        let mut by_value: BTreeMap<usize, (f64, Vec<usize>)> = BTreeMap::new();
+        for f in &fits {
+            for &(d, g) in &f.picks {
+                let e = by_value.entry(d).or_default();
+                e.0 += g;
+                e.1.push(f.receiver);
+            }
+        }
+        let mut ranked: Vec<(usize, f64)> = by_value.iter().map(|(&d, x)| (d, x.0)).collect();
+        ranked.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        let kept: Vec<usize> = {
+            let mut k: Vec<usize> = ranked.iter().take(room).map(|x| x.0).collect();
+            k.sort_unstable();
+            k
+        };
+        let mut lines: Vec<String> = fits
+            .iter()
+            .map(|f| {
+                if f.rows < 20 {
+                    return format!("agent {}: sees it together with agent {j} on {} steps of B, too few to fit", f.receiver, f.rows);
+                }
+                let picks: Vec<String> = f.picks.iter().map(|&(d, g)| format!("o[{d}] ({}) {g:+.3}", label(d))).collect();
+                format!(
+                    "agent {}: on {} steps where it sees it too, agent {j}'s o[{}] explain {:.3} of its own view of it; {}; R^2 {:.3}",
+                    f.receiver,
+                    f.rows,
+                    sent.values.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", "),
+                    f.r2_sent,
+                    if picks.is_empty() { "no further value adds".to_string() } else { format!("then {}", picks.join(", ")) },
+                    f.r2()
+                )
+            })
+            .collect();
+        for (d, g) in &ranked {
+            let verdict = if kept.contains(d) { "CHOSEN" } else { "not chosen: beyond this phase's share of the budget" };
+            lines.push(format!("agent {j}'s o[{d}] ({}): places agent(s) {:?}, {g:.3} summed; {verdict}", label(*d), by_value[d].1));
+        }
+        let head = format!(
+            "Phase 0 sends agent {j}'s view of {}, in agent {j}'s frame. On the steps of B where a receiver sees it too, a linear fit of the receiver's own view of it on phase 0's values, then greedily on each other value agent {j} sees (each adding at least {:.2} of the variance, at most {} per receiver), finds what turns agent {j}'s view into the receiver's: where the receiver is in agent {j}'s view.",
+            sent.name, self.cfg.frame_min_gain, self.cfg.frame_values_per_receiver
+        );
+        self.log(
+            1,
+            "frame",
+            format!("offline designer: find which of agent {j}'s values place each receiver in its view (linear fits on B)"),
+            format!("{head}\n{}", lines.join("\n")),
+        );
+        eprintln!("lmac: offline designer: {head}");
+        for line in lines.iter().take(n + 8) {
+            eprintln!("lmac:   {line}");
+        }
+        if kept.is_empty() {
+            let reason =
+                format!("no value of agent {j}'s view adds {:.2} to any receiver's view of {}", self.cfg.frame_min_gain, sent.name);
+            eprintln!("lmac: offline designer: phase 1's fields by least squares instead: {reason}");
+            self.log(1, "fields_by", "offline designer: choose phase 1's fields".into(), format!("By least squares instead: {reason}."));
+            return Ok(None);
+        }
+        let links: Vec<Vec<bool>> = (0..n).map(|s| (0..n).map(|i| s == j && i != j).collect()).collect();
+        let mut picks = Vec::new();
+        for &d in &kept {
+            let cand = obs_cand(d).context("offline designer: a frame value has no candidate (a bug)")?;
+            picks.push(Pick { cand, links: links.clone(), gain: by_value[&d].0 / (n - 1) as f64 });
+        }
+        let how =
+            format!("{head} Phase 1 sends the {} value(s) that place some receiver, from agent {j} to every other agent.", picks.len());
+        Ok(Some((picks, lines, how)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lmac_learn::LearnRng;
+    use lmac_run::dataset::{DatasetHeader, Trajectory};
+
+    /// Three agents on a line; agent 2 sees the target's offset (o[0]) and each teammate's
+    /// offset (o[1] agent 0, o[2] agent 1) plus noise (o[3]); an agent sees the target when it
+    /// is within 1. The receiver's view of the target is the sender's minus the receiver's
+    /// offset: the fit must name each receiver's own slot, and only it.
+    #[test]
+    fn the_fit_names_where_each_receiver_is_in_the_senders_view() {
+        let (n, od, len) = (3, 4, 10);
+        let mut rng = LearnRng::seed_from(5);
+        let episodes: Vec<Trajectory> = (0..200)
+            .map(|_| {
+                let mut obs = Vec::new();
+                for _ in 0..len {
+                    let target = rng.uniform() * 2.0 - 1.0;
+                    let x = [rng.uniform() * 2.0 - 1.0, rng.uniform() * 2.0 - 1.0, rng.uniform() * 0.4 - 0.2];
+                    let seen = |a: usize| if (target - x[a]).abs() < 1.0 { target - x[a] } else { 0.0 };
+                    obs.extend([seen(0), 0.0, 0.0, 0.0]);
+                    obs.extend([seen(1), 0.0, 0.0, 0.0]);
+                    obs.extend([seen(2), x[0] - x[2], x[1] - x[2], rng.uniform()]);
+                }
+                Trajectory {
+                    len,
+                    obs,
+                    state: vec![0.0; len],
+                    actions: vec![0; len * n],
+                    reward: vec![0.0; len],
+                    terminated: true,
+                    truncated: false,
+                }
+            })
+            .collect();
+        let header = DatasetHeader {
+            env: "synthetic".into(),
+            n_agents: n,
+            obs_dim: od,
+            state_dim: 1,
+            n_actions: 2,
+            episode_limit: len,
+            protocol: String::new(),
+            policy: "random".into(),
+            seed: 0,
+        };
+        let data = Dataset { header, episodes };
+        let fits = frame_fit(&data, 2, &[0], &[1, 2, 3], 10_000, 4, 0.05);
+        assert_eq!(fits.iter().map(|f| f.receiver).collect::<Vec<_>>(), vec![0, 1]);
+        for f in &fits {
+            assert!(f.rows > 500, "{f:?}");
+            assert_eq!(f.picks.iter().map(|p| p.0).collect::<Vec<_>>(), vec![1 + f.receiver], "{f:?}");
+            assert!(f.r2() > 0.99 && f.r2_sent < 0.9, "{f:?}");
+        }
+        // Fewer shared steps than the fit needs: no picks.
+        let few = Dataset { episodes: data.episodes[..1].to_vec(), ..data.clone() };
+        assert!(frame_fit(&few, 2, &[0], &[1, 2, 3], 10_000, 4, 0.05).iter().all(|f| f.picks.is_empty()));
+    }
+}
