@@ -15,6 +15,9 @@
 use super::*;
 use lmac_run::dataset::Dataset;
 
+/// Fewest steps a receiver must share with the sender (both seeing the entity) to be fitted.
+const MIN_ROWS: usize = 20;
+
 /// What one receiver needs of the sender's view to read phase 0's message in its own frame.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrameFit {
@@ -37,7 +40,7 @@ impl FrameFit {
 /// For each receiver (every agent but `sender`): which of `candidates` (the sender's o[d])
 /// explain the receiver's own view of the entity (its o[d] for d in `sent`) on top of the
 /// sender's view of it (the sender's o[sent]), greedily, each adding at least `min_gain` of the
-/// target's variance, at most `max_picks`. Fewer than `min_rows` shared steps: no picks.
+/// target's variance, at most `max_picks`. Fewer than [`MIN_ROWS`] shared steps: no picks.
 /// Over whole episodes spread evenly over B until about `max_rows` steps.
 pub fn frame_fit(
     data: &Dataset,
@@ -53,7 +56,6 @@ pub fn frame_fit(
     let p = 2 * b + k;
     let total: usize = data.steps();
     let stride = total.div_ceil(max_rows.max(1)).max(1);
-    let min_rows = 20;
     let mut fits = Vec::new();
     for i in (0..n).filter(|&i| i != sender) {
         // Sums and cross-products of [sender's o[sent], sender's o[candidates], receiver's o[sent]].
@@ -83,7 +85,7 @@ pub fn frame_fit(
             }
         }
         let mut fit = FrameFit { receiver: i, rows, r2_sent: 0.0, picks: Vec::new() };
-        if rows < min_rows {
+        if rows < MIN_ROWS {
             fits.push(fit);
             continue;
         }
@@ -173,7 +175,7 @@ impl OfflineDesigner {
         let mut lines: Vec<String> = fits
             .iter()
             .map(|f| {
-                if f.rows < 20 {
+                if f.rows < MIN_ROWS {
                     return format!("agent {}: sees it together with agent {j} on {} steps of B, too few to fit", f.receiver, f.rows);
                 }
                 let picks: Vec<String> = f.picks.iter().map(|&(d, g)| format!("o[{d}] ({}) {g:+.3}", label(d))).collect();
@@ -213,11 +215,10 @@ impl OfflineDesigner {
             self.log(1, "fields_by", "offline designer: choose phase 1's fields".into(), format!("By least squares instead: {reason}."));
             return Ok(None);
         }
-        let links: Vec<Vec<bool>> = (0..n).map(|s| (0..n).map(|i| s == j && i != j).collect()).collect();
         let mut picks = Vec::new();
         for &d in &kept {
             let cand = obs_cand(d).context("offline designer: a frame value has no candidate (a bug)")?;
-            picks.push(Pick { cand, links: links.clone(), gain: by_value[&d].0 / (n - 1) as f64 });
+            picks.push(Pick { cand, links: to_everyone_from(n, j), gain: by_value[&d].0 / (n - 1) as f64 });
         }
         let how =
             format!("{head} Phase 1 sends the {} value(s) that place some receiver, from agent {j} to every other agent.", picks.len());

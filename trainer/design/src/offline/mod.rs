@@ -611,7 +611,6 @@ impl OfflineDesigner {
             })
             .collect();
         lines.append(&mut agent_lines);
-        let links_from = |j: usize| -> Vec<Vec<bool>> { (0..n).map(|s| (0..n).map(|i| s == j && i != j).collect()).collect() };
         if self.cfg.values_by == ValuesBy::Entity {
             // The senders' entities, the costliest to shuffle first; each sends every value of
             // it that varies for its sender on B, whole, while the budget has room for it (the
@@ -645,7 +644,7 @@ impl OfflineDesigner {
                     for &d in &varying {
                         let cand = obs_cand(d).context("offline designer: a varying value has no candidate (a bug)")?;
                         per_sender[j] += 1;
-                        picks.push(Pick { cand, links: links_from(j), gain: importance(j * od + d) });
+                        picks.push(Pick { cand, links: to_everyone_from(n, j), gain: importance(j * od + d) });
                     }
                     format!(
                         "CHOSEN: o[{}] sent by this agent to every other agent",
@@ -676,7 +675,7 @@ impl OfflineDesigner {
                     format!("not chosen: agent {j}'s block is full ({per_block} values)")
                 } else if let Some(k) = obs_cand(d) {
                     per_sender[j] += 1;
-                    picks.push(Pick { cand: k, links: links_from(j), gain: imp });
+                    picks.push(Pick { cand: k, links: to_everyone_from(n, j), gain: imp });
                     "CHOSEN: sent by this agent to every other agent".into()
                 } else {
                     "not chosen: constant on the dataset".into()

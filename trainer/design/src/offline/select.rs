@@ -408,6 +408,11 @@ pub(super) struct Pick {
     pub(super) gain: f64,
 }
 
+/// The links of a field agent `j` alone sends to every other of the `n` agents.
+pub(super) fn to_everyone_from(n: usize, j: usize) -> Vec<Vec<bool>> {
+    (0..n).map(|s| (0..n).map(|i| s == j && i != j).collect()).collect()
+}
+
 /// Greedy selection (see the module doc). `w[i][d]`: weight of receiver i and target d.
 pub(super) fn select(
     stats: Stats,
