@@ -512,6 +512,151 @@ fn measure_on<'a>(
     })
 }
 
+/// What the collecting policy's actions depend on: for each agent, a ridge-regularised linear
+/// model of its action (one-hot) on the standardised state, fitted on B's training episodes at
+/// the steps where the agent observes anything (a dead agent's forced no-op would otherwise
+/// make its health the first thing its actions depend on); a dim's importance is the expected
+/// share of the held-out action variance lost when the dim is shuffled (for a linear model,
+/// 2 x its coefficients' squares x its held-out variance), averaged over the agents. Where the
+/// return's value model ranks how the episode is going (a unit's health), this ranks what an
+/// agent must know to act (where the units are), when B's policy could see it: a policy that
+/// cannot see the state acts on it only through what it observes. The importance is in the
+/// same units as [`measure`]'s (shares of a held-out variance), and `held_out_r2` is the
+/// agents' mean held-out R^2 of their actions.
+pub fn measure_actions(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Result<Relevance> {
+    cfg.validate()?;
+    let start = std::time::Instant::now();
+    let (train, test) = split_episodes(data.episodes.len(), cfg.holdout_fraction, seed ^ 0x5E1E_0000_0000_0011)?;
+    let DatasetHeader { n_agents: n, obs_dim: od, state_dim: sd, n_actions: na, .. } = data.header.clone();
+    // The (episode, step) rows where agent i observes anything.
+    let rows = |eps: &[usize], i: usize| -> Vec<(usize, usize)> {
+        eps.iter()
+            .flat_map(|&e| (0..data.episodes[e].len).map(move |t| (e, t)))
+            .filter(|&(e, t)| data.episodes[e].obs[(t * n + i) * od..(t * n + i + 1) * od].iter().any(|&v| v != 0.0))
+            .collect()
+    };
+    let state = |(e, t): (usize, usize)| &data.episodes[e].state[t * sd..(t + 1) * sd];
+    let all_train: Vec<(usize, usize)> = (0..n).flat_map(|i| rows(&train, i)).collect();
+    let norm = Standardize::fit(sd, all_train.iter().map(|&r| state(r).to_vec()));
+    let mut importance = vec![0f64; sd];
+    let (mut r2_sum, mut fitted, mut eval_rows) = (0f64, 0usize, 0usize);
+    for i in 0..n {
+        let (tr, te) = (rows(&train, i), rows(&test, i));
+        if tr.len() < 2 || te.len() < 2 {
+            continue;
+        }
+        let action = |(e, t): (usize, usize)| data.episodes[e].actions[t * n + i].clamp(0, na as i32 - 1) as usize;
+        let x_of = |r: (usize, usize)| -> Vec<f64> {
+            let mut x = state(r).to_vec();
+            norm.apply(&mut x);
+            x.into_iter().map(f64::from).collect()
+        };
+        // Centred normal equations: (X'X / m + ridge I) B = X'Y / m.
+        let m = tr.len() as f64;
+        let (mut xm, mut ym) = (vec![0f64; sd], vec![0f64; na]);
+        for &r in &tr {
+            xm.iter_mut().zip(x_of(r)).for_each(|(a, v)| *a += v / m);
+            ym[action(r)] += 1.0 / m;
+        }
+        let (mut xx, mut xy) = (vec![0f64; sd * sd], vec![0f64; sd * na]);
+        for &r in &tr {
+            let x: Vec<f64> = x_of(r).iter().zip(&xm).map(|(v, mu)| v - mu).collect();
+            let a = action(r);
+            for p in 0..sd {
+                if x[p] == 0.0 {
+                    continue;
+                }
+                for q in 0..sd {
+                    xx[p * sd + q] += x[p] * x[q] / m;
+                }
+                for k in 0..na {
+                    xy[p * na + k] += x[p] * ((k == a) as u8 as f64 - ym[k]) / m;
+                }
+            }
+        }
+        for p in 0..sd {
+            xx[p * sd + p] += 1e-3;
+        }
+        let Some(beta) = solve_spd(&mut xx, sd, &xy, na) else { continue };
+        // Held out: R^2 of the actions, and each dim's variance there.
+        let mut sse = 0f64;
+        let mut sst = 0f64;
+        let (mut sum, mut sq) = (vec![0f64; sd], vec![0f64; sd]);
+        for &r in &te {
+            let x = x_of(r);
+            let a = action(r);
+            for k in 0..na {
+                let pred = ym[k] + (0..sd).map(|p| (x[p] - xm[p]) * beta[p * na + k]).sum::<f64>();
+                let y = (k == a) as u8 as f64;
+                sse += (y - pred).powi(2);
+                sst += (y - ym[k]).powi(2);
+            }
+            for p in 0..sd {
+                sum[p] += x[p];
+                sq[p] += x[p] * x[p];
+            }
+        }
+        if sst < 1e-12 {
+            continue;
+        }
+        let mt = te.len() as f64;
+        for p in 0..sd {
+            let var = (sq[p] / mt - (sum[p] / mt).powi(2)).max(0.0);
+            let b2: f64 = (0..na).map(|k| beta[p * na + k].powi(2)).sum();
+            importance[p] += 2.0 * b2 * var * mt / sst;
+        }
+        r2_sum += 1.0 - sse / sst;
+        fitted += 1;
+        eval_rows += te.len();
+    }
+    if fitted == 0 {
+        bail!("action relevance: no agent has steps to fit its actions on in both B's training and held-out episodes");
+    }
+    importance.iter_mut().for_each(|x| *x /= fitted as f64);
+    Ok(Relevance {
+        importance,
+        groups: Vec::new(),
+        held_out_r2: r2_sum / fitted as f64,
+        model: ValueModelKind::Linear,
+        check_r2: Vec::new(),
+        gamma: cfg.gamma,
+        train_episodes: train.len(),
+        held_out_episodes: test.len(),
+        eval_rows,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Solve A X = B for a symmetric positive definite `a` (p x p, overwritten by its Cholesky
+/// factor) and `b` (p x k); None when `a` is not positive definite.
+fn solve_spd(a: &mut [f64], p: usize, b: &[f64], k: usize) -> Option<Vec<f64>> {
+    for j in 0..p {
+        let d = a[j * p + j] - (0..j).map(|l| a[j * p + l].powi(2)).sum::<f64>();
+        if d <= 1e-12 {
+            return None;
+        }
+        let d = d.sqrt();
+        a[j * p + j] = d;
+        for i in j + 1..p {
+            let v = a[i * p + j] - (0..j).map(|l| a[i * p + l] * a[j * p + l]).sum::<f64>();
+            a[i * p + j] = v / d;
+        }
+    }
+    let mut x = b.to_vec();
+    for c in 0..k {
+        // L y = b, then L' x = y.
+        for i in 0..p {
+            let v = x[i * k + c] - (0..i).map(|l| a[i * p + l] * x[l * k + c]).sum::<f64>();
+            x[i * k + c] = v / a[i * p + i];
+        }
+        for i in (0..p).rev() {
+            let v = x[i * k + c] - (i + 1..p).map(|l| a[l * p + i] * x[l * k + c]).sum::<f64>();
+            x[i * k + c] = v / a[i * p + i];
+        }
+    }
+    Some(x)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -531,6 +676,47 @@ mod tests {
             seed: 0,
         };
         Dataset { header, episodes }
+    }
+
+    /// Two agents move towards a target (action 1 when it is to their right, 2 when to their
+    /// left) and take the no-op (0) when dead (their observation all zero, their health 0).
+    /// Their actions depend on the target's x first (both agents), then each agent's own x;
+    /// not on the noise dim, and not on health, which only the dead steps' no-op follows.
+    #[test]
+    fn actions_rank_where_the_target_is_not_how_the_episode_goes() {
+        let (n, od, sd, len) = (2, 1, 5, 20);
+        let mut rng = LearnRng::seed_from(3);
+        let episodes: Vec<Trajectory> = (0..150)
+            .map(|_| {
+                let (mut obs, mut state, mut actions) = (Vec::new(), Vec::new(), Vec::new());
+                let dies_at = [rng.below(len * 2), rng.below(len * 2)];
+                for t in 0..len {
+                    let target = rng.uniform() * 2.0 - 1.0;
+                    let x = [rng.uniform() * 2.0 - 1.0, rng.uniform() * 2.0 - 1.0];
+                    let alive = [t < dies_at[0], t < dies_at[1]];
+                    let health = (alive[0] as u8 + alive[1] as u8) as f32;
+                    state.extend([target, x[0], x[1], rng.uniform(), health]);
+                    for i in 0..n {
+                        obs.push(if alive[i] { 1.0 } else { 0.0 });
+                        actions.push(if !alive[i] {
+                            0
+                        } else if target > x[i] {
+                            1
+                        } else {
+                            2
+                        });
+                    }
+                }
+                Trajectory { len, obs, state, actions, reward: vec![0.0; len], terminated: true, truncated: false }
+            })
+            .collect();
+        let mut data = synthetic(n, od, sd, len, episodes);
+        data.header.n_actions = 3;
+        let r = measure_actions(&data, &RelevanceConfig::default(), 0).unwrap();
+        assert_eq!(r.ranking()[0], 0, "{r:?}");
+        assert!(r.importance[1] > 0.05 && r.importance[2] > 0.05, "{r:?}");
+        assert!(r.importance[3] < 0.01 && r.importance[4] < 0.01, "{r:?}");
+        assert!(r.held_out_r2 > 0.3, "{r:?}");
     }
 
     /// A dataset whose reward depends on state dim 1 only (dims 0 and 2 are noise of the same

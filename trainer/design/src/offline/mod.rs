@@ -131,6 +131,15 @@ pub enum CriticalBy {
     /// (a value model's permutation importance on B) x how badly agents recover the dim
     /// without messages; only dims that are both relevant and poorly recovered.
     Relevance,
+    /// What B's policy's actions depend on and agents cannot see: the state dims a linear
+    /// model of each agent's action leans on most ([`super::relevance::measure_actions`]) x how
+    /// badly agents recover them without messages. The LMAC agent reads its messages only
+    /// through a latent trained to reconstruct the critical dims, so these dims are what the
+    /// messages can tell the policy: where the units are rather than how the episode goes
+    /// (on 1o_10b the return's value model ranks the Roach's health and the Banelings' alive
+    /// bits first). Meaningful when B's policy could act on the state (`--collect-with
+    /// qmix-state`).
+    Action,
     /// The hardest to recover without messages, whatever their bearing on the task (the
     /// designer's first rule, kept as an option: it picked 48 dims on 1o_10b, 33 of them
     /// teammates' last actions).
@@ -246,7 +255,8 @@ impl std::str::FromStr for CriticalBy {
         match s {
             "relevance" => Ok(CriticalBy::Relevance),
             "recovery" => Ok(CriticalBy::Recovery),
-            _ => Err(format!("{s:?}: use relevance or recovery")),
+            "action" => Ok(CriticalBy::Action),
+            _ => Err(format!("{s:?}: use relevance, action or recovery")),
         }
     }
 }
@@ -810,16 +820,26 @@ impl OfflineDesigner {
         chosen.sort_by(|&a, &b| priority(b).total_cmp(&priority(a)).then(a.cmp(&b)));
         chosen.truncate(self.cfg.max_relevant_dims);
         let relevant = rel.importance.iter().filter(|&&x| x >= min_rel).count();
-        let head = format!(
-            "A value model of the state ({} predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); a dim's relevance is the share of that variance lost when the dim is shuffled across {} held-out steps.{} {relevant} dim(s) have a relevance of at least {min_rel}.",
-            rel.model.describe(),
-            rel.gamma,
-            100.0 * rel.held_out_r2,
-            rel.train_episodes,
-            rel.held_out_episodes,
-            rel.eval_rows,
-            rel.model_choice()
-        );
+        let head = if self.cfg.critical_by == CriticalBy::Action {
+            format!(
+                "A linear model of each agent's action (one-hot) on the state, fitted at the steps where the agent observes anything, explains {:.1}% of the held-out actions' variance on average over the agents ({} training, {} held-out episodes of B); a dim's relevance is the expected share of that variance lost when the dim is shuffled ({} held-out agent-steps), averaged over the agents. {relevant} dim(s) have a relevance of at least {min_rel}.",
+                100.0 * rel.held_out_r2,
+                rel.train_episodes,
+                rel.held_out_episodes,
+                rel.eval_rows
+            )
+        } else {
+            format!(
+                "A value model of the state ({} predicting the return-to-go, gamma {}) explains {:.1}% of the held-out return's variance ({} training, {} held-out episodes of B); a dim's relevance is the share of that variance lost when the dim is shuffled across {} held-out steps.{} {relevant} dim(s) have a relevance of at least {min_rel}.",
+                rel.model.describe(),
+                rel.gamma,
+                100.0 * rel.held_out_r2,
+                rel.train_episodes,
+                rel.held_out_episodes,
+                rel.eval_rows,
+                rel.model_choice()
+            )
+        };
         let ranking: Vec<String> = rel
             .ranking()
             .into_iter()
@@ -853,8 +873,9 @@ impl OfflineDesigner {
         }
         if rel.held_out_r2 < self.cfg.min_value_r2 {
             return Err(format!(
-                "The value model explains only {:.1}% of the held-out return's variance (below {:.1}%), too little to rank dims by.",
+                "The model explains only {:.1}% of the held-out {} variance (below {:.1}%), too little to rank dims by.",
                 100.0 * rel.held_out_r2,
+                if self.cfg.critical_by == CriticalBy::Action { "actions'" } else { "return's" },
                 100.0 * self.cfg.min_value_r2
             ));
         }
@@ -927,10 +948,15 @@ impl Designer for OfflineDesigner {
                 let (d, why) = by_recovery();
                 (d, why, None)
             }
-            CriticalBy::Relevance => {
+            CriticalBy::Relevance | CriticalBy::Action => {
                 let data = ctx.dataset.context("offline designer: ranking dims by relevance needs the dataset B")?;
-                let rel = super::relevance::measure(data, &self.cfg.relevance, ctx.seed)
-                    .context("offline designer: measuring each state dim's relevance to the return")?;
+                let rel = if self.cfg.critical_by == CriticalBy::Action {
+                    super::relevance::measure_actions(data, &self.cfg.relevance, ctx.seed)
+                        .context("offline designer: measuring what each agent's actions depend on")?
+                } else {
+                    super::relevance::measure(data, &self.cfg.relevance, ctx.seed)
+                        .context("offline designer: measuring each state dim's relevance to the return")?
+                };
                 let choice = self.by_relevance(ctx, &rel, &all);
                 self.relevance = Some(rel.clone());
                 match choice {
@@ -1152,7 +1178,11 @@ impl Designer for OfflineDesigner {
             .collect();
         Some(serde_json::json!({
             "relevance": {
-                "what": "permutation importance of each state dim for a value model of the return-to-go fitted on B: the share of the held-out return's variance lost when the dim is shuffled",
+                "what": if self.cfg.critical_by == CriticalBy::Action {
+                    "importance of each state dim for a linear model of each agent's action fitted on B: the expected share of the held-out actions' variance lost when the dim is shuffled, averaged over the agents"
+                } else {
+                    "permutation importance of each state dim for a value model of the return-to-go fitted on B: the share of the held-out return's variance lost when the dim is shuffled"
+                },
                 "held_out_r2": (r.held_out_r2 * 1e4).round() / 1e4,
                 "model": r.model,
                 "check_r2": r.check_r2.iter().map(|(k, v)| serde_json::json!({ "model": k, "r2": (v * 1e4).round() / 1e4 })).collect::<Vec<_>>(),
