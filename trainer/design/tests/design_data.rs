@@ -784,6 +784,19 @@ fn offline_designer_chooses_what_the_return_depends_on() {
     let mut old =
         OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), critical_by: CriticalBy::Recovery, ..Default::default() });
     assert_eq!(old.initial(&c).unwrap().validated.critical_dims, vec![0, 3, 4]);
+    // `--critical-by action`: this B's actions are random, so no model of them explains
+    // anything; phase 0 says so in the actions' terms and falls back to the hardest dims.
+    let mut by_action =
+        OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), critical_by: CriticalBy::Action, ..Default::default() });
+    assert_eq!(by_action.initial(&c).unwrap().validated.critical_dims, vec![0, 3, 4]);
+    let t = by_action.transcript();
+    assert!(t[0].kind == "relevance" && t[0].reply.starts_with("A linear model of each agent's action"), "{}", t[0].reply);
+    let critical = t.iter().find(|e| e.kind == "critical_dims").unwrap();
+    assert!(
+        critical.reply.contains("of the held-out actions' variance") && critical.reply.contains("falls back to the hardest dims"),
+        "{}",
+        critical.reply
+    );
 }
 
 /// Issue 28, `fields_by = observation-relevance`: the return depends on hidden value B, which
