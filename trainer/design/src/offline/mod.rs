@@ -205,61 +205,23 @@ pub enum Phase1By {
     Frame,
 }
 
-impl std::str::FromStr for Phase1By {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "least-squares" => Ok(Phase1By::LeastSquares),
-            "frame" => Ok(Phase1By::Frame),
-            _ => Err(format!("{s:?}: use least-squares or frame")),
+/// `FromStr` for an option enum through its serde (kebab-case) names, for the CLI.
+macro_rules! option_from_str {
+    ($t:ty, $choices:literal) => {
+        impl std::str::FromStr for $t {
+            type Err = String;
+            fn from_str(s: &str) -> Result<Self, String> {
+                serde_json::from_value(serde_json::Value::String(s.into())).map_err(|_| format!("{s:?}: use {}", $choices))
+            }
         }
-    }
+    };
 }
 
-impl std::str::FromStr for ValuesBy {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "value" => Ok(ValuesBy::Value),
-            "entity" => Ok(ValuesBy::Entity),
-            _ => Err(format!("{s:?}: use value or entity")),
-        }
-    }
-}
-
-impl std::str::FromStr for SendersBy {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "recovery" => Ok(SendersBy::Recovery),
-            "return" => Ok(SendersBy::Return),
-            _ => Err(format!("{s:?}: use recovery or return")),
-        }
-    }
-}
-
-impl std::str::FromStr for FieldsBy {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "least-squares" => Ok(FieldsBy::LeastSquares),
-            "observation-relevance" => Ok(FieldsBy::ObservationRelevance),
-            _ => Err(format!("{s:?}: use least-squares or observation-relevance")),
-        }
-    }
-}
-
-impl std::str::FromStr for CriticalBy {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "relevance" => Ok(CriticalBy::Relevance),
-            "recovery" => Ok(CriticalBy::Recovery),
-            "action" => Ok(CriticalBy::Action),
-            _ => Err(format!("{s:?}: use relevance, action or recovery")),
-        }
-    }
-}
+option_from_str!(Phase1By, "least-squares or frame");
+option_from_str!(ValuesBy, "value or entity");
+option_from_str!(SendersBy, "recovery or return");
+option_from_str!(FieldsBy, "least-squares or observation-relevance");
+option_from_str!(CriticalBy, "relevance, action or recovery");
 
 impl OfflineConfig {
     /// Combinations of options that cannot work, refused before anything is collected.
