@@ -20,6 +20,10 @@
 //! units), and it measures on episodes the model did not see. Its limits are said where it is
 //! used: it reflects the collecting policy's returns, and correlated dims share their
 //! importance (shuffling one of two copies costs little).
+//!
+//! [`measure_actions`] ranks the state dims by what the collecting policy's actions depend on
+//! instead (linear models of each agent's action, the same units): where things are, where the
+//! return's value model ranks how the episode goes.
 
 use super::discriminator::{split_episodes, Standardize};
 use anyhow::{bail, Result};
