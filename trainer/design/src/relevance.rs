@@ -540,31 +540,38 @@ pub fn measure_actions(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Resu
             .collect()
     };
     let state = |(e, t): (usize, usize)| &data.episodes[e].state[t * sd..(t + 1) * sd];
-    let all_train: Vec<(usize, usize)> = (0..n).flat_map(|i| rows(&train, i)).collect();
-    let norm = Standardize::fit(sd, all_train.iter().map(|&r| state(r).to_vec()));
+    let train_rows: Vec<Vec<(usize, usize)>> = (0..n).map(|i| rows(&train, i)).collect();
+    let norm = Standardize::fit(sd, train_rows.iter().flatten().map(|&r| state(r).to_vec()));
+    // The standardised state of each row, row after row.
+    let standardized = |rows: &[(usize, usize)]| -> Vec<f64> {
+        let mut x = vec![0f32; sd];
+        let mut out = Vec::with_capacity(rows.len() * sd);
+        for &r in rows {
+            x.copy_from_slice(state(r));
+            norm.apply(&mut x);
+            out.extend(x.iter().map(|&v| f64::from(v)));
+        }
+        out
+    };
     let mut importance = vec![0f64; sd];
     let (mut r2_sum, mut fitted, mut eval_rows) = (0f64, 0usize, 0usize);
-    for i in 0..n {
-        let (tr, te) = (rows(&train, i), rows(&test, i));
+    for (i, tr) in train_rows.iter().enumerate() {
+        let te = rows(&test, i);
         if tr.len() < 2 || te.len() < 2 {
             continue;
         }
         let action = |(e, t): (usize, usize)| data.episodes[e].actions[t * n + i].clamp(0, na as i32 - 1) as usize;
-        let x_of = |r: (usize, usize)| -> Vec<f64> {
-            let mut x = state(r).to_vec();
-            norm.apply(&mut x);
-            x.into_iter().map(f64::from).collect()
-        };
+        let (xtr, xte) = (standardized(tr), standardized(&te));
         // Centred normal equations: (X'X / m + ridge I) B = X'Y / m.
         let m = tr.len() as f64;
         let (mut xm, mut ym) = (vec![0f64; sd], vec![0f64; na]);
-        for &r in &tr {
-            xm.iter_mut().zip(x_of(r)).for_each(|(a, v)| *a += v / m);
+        for (&r, x) in tr.iter().zip(xtr.chunks_exact(sd)) {
+            xm.iter_mut().zip(x).for_each(|(a, v)| *a += v / m);
             ym[action(r)] += 1.0 / m;
         }
         let (mut xx, mut xy) = (vec![0f64; sd * sd], vec![0f64; sd * na]);
-        for &r in &tr {
-            let x: Vec<f64> = x_of(r).iter().zip(&xm).map(|(v, mu)| v - mu).collect();
+        for (&r, x) in tr.iter().zip(xtr.chunks_exact(sd)) {
+            let x: Vec<f64> = x.iter().zip(&xm).map(|(v, mu)| v - mu).collect();
             let a = action(r);
             for p in 0..sd {
                 if x[p] == 0.0 {
@@ -586,8 +593,7 @@ pub fn measure_actions(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Resu
         let mut sse = 0f64;
         let mut sst = 0f64;
         let (mut sum, mut sq) = (vec![0f64; sd], vec![0f64; sd]);
-        for &r in &te {
-            let x = x_of(r);
+        for (&r, x) in te.iter().zip(xte.chunks_exact(sd)) {
             let a = action(r);
             for k in 0..na {
                 let pred = ym[k] + (0..sd).map(|p| (x[p] - xm[p]) * beta[p * na + k]).sum::<f64>();

@@ -362,15 +362,28 @@ impl OfflineDesigner {
         if rows < 2 {
             bail!("offline designer: the dataset has {rows} usable steps; it needs at least 2");
         }
+        // The fields, and how they were chosen: (in the instruction, in the reasoning).
         let (chosen, chosen_by) = if phase == 0 && self.cfg.fields_by == FieldsBy::ObservationRelevance {
-            (self.fields_by_observation_relevance(ctx, &cands, per_block, critical)?, "relevance")
+            let by = (
+                "by the relevance of what each agent sees to the return",
+                "the relevance of each agent's observation to the return, from a value model fitted on the dataset",
+            );
+            (self.fields_by_observation_relevance(ctx, &cands, per_block, critical)?, by)
         } else if phase == 1 && self.cfg.phase1_by == Phase1By::Frame {
+            let by = (
+                "by where each receiver is in the sender's view",
+                "linear fits on the dataset of each receiver's own view of phase 0's entity on the sender's view",
+            );
             // One sender: its block may take this phase's whole share but its one-hot.
-            (self.fields_by_frame(ctx, &cands, share.saturating_sub(n))?, "frame")
+            (self.fields_by_frame(ctx, &cands, share.saturating_sub(n))?, by)
         } else {
-            (None, "")
+            (None, ("", ""))
         };
-        let chosen_by = if chosen.is_some() { chosen_by } else { "least-squares" };
+        let chosen_by = if chosen.is_some() {
+            chosen_by
+        } else {
+            ("by greedy least squares", "greedy least-squares feature selection over the dataset")
+        };
         let (picks, steps, kept_count, how) = if let Some((picks, steps, how)) = chosen {
             (picks, steps, cands.len(), how)
         } else {
@@ -409,11 +422,7 @@ impl OfflineDesigner {
         let field_text: Vec<String> = fields.iter().map(|f| format!("'{}': {}", f.name, f.description)).collect();
         let instruction = format!(
             "offline designer: phase {phase} ({goal}), chosen {} on the dataset, not by an LLM. {} Each agent sends: {}. {how} Each sender's values reach a receiver after the sender's one-hot id (once per sender in the compact layout).",
-            match chosen_by {
-                "relevance" => "by the relevance of what each agent sees to the return",
-                "frame" => "by where each receiver is in the sender's view",
-                _ => "by greedy least squares",
-            },
+            chosen_by.0,
             targets.why,
             field_text.join("; "),
         );
@@ -437,11 +446,7 @@ impl OfflineDesigner {
             .map_err(|e| anyhow!("offline designer: its phase {phase} protocol is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
         let reasoning = format!(
             "# Offline designer, phase {phase} ({goal})\n\nThis protocol was built by a deterministic algorithm ({}), not by a language model.\n\n## Targets\n{}\n\n{}\n\n## Budget\n{left} message columns left of {}; this phase's share is {share} ({phases_left} phase(s) left), i.e. {per_block} value columns per sender block after the {n}-column sender one-hot.\n\n## Candidates\n{} candidate features ({}), {} kept by the marginal-correlation prescreen, {} sampled steps.\n\n## Selection\n{}\n\nResulting width: {} columns per receiving agent.\n",
-            match chosen_by {
-                "relevance" => "the relevance of each agent's observation to the return, from a value model fitted on the dataset",
-                "frame" => "linear fits on the dataset of each receiver's own view of phase 0's entity on the sender's view",
-                _ => "greedy least-squares feature selection over the dataset",
-            },
+            chosen_by.1,
             targets.dims.iter().map(|&d| format!("- {}", meta::dim_label(d, &names))).collect::<Vec<_>>().join("\n"),
             targets.why,
             env.message_budget,
