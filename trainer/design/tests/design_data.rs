@@ -785,18 +785,21 @@ fn offline_designer_chooses_what_the_return_depends_on() {
         OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), critical_by: CriticalBy::Recovery, ..Default::default() });
     assert_eq!(old.initial(&c).unwrap().validated.critical_dims, vec![0, 3, 4]);
     // `--critical-by action`: this B's actions are random, so no model of them explains
-    // anything; phase 0 says so in the actions' terms and falls back to the hardest dims.
+    // anything; phase 0 says so in the actions' terms and ranks the dims by the return instead.
     let mut by_action =
         OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), critical_by: CriticalBy::Action, ..Default::default() });
-    assert_eq!(by_action.initial(&c).unwrap().validated.critical_dims, vec![0, 3, 4]);
+    assert_eq!(by_action.initial(&c).unwrap().validated.critical_dims, vec![3]);
     let t = by_action.transcript();
     assert!(t[0].kind == "relevance" && t[0].reply.starts_with("A linear model of each agent's action"), "{}", t[0].reply);
+    assert!(t[1].kind == "relevance" && t[1].reply.starts_with("A value model of the state"), "{}", t[1].reply);
     let critical = t.iter().find(|e| e.kind == "critical_dims").unwrap();
     assert!(
-        critical.reply.contains("of the held-out actions' variance") && critical.reply.contains("falls back to the hardest dims"),
+        critical.reply.contains("of the held-out actions' variance") && critical.reply.contains("ranked by the return instead"),
         "{}",
         critical.reply
     );
+    let measured = by_action.measurements().unwrap();
+    assert!(measured["relevance"]["what"].as_str().unwrap().starts_with("permutation importance"), "{measured}");
 }
 
 /// Issue 28, `fields_by = observation-relevance`: the return depends on hidden value B, which

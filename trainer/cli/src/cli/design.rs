@@ -88,8 +88,9 @@ pub(crate) struct DesignArgs {
     /// return depends on, from a value model fitted on the dataset, and agents recover poorly
     /// without messages), `action` (what the dataset's policy's actions depend on, from a
     /// linear model of each agent's action on the state, and agents recover poorly; for a
-    /// dataset collected by a policy that sees the state, `--collect-with qmix-state`) or
-    /// `recovery` (the hardest to recover, its first rule)
+    /// dataset collected by a policy that sees the state, `--collect-with qmix-state`; ranked as
+    /// by `relevance` when those models explain under 25% of the actions) or `recovery` (the
+    /// hardest to recover, its first rule)
     #[arg(long, default_value = "relevance")]
     pub(crate) critical_by: lmac_design::offline::CriticalBy,
     /// Most task-critical dims the offline designer's relevance rule lists for phase 0 (the

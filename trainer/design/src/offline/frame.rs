@@ -24,8 +24,10 @@ pub struct FrameFit {
     pub receiver: usize,
     /// Steps where the receiver and the sender both see the entity (some of its values non-zero).
     pub rows: usize,
-    /// Share of the variance of the receiver's own view of the entity that phase 0's values
-    /// explain (linear R^2 on those steps).
+    /// Share of the variance of the receiver's own view of the entity that the rest of its own
+    /// observation explains (linear R^2 on those steps).
+    pub r2_own: f64,
+    /// Share phase 0's values (the sender's view of the entity) add to that.
     pub r2_sent: f64,
     /// The sender's further values, in the order chosen, with the share each adds.
     pub picks: Vec<(usize, f64)>,
@@ -33,15 +35,18 @@ pub struct FrameFit {
 
 impl FrameFit {
     pub fn r2(&self) -> f64 {
-        self.r2_sent + self.picks.iter().map(|p| p.1).sum::<f64>()
+        self.r2_own + self.r2_sent + self.picks.iter().map(|p| p.1).sum::<f64>()
     }
 }
 
 /// For each receiver (every agent but `sender`): which of `candidates` (the sender's o[d])
-/// explain the receiver's own view of the entity (its o[d] for d in `sent`) on top of the
-/// sender's view of it (the sender's o[sent]), greedily, each adding at least `min_gain` of the
-/// target's variance, at most `max_picks`. Fewer than [`MIN_ROWS`] shared steps: no picks.
-/// Over whole episodes spread evenly over B until about `max_rows` steps.
+/// explain the receiver's own view of the entity (its o[d] for d in `sent`) on top of the rest
+/// of the receiver's own observation and the sender's view of the entity (the sender's
+/// o[sent]), greedily, each adding at least `min_gain` of the target's variance, at most
+/// `max_picks`. Conditioning on the receiver's own observation keeps out what it already has in
+/// another form: where sight is symmetric (SMAC-Comm), the sender's offset to the receiver is
+/// the negative of the receiver's offset to the sender. Fewer than [`MIN_ROWS`] shared steps:
+/// no picks. Over whole episodes spread evenly over B until about `max_rows` steps.
 pub fn frame_fit(
     data: &Dataset,
     sender: usize,
@@ -52,13 +57,14 @@ pub fn frame_fit(
     min_gain: f64,
 ) -> Vec<FrameFit> {
     let (n, od) = (data.header.n_agents, data.header.obs_dim);
-    let (b, k) = (sent.len(), candidates.len());
-    let p = 2 * b + k;
+    let own: Vec<usize> = (0..od).filter(|d| !sent.contains(d)).collect();
+    let (q, b, k) = (own.len(), sent.len(), candidates.len());
+    // Columns: [receiver's own o[own], sender's o[sent], sender's o[candidates], receiver's o[sent]].
+    let p = q + 2 * b + k;
     let total: usize = data.steps();
     let stride = total.div_ceil(max_rows.max(1)).max(1);
     let mut fits = Vec::new();
     for i in (0..n).filter(|&i| i != sender) {
-        // Sums and cross-products of [sender's o[sent], sender's o[candidates], receiver's o[sent]].
         let (mut sum, mut cross, mut rows) = (vec![0f64; p], vec![0f64; p * p], 0usize);
         let mut row = vec![0f64; p];
         for ep in data.episodes.iter().step_by(stride) {
@@ -68,11 +74,10 @@ pub fn frame_fit(
                 if !sent.iter().any(|&d| oj[d] != 0.0) || !sent.iter().any(|&d| oi[d] != 0.0) {
                     continue;
                 }
-                for (x, &d) in row.iter_mut().zip(sent.iter().chain(candidates)) {
-                    *x = oj[d] as f64;
-                }
-                for (x, &d) in row[b + k..].iter_mut().zip(sent) {
-                    *x = oi[d] as f64;
+                let values =
+                    own.iter().map(|&d| oi[d]).chain(sent.iter().chain(candidates).map(|&d| oj[d])).chain(sent.iter().map(|&d| oi[d]));
+                for (x, v) in row.iter_mut().zip(values) {
+                    *x = v as f64;
                 }
                 for r in 0..p {
                     sum[r] += row[r];
@@ -84,7 +89,7 @@ pub fn frame_fit(
                 rows += 1;
             }
         }
-        let mut fit = FrameFit { receiver: i, rows, r2_sent: 0.0, picks: Vec::new() };
+        let mut fit = FrameFit { receiver: i, rows, r2_own: 0.0, r2_sent: 0.0, picks: Vec::new() };
         if rows < MIN_ROWS {
             fits.push(fit);
             continue;
@@ -92,27 +97,33 @@ pub fn frame_fit(
         let m = rows as f64;
         let mut cov: Vec<f64> = (0..p * p).map(|x| cross[x] / m - sum[x / p] * sum[x % p] / (m * m)).collect();
         let orig: Vec<f64> = (0..p).map(|r| cov[r * p + r]).collect();
-        let targets: Vec<usize> = (b + k..p).collect();
+        let targets: Vec<usize> = (q + b + k..p).collect();
         let target_var: f64 = targets.iter().map(|&t| orig[t]).sum();
         if target_var <= 1e-12 {
             fits.push(fit);
             continue;
         }
-        for s in 0..b {
-            select::sweep(&mut cov, p, s, orig[s]);
+        let explained = |cov: &[f64]| 1.0 - targets.iter().map(|&t| cov[t * p + t].max(0.0)).sum::<f64>() / target_var;
+        for c in 0..q {
+            select::sweep(&mut cov, p, c, orig[c]);
         }
-        let left = |cov: &[f64]| targets.iter().map(|&t| cov[t * p + t].max(0.0)).sum::<f64>();
-        fit.r2_sent = 1.0 - left(&cov) / target_var;
+        fit.r2_own = explained(&cov);
+        for c in q..q + b {
+            select::sweep(&mut cov, p, c, orig[c]);
+        }
+        fit.r2_sent = explained(&cov) - fit.r2_own;
         while fit.picks.len() < max_picks {
-            let best = (b..b + k)
-                .filter(|&c| !fit.picks.iter().any(|x| x.0 == candidates[c - b]))
-                .filter(|&c| cov[c * p + c] > 1e-9 * orig[c].max(1e-12))
+            // A candidate the receiver's own values and the earlier picks determine (left with
+            // rounding-level variance) cannot add anything.
+            let best = (q + b..q + b + k)
+                .filter(|&c| !fit.picks.iter().any(|x| x.0 == candidates[c - q - b]))
+                .filter(|&c| cov[c * p + c] > 1e-6 * orig[c].max(1e-12))
                 .map(|c| (c, targets.iter().map(|&t| cov[c * p + t].powi(2)).sum::<f64>() / cov[c * p + c] / target_var))
                 .max_by(|x, y| x.1.total_cmp(&y.1).then(y.0.cmp(&x.0)));
             match best {
                 Some((c, gain)) if gain >= min_gain => {
                     select::sweep(&mut cov, p, c, orig[c]);
-                    fit.picks.push((candidates[c - b], gain));
+                    fit.picks.push((candidates[c - q - b], gain));
                 }
                 _ => break,
             }
@@ -180,9 +191,10 @@ impl OfflineDesigner {
                 }
                 let picks: Vec<String> = f.picks.iter().map(|&(d, g)| format!("o[{d}] ({}) {g:+.3}", label(d))).collect();
                 format!(
-                    "agent {}: on {} steps where it sees it too, agent {j}'s o[{}] explain {:.3} of its own view of it; {}; R^2 {:.3}",
+                    "agent {}: on {} steps where it sees it too, the rest of its own view explains {:.3} of its view of it, agent {j}'s o[{}] {:+.3}; {}; R^2 {:.3}",
                     f.receiver,
                     f.rows,
+                    f.r2_own,
                     sent.values.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", "),
                     f.r2_sent,
                     if picks.is_empty() { "no further value adds".to_string() } else { format!("then {}", picks.join(", ")) },
@@ -195,7 +207,7 @@ impl OfflineDesigner {
             lines.push(format!("agent {j}'s o[{d}] ({}): places agent(s) {:?}, {g:.3} summed; {verdict}", label(*d), by_value[d].1));
         }
         let head = format!(
-            "Phase 0 sends agent {j}'s view of {}, in agent {j}'s frame. On the steps of B where a receiver sees it too, a linear fit of the receiver's own view of it on phase 0's values, then greedily on each other value agent {j} sees (each adding at least {:.2} of the variance, at most {} per receiver), finds what turns agent {j}'s view into the receiver's: where the receiver is in agent {j}'s view.",
+            "Phase 0 sends agent {j}'s view of {}, in agent {j}'s frame. On the steps of B where a receiver sees it too, a linear fit of the receiver's own view of it on the rest of its own observation and phase 0's values, then greedily on each other value agent {j} sees (each adding at least {:.2} of the variance, at most {} per receiver), finds what turns agent {j}'s view into the receiver's that the receiver does not already know: where the receiver is in agent {j}'s view.",
             sent.name, self.cfg.frame_min_gain, self.cfg.frame_values_per_receiver
         );
         self.log(
@@ -279,8 +291,20 @@ mod tests {
         for f in &fits {
             assert!(f.rows > 500, "{f:?}");
             assert_eq!(f.picks.iter().map(|p| p.0).collect::<Vec<_>>(), vec![1 + f.receiver], "{f:?}");
-            assert!(f.r2() > 0.99 && f.r2_sent < 0.9, "{f:?}");
+            assert!(f.r2() > 0.99 && f.r2_own + f.r2_sent < 0.9, "{f:?}");
         }
+        // A receiver that sees its own offset to the sender (agent 0's o[1], the negative of the
+        // sender's offset to it, as with symmetric sight): nothing of the sender's is picked for
+        // it, its own view and phase 0's explain its view of the target; agent 1's fit is as before.
+        let mut mirrored = data.clone();
+        for ep in &mut mirrored.episodes {
+            for t in 0..ep.len {
+                ep.obs[t * n * od + 1] = -ep.obs[(t * n + 2) * od + 1];
+            }
+        }
+        let fits = frame_fit(&mirrored, 2, &[0], &[1, 2, 3], 10_000, 4, 0.05);
+        assert!(fits[0].picks.is_empty() && fits[0].r2_own + fits[0].r2_sent > 0.99, "{:?}", fits[0]);
+        assert_eq!(fits[1].picks.iter().map(|p| p.0).collect::<Vec<_>>(), vec![2], "{:?}", fits[1]);
         // Fewer shared steps than the fit needs: no picks.
         let few = Dataset { episodes: data.episodes[..1].to_vec(), ..data.clone() };
         assert!(frame_fit(&few, 2, &[0], &[1, 2, 3], 10_000, 4, 0.05).iter().all(|f| f.picks.is_empty()));
