@@ -130,7 +130,8 @@ pub(crate) struct DesignArgs {
     /// How the offline designer chooses phase 1's fields: `least-squares` (the sender features
     /// that best explain the state dims phase 0 leaves poorly recovered) or `frame` (the values
     /// of phase 0's sender that place each receiver in its view, found by fitting each
-    /// receiver's own view of the entity phase 0 sends; needs `--values-by entity`)
+    /// receiver's own view of the entity phase 0 sends beyond what the rest of its own
+    /// observation tells; least squares when none adds enough; needs `--values-by entity`)
     #[arg(long, default_value = "least-squares")]
     pub(crate) phase1_by: lmac_design::offline::Phase1By,
     #[arg(long, default_value_t = 0)]

@@ -4,12 +4,14 @@
 //! the sender's view of the entity the return needs (on `smaclite:1o_10b_vs_1r` the Overseer's
 //! offset to the Roach); a receiver can act on it only when it also knows where it is itself in
 //! the sender's view. So phase 1 finds, from B, which further values of the sender's view turn
-//! phase 0's message into each receiver's own view of that entity: on the steps where the
-//! receiver sees the entity too (its view is the target), a linear fit of the receiver's view on
-//! phase 0's values, then greedily on each other value the sender sees, keeps the values that
-//! explain a share of the receiver's view on top. On 1o_10b the receiver's view of the Roach is
-//! the Overseer's minus where the Overseer sees that receiver, so the fit names each Baneling's
-//! teammate slot in the Overseer's view: the authors' phase 1, derived from data.
+//! phase 0's message into each receiver's own view of that entity that the receiver does not
+//! already have: on the steps where the receiver sees the entity too (its view is the target), a
+//! linear fit of the receiver's view on the rest of its own observation and phase 0's values,
+//! then greedily on each other value the sender sees, keeps the values that explain a share of
+//! the receiver's view on top. Without the receiver's own observation in the fit, on 1o_10b it
+//! named each Baneling's teammate slot in the Overseer's view (the authors' phase 1); with it,
+//! nothing: SMAC-Comm's sight is symmetric, so where the Overseer sees a Baneling is the
+//! negative of where that Baneling sees the Overseer, which it already knows.
 
 #[allow(unused_imports)]
 use super::*;

@@ -208,8 +208,9 @@ pub enum Phase1By {
     /// Greedy least squares on the state dims phase 0's messages leave poorly recovered.
     LeastSquares,
     /// The sender's further values that place each receiver in its view, so a receiver can
-    /// turn phase 0's entity, seen in the sender's frame, into its own (module `frame`: on
-    /// 1o_10b, where the Overseer sees each Baneling). Needs [`ValuesBy::Entity`].
+    /// turn phase 0's entity, seen in the sender's frame, into its own, beyond what its own
+    /// observation tells it (module `frame`); least squares when none adds enough. Needs
+    /// [`ValuesBy::Entity`].
     Frame,
 }
 
