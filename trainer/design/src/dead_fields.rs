@@ -82,6 +82,27 @@ pub fn find(data: &Dataset, phases: &[ValidatedProtocol], env: &ProtocolEnv) -> 
     Ok(scan(data, &plan, &messages))
 }
 
+/// Which of `sender`'s observation values `dims` are, on every step of B, equal to one of
+/// `receiver`'s own: sent, each would be a dead column ([`DeadColumn::CopyOfObs`]). Where
+/// sight is symmetric, what the sender sees of the receiver (visible, distance) is what the
+/// receiver sees of the sender.
+pub fn copies_of_receiver(data: &Dataset, sender: usize, receiver: usize, dims: &[usize]) -> Vec<bool> {
+    let (n, od) = (data.header.n_agents, data.header.obs_dim);
+    let mut copies: Vec<Vec<usize>> = dims.iter().map(|_| (0..od).collect()).collect();
+    for ep in &data.episodes {
+        for t in 0..ep.len {
+            let oj = &ep.obs[(t * n + sender) * od..(t * n + sender + 1) * od];
+            let oi = &ep.obs[(t * n + receiver) * od..(t * n + receiver + 1) * od];
+            for (c, &d) in copies.iter_mut().zip(dims) {
+                if !c.is_empty() {
+                    c.retain(|&k| (oi[k] - oj[d]).abs() <= TOL);
+                }
+            }
+        }
+    }
+    copies.iter().map(|c| !c.is_empty()).collect()
+}
+
 /// The dead links of `plan` on `data`, given the messages the plan writes on it
 /// ([`Dataset::messages`]; the design loop has them already).
 pub fn scan(data: &Dataset, plan: &ProtocolPlan, messages: &[Vec<f32>]) -> Vec<DeadField> {

@@ -107,4 +107,10 @@ pub trait Designer {
     fn measurements(&self) -> Option<serde_json::Value> {
         None
     }
+
+    /// The designer's own settings, for the design's `summary.json`, so a design says how it
+    /// was made (the offline designer: every knob of its configuration).
+    fn settings(&self) -> Option<serde_json::Value> {
+        None
+    }
 }

@@ -361,6 +361,7 @@ pub fn run_design(
         "evaluations": evaluations,
         "final_protocol": spec,
         "designer_measurements": designer.measurements(),
+        "designer_settings": designer.settings(),
     });
     write(&dir.join("summary.json"), &serde_json::to_string_pretty(&summary)?)?;
     Ok(dir)

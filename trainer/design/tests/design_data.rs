@@ -969,6 +969,9 @@ fn a_design_keeps_only_phases_that_add_or_says_why() {
     let mcfg = MetaConfig { discriminator: disc, ..Default::default() };
     let design = lmac_design::run::run_design(&opts, &mut designer, &mcfg, Default::default()).unwrap();
     let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(design.join("summary.json")).unwrap()).unwrap();
+    // The design says how it was made: the offline designer's knobs, as they parse back.
+    let settings: OfflineConfig = serde_json::from_value(summary["designer_settings"].clone()).unwrap();
+    assert_eq!(settings, designer.config().clone());
     let evals = summary["evaluations"].as_array().unwrap();
     assert_eq!(evals.len(), 3);
     let mut kept = Vec::new();

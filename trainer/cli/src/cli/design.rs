@@ -134,6 +134,13 @@ pub(crate) struct DesignArgs {
     /// observation tells; least squares when none adds enough; needs `--values-by entity`)
     #[arg(long, default_value = "least-squares")]
     pub(crate) phase1_by: lmac_design::offline::Phase1By,
+    /// With `--phase1-by frame`: fit each receiver's view on top of the rest of its own
+    /// observation too, so nothing it could compute from what it sees is sent. On SMAC-Comm this
+    /// sends nothing (sight is symmetric: where the sender sees a receiver is the negative of
+    /// where the receiver sees the sender) and LMAC trained worse on 1o_10b; without it, that
+    /// offset is sent in the sender's frame, as the authors' phase 1 sends it
+    #[arg(long)]
+    pub(crate) frame_given_own_view: bool,
     #[arg(long, default_value_t = 0)]
     pub(crate) seed: u64,
     /// Where design directories go.
@@ -204,6 +211,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             senders_by: a.senders_by,
             values_by: a.values_by,
             phase1_by: a.phase1_by,
+            frame_given_own_view: a.frame_given_own_view,
             ..Default::default()
         };
         // Before the dataset is collected, which the offline designer's phase 0 waits for.

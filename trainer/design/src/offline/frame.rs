@@ -4,14 +4,15 @@
 //! the sender's view of the entity the return needs (on `smaclite:1o_10b_vs_1r` the Overseer's
 //! offset to the Roach); a receiver can act on it only when it also knows where it is itself in
 //! the sender's view. So phase 1 finds, from B, which further values of the sender's view turn
-//! phase 0's message into each receiver's own view of that entity that the receiver does not
-//! already have: on the steps where the receiver sees the entity too (its view is the target), a
-//! linear fit of the receiver's view on the rest of its own observation and phase 0's values,
-//! then greedily on each other value the sender sees, keeps the values that explain a share of
-//! the receiver's view on top. Without the receiver's own observation in the fit, on 1o_10b it
-//! named each Baneling's teammate slot in the Overseer's view (the authors' phase 1); with it,
-//! nothing: SMAC-Comm's sight is symmetric, so where the Overseer sees a Baneling is the
-//! negative of where that Baneling sees the Overseer, which it already knows.
+//! phase 0's message into each receiver's own view of that entity: on the steps where the
+//! receiver sees the entity too (its view is the target), a linear fit of the receiver's view on
+//! phase 0's values, then greedily on each other value the sender sees, keeps the values that
+//! explain a share of the receiver's view on top; a value equal to one of the receiver's own on
+//! every step is never taken. On 1o_10b the fit names each Baneling's offset in the Overseer's
+//! view (the authors' phase 1). The receiver could work that offset out itself (SMAC-Comm's
+//! sight is symmetric: it is the negative of its own offset to the Overseer), and
+//! [`FrameFitConfig::given_own_view`] leaves out everything it could compute linearly, but LMAC
+//! trained far worse without it (`docs/results/design.md`), so the default sends it.
 
 #[allow(unused_imports)]
 use super::*;
@@ -27,12 +28,33 @@ pub struct FrameFit {
     /// Steps where the receiver and the sender both see the entity (some of its values non-zero).
     pub rows: usize,
     /// Share of the variance of the receiver's own view of the entity that the rest of its own
-    /// observation explains (linear R^2 on those steps).
+    /// observation explains (linear R^2 on those steps; 0 unless [`FrameFitConfig::given_own_view`]).
     pub r2_own: f64,
     /// Share phase 0's values (the sender's view of the entity) add to that.
     pub r2_sent: f64,
     /// The sender's further values, in the order chosen, with the share each adds.
     pub picks: Vec<(usize, f64)>,
+    /// Candidates left out because the receiver has them already: on every step of B equal to
+    /// one of its own values (sent, they would be dead columns).
+    pub copies: Vec<usize>,
+}
+
+/// How [`frame_fit`] fits.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameFitConfig {
+    /// About this many steps of B, whole episodes spread evenly over it.
+    pub max_rows: usize,
+    /// Most values one receiver's fit takes.
+    pub max_picks: usize,
+    /// Smallest share of the target's variance a value must add to be taken.
+    pub min_gain: f64,
+    /// Fit on top of the rest of the receiver's own observation too, so that nothing it could
+    /// compute from its own view linearly is sent. On SMAC-Comm that leaves nothing: sight is
+    /// symmetric, so where the Overseer sees a Baneling is the negative of where the Baneling
+    /// sees the Overseer. Without it, values the receiver has in another form (the offset in
+    /// the sender's frame) are sent, as the authors' phase 1 sends them, and LMAC trains far
+    /// better with them (`docs/results/design.md`); exact copies are left out either way.
+    pub given_own_view: bool,
 }
 
 impl FrameFit {
@@ -42,29 +64,19 @@ impl FrameFit {
 }
 
 /// For each receiver (every agent but `sender`): which of `candidates` (the sender's o[d])
-/// explain the receiver's own view of the entity (its o[d] for d in `sent`) on top of the rest
-/// of the receiver's own observation and the sender's view of the entity (the sender's
-/// o[sent]), greedily, each adding at least `min_gain` of the target's variance, at most
-/// `max_picks`. Conditioning on the receiver's own observation keeps out what it already has in
-/// another form: where sight is symmetric (SMAC-Comm), the sender's offset to the receiver is
-/// the negative of the receiver's offset to the sender. Fewer than [`MIN_ROWS`] shared steps:
-/// no picks. Over whole episodes spread evenly over B until about `max_rows` steps.
-pub fn frame_fit(
-    data: &Dataset,
-    sender: usize,
-    sent: &[usize],
-    candidates: &[usize],
-    max_rows: usize,
-    max_picks: usize,
-    min_gain: f64,
-) -> Vec<FrameFit> {
+/// explain the receiver's own view of the entity (its o[d] for d in `sent`) on top of the
+/// sender's view of it (the sender's o[sent]) and, with [`FrameFitConfig::given_own_view`], the
+/// rest of the receiver's own observation, greedily, each adding at least `min_gain` of the
+/// target's variance, at most `max_picks`; never a value the receiver has already (equal to one
+/// of its own on every step of B). Fewer than [`MIN_ROWS`] shared steps: no picks.
+pub fn frame_fit(data: &Dataset, sender: usize, sent: &[usize], candidates: &[usize], cfg: &FrameFitConfig) -> Vec<FrameFit> {
     let (n, od) = (data.header.n_agents, data.header.obs_dim);
-    let own: Vec<usize> = (0..od).filter(|d| !sent.contains(d)).collect();
+    let own: Vec<usize> = if cfg.given_own_view { (0..od).filter(|d| !sent.contains(d)).collect() } else { Vec::new() };
     let (q, b, k) = (own.len(), sent.len(), candidates.len());
     // Columns: [receiver's own o[own], sender's o[sent], sender's o[candidates], receiver's o[sent]].
     let p = q + 2 * b + k;
     let total: usize = data.steps();
-    let stride = total.div_ceil(max_rows.max(1)).max(1);
+    let stride = total.div_ceil(cfg.max_rows.max(1)).max(1);
     let mut fits = Vec::new();
     for i in (0..n).filter(|&i| i != sender) {
         let (mut sum, mut cross, mut rows) = (vec![0f64; p], vec![0f64; p * p], 0usize);
@@ -91,7 +103,9 @@ pub fn frame_fit(
                 rows += 1;
             }
         }
-        let mut fit = FrameFit { receiver: i, rows, r2_own: 0.0, r2_sent: 0.0, picks: Vec::new() };
+        let is_copy = crate::dead_fields::copies_of_receiver(data, sender, i, candidates);
+        let copies = candidates.iter().zip(&is_copy).filter(|x| *x.1).map(|x| *x.0).collect();
+        let mut fit = FrameFit { receiver: i, rows, r2_own: 0.0, r2_sent: 0.0, picks: Vec::new(), copies };
         if rows < MIN_ROWS {
             fits.push(fit);
             continue;
@@ -114,16 +128,16 @@ pub fn frame_fit(
             select::sweep(&mut cov, p, c, orig[c]);
         }
         fit.r2_sent = explained(&cov) - fit.r2_own;
-        while fit.picks.len() < max_picks {
+        while fit.picks.len() < cfg.max_picks {
             // A candidate the receiver's own values and the earlier picks determine (left with
             // rounding-level variance) cannot add anything.
             let best = (q + b..q + b + k)
-                .filter(|&c| !fit.picks.iter().any(|x| x.0 == candidates[c - q - b]))
+                .filter(|&c| !is_copy[c - q - b] && !fit.picks.iter().any(|x| x.0 == candidates[c - q - b]))
                 .filter(|&c| cov[c * p + c] > 1e-6 * orig[c].max(1e-12))
                 .map(|c| (c, targets.iter().map(|&t| cov[c * p + t].powi(2)).sum::<f64>() / cov[c * p + c] / target_var))
                 .max_by(|x, y| x.1.total_cmp(&y.1).then(y.0.cmp(&x.0)));
             match best {
-                Some((c, gain)) if gain >= min_gain => {
+                Some((c, gain)) if gain >= cfg.min_gain => {
                     select::sweep(&mut cov, p, c, orig[c]);
                     fit.picks.push((candidates[c - q - b], gain));
                 }
@@ -160,15 +174,14 @@ impl OfflineDesigner {
         let j = sent.sender;
         let candidates: Vec<usize> =
             (0..data.header.obs_dim).filter(|d| !sent.values.contains(d) && obs_cand(*d).is_some() && varies_for(data, j, *d)).collect();
-        let fits = frame_fit(
-            data,
-            j,
-            &sent.values,
-            &candidates,
-            self.cfg.max_samples,
-            self.cfg.frame_values_per_receiver,
-            self.cfg.frame_min_gain,
-        );
+        let given_own_view = self.cfg.frame_given_own_view;
+        let fit_cfg = FrameFitConfig {
+            max_rows: self.cfg.max_samples,
+            max_picks: self.cfg.frame_values_per_receiver,
+            min_gain: self.cfg.frame_min_gain,
+            given_own_view,
+        };
+        let fits = frame_fit(data, j, &sent.values, &candidates, &fit_cfg);
         // Each value by the share it adds, summed over the receivers it places.
         let mut by_value: BTreeMap<usize, (f64, Vec<usize>)> = BTreeMap::new();
         for f in &fits {
@@ -192,11 +205,21 @@ impl OfflineDesigner {
                     return format!("agent {}: sees it together with agent {j} on {} steps of B, too few to fit", f.receiver, f.rows);
                 }
                 let picks: Vec<String> = f.picks.iter().map(|&(d, g)| format!("o[{d}] ({}) {g:+.3}", label(d))).collect();
+                let own = if given_own_view {
+                    format!("the rest of its own view explains {:.3} of its view of it, ", f.r2_own)
+                } else {
+                    String::new()
+                };
+                let copies = if f.copies.is_empty() {
+                    String::new()
+                } else {
+                    let d: Vec<String> = f.copies.iter().map(|d| d.to_string()).collect();
+                    format!(" (left out: agent {j}'s o[{}], equal to values it sees itself on every step)", d.join(", "))
+                };
                 format!(
-                    "agent {}: on {} steps where it sees it too, the rest of its own view explains {:.3} of its view of it, agent {j}'s o[{}] {:+.3}; {}; R^2 {:.3}",
+                    "agent {}: on {} steps where it sees it too, {own}agent {j}'s o[{}] explain {:.3}; {}; R^2 {:.3}{copies}",
                     f.receiver,
                     f.rows,
-                    f.r2_own,
                     sent.values.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", "),
                     f.r2_sent,
                     if picks.is_empty() { "no further value adds".to_string() } else { format!("then {}", picks.join(", ")) },
@@ -209,8 +232,11 @@ impl OfflineDesigner {
             lines.push(format!("agent {j}'s o[{d}] ({}): places agent(s) {:?}, {g:.3} summed; {verdict}", label(*d), by_value[d].1));
         }
         let head = format!(
-            "Phase 0 sends agent {j}'s view of {}, in agent {j}'s frame. On the steps of B where a receiver sees it too, a linear fit of the receiver's own view of it on the rest of its own observation and phase 0's values, then greedily on each other value agent {j} sees (each adding at least {:.2} of the variance, at most {} per receiver), finds what turns agent {j}'s view into the receiver's that the receiver does not already know: where the receiver is in agent {j}'s view.",
-            sent.name, self.cfg.frame_min_gain, self.cfg.frame_values_per_receiver
+            "Phase 0 sends agent {j}'s view of {}, in agent {j}'s frame. On the steps of B where a receiver sees it too, a linear fit of the receiver's own view of it on {}phase 0's values, then greedily on each other value agent {j} sees that the receiver does not see itself (each adding at least {:.2} of the variance, at most {} per receiver), finds what turns agent {j}'s view into the receiver's: where the receiver is in agent {j}'s view.",
+            sent.name,
+            if given_own_view { "the rest of its own observation and " } else { "" },
+            self.cfg.frame_min_gain,
+            self.cfg.frame_values_per_receiver
         );
         self.log(
             1,
@@ -288,7 +314,8 @@ mod tests {
             seed: 0,
         };
         let data = Dataset { header, episodes };
-        let fits = frame_fit(&data, 2, &[0], &[1, 2, 3], 10_000, 4, 0.05);
+        let plain = FrameFitConfig { max_rows: 10_000, max_picks: 4, min_gain: 0.05, given_own_view: false };
+        let fits = frame_fit(&data, 2, &[0], &[1, 2, 3], &plain);
         assert_eq!(fits.iter().map(|f| f.receiver).collect::<Vec<_>>(), vec![0, 1]);
         for f in &fits {
             assert!(f.rows > 500, "{f:?}");
@@ -304,11 +331,24 @@ mod tests {
                 ep.obs[t * n * od + 1] = -ep.obs[(t * n + 2) * od + 1];
             }
         }
-        let fits = frame_fit(&mirrored, 2, &[0], &[1, 2, 3], 10_000, 4, 0.05);
+        let given = FrameFitConfig { given_own_view: true, ..plain };
+        let fits = frame_fit(&mirrored, 2, &[0], &[1, 2, 3], &given);
         assert!(fits[0].picks.is_empty() && fits[0].r2_own + fits[0].r2_sent > 0.99, "{:?}", fits[0]);
         assert_eq!(fits[1].picks.iter().map(|p| p.0).collect::<Vec<_>>(), vec![2], "{:?}", fits[1]);
+        // Without the receiver's view in the fit, the negated offset is sent (a form the
+        // receiver does not have); an exact copy of one of its own values never is.
+        let fits = frame_fit(&mirrored, 2, &[0], &[1, 2, 3], &plain);
+        assert_eq!(fits[0].picks.iter().map(|p| p.0).collect::<Vec<_>>(), vec![1], "{:?}", fits[0]);
+        let mut copied = data.clone();
+        for ep in &mut copied.episodes {
+            for t in 0..ep.len {
+                ep.obs[t * n * od + 1] = ep.obs[(t * n + 2) * od + 1];
+            }
+        }
+        let fits = frame_fit(&copied, 2, &[0], &[1, 2, 3], &plain);
+        assert_eq!((fits[0].copies.clone(), fits[0].picks.len()), (vec![1], 0), "{:?}", fits[0]);
         // Fewer shared steps than the fit needs: no picks.
         let few = Dataset { episodes: data.episodes[..1].to_vec(), ..data.clone() };
-        assert!(frame_fit(&few, 2, &[0], &[1, 2, 3], 10_000, 4, 0.05).iter().all(|f| f.picks.is_empty()));
+        assert!(frame_fit(&few, 2, &[0], &[1, 2, 3], &plain).iter().all(|f| f.picks.is_empty()));
     }
 }

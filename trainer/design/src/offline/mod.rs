@@ -49,7 +49,7 @@ mod meta_dims;
 mod select;
 use assemble::*;
 use candidates::*;
-pub use frame::{frame_fit, FrameFit};
+pub use frame::{frame_fit, FrameFit, FrameFitConfig};
 use meta_dims::*;
 use select::*;
 
@@ -108,6 +108,9 @@ pub struct OfflineConfig {
     pub frame_min_gain: f64,
     /// [`Phase1By::Frame`]: most values one receiver's fit takes.
     pub frame_values_per_receiver: usize,
+    /// [`Phase1By::Frame`]: fit on top of the receiver's own observation too
+    /// ([`FrameFitConfig::given_own_view`]).
+    pub frame_given_own_view: bool,
     /// How phase 0 chooses the task-critical dims.
     pub critical_by: CriticalBy,
     /// The value model behind [`CriticalBy::Relevance`].
@@ -267,6 +270,7 @@ impl Default for OfflineConfig {
             phase1_by: Phase1By::LeastSquares,
             frame_min_gain: 0.05,
             frame_values_per_receiver: 4,
+            frame_given_own_view: false,
             critical_by: CriticalBy::Relevance,
             relevance: Default::default(),
             min_relevance: 0.01,
@@ -1164,6 +1168,10 @@ impl Designer for OfflineDesigner {
 
     fn transcript(&self) -> Vec<TranscriptEntry> {
         self.transcript.clone()
+    }
+
+    fn settings(&self) -> Option<serde_json::Value> {
+        serde_json::to_value(&self.cfg).ok()
     }
 
     fn measurements(&self) -> Option<serde_json::Value> {
