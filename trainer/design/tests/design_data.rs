@@ -934,6 +934,9 @@ fn values_by_entity_sends_the_whole_entity_the_return_needs() {
     let by_value = OfflineConfig { values_by: lmac_design::offline::ValuesBy::Value, ..frame };
     let e = OfflineDesigner::new(by_value).initial(&c).unwrap_err();
     assert!(format!("{e:#}").contains("(--phase1-by frame) places the receivers"), "{e:#}");
+    let given_alone = OfflineConfig { frame_given_own_view: true, ..cfg.clone() };
+    let e = OfflineDesigner::new(given_alone).initial(&c).unwrap_err();
+    assert!(format!("{e:#}").contains("--frame-given-own-view changes how"), "{e:#}");
 
     let recovery = OfflineConfig { senders_by: lmac_design::offline::SendersBy::Recovery, ..cfg };
     let e = OfflineDesigner::new(recovery).initial(&c).unwrap_err();

@@ -130,15 +130,16 @@ pub(crate) struct DesignArgs {
     /// How the offline designer chooses phase 1's fields: `least-squares` (the sender features
     /// that best explain the state dims phase 0 leaves poorly recovered) or `frame` (the values
     /// of phase 0's sender that place each receiver in its view, found by fitting each
-    /// receiver's own view of the entity phase 0 sends beyond what the rest of its own
-    /// observation tells; least squares when none adds enough; needs `--values-by entity`)
+    /// receiver's own view of the entity phase 0 sends, never a copy of what it sees itself;
+    /// least squares when none adds enough; needs `--values-by entity`)
     #[arg(long, default_value = "least-squares")]
     pub(crate) phase1_by: lmac_design::offline::Phase1By,
     /// With `--phase1-by frame`: fit each receiver's view on top of the rest of its own
     /// observation too, so nothing it could compute from what it sees is sent. On SMAC-Comm this
     /// sends nothing (sight is symmetric: where the sender sees a receiver is the negative of
-    /// where the receiver sees the sender) and LMAC trained worse on 1o_10b; without it, that
-    /// offset is sent in the sender's frame, as the authors' phase 1 sends it
+    /// where the receiver sees the sender) and LMAC trained worse on 1o_10b (best-checkpoint
+    /// IQM 6.08 against 8.74); without it, that offset is sent in the sender's frame, as the
+    /// authors' phase 1 sends it
     #[arg(long)]
     pub(crate) frame_given_own_view: bool,
     #[arg(long, default_value_t = 0)]

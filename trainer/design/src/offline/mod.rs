@@ -211,9 +211,9 @@ pub enum Phase1By {
     /// Greedy least squares on the state dims phase 0's messages leave poorly recovered.
     LeastSquares,
     /// The sender's further values that place each receiver in its view, so a receiver can
-    /// turn phase 0's entity, seen in the sender's frame, into its own, beyond what its own
-    /// observation tells it (module `frame`); least squares when none adds enough. Needs
-    /// [`ValuesBy::Entity`].
+    /// turn phase 0's entity, seen in the sender's frame, into its own (module `frame`),
+    /// never an exact copy of a value the receiver sees itself; least squares when none adds
+    /// enough. Needs [`ValuesBy::Entity`].
     Frame,
 }
 
@@ -243,6 +243,9 @@ impl OfflineConfig {
         }
         if self.phase1_by == Phase1By::Frame && (self.values_by != ValuesBy::Entity || self.fields_by != FieldsBy::ObservationRelevance) {
             bail!("offline designer: phase 1 by the sender's frame (--phase1-by frame) places the receivers in the view of the sender of phase 0's entity, so it needs --fields-by observation-relevance --values-by entity");
+        }
+        if self.frame_given_own_view && self.phase1_by != Phase1By::Frame {
+            bail!("offline designer: --frame-given-own-view changes how phase 1's frame fit is made, so it needs --phase1-by frame");
         }
         Ok(())
     }
