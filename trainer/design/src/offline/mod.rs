@@ -941,26 +941,21 @@ impl Designer for OfflineDesigner {
                 // little of the policy, by the return; when that explains too little, by recovery.
                 let mut fell_back = String::new();
                 let mut by = self.cfg.critical_by;
-                let mut choice = None;
-                if by == CriticalBy::Action {
-                    let rel = super::relevance::measure_actions(data, &self.cfg.relevance, ctx.seed)
-                        .context("offline designer: measuring what each agent's actions depend on")?;
+                let (rel, choice) = loop {
+                    let rel = if by == CriticalBy::Action {
+                        super::relevance::measure_actions(data, &self.cfg.relevance, ctx.seed)
+                            .context("offline designer: measuring what each agent's actions depend on")?
+                    } else {
+                        super::relevance::measure(data, &self.cfg.relevance, ctx.seed)
+                            .context("offline designer: measuring each state dim's relevance to the return")?
+                    };
                     match self.by_relevance(ctx, &rel, by, &all) {
-                        Ok(c) => choice = Some((rel, Ok(c))),
-                        Err(reason) => {
+                        Err(reason) if by == CriticalBy::Action => {
                             eprintln!("lmac: offline designer: ranking by the return instead: {reason}");
                             fell_back = format!("By the policy's actions: {reason} So the dims are ranked by the return instead. ");
                             by = CriticalBy::Relevance;
                         }
-                    }
-                }
-                let (rel, choice) = match choice {
-                    Some(c) => c,
-                    None => {
-                        let rel = super::relevance::measure(data, &self.cfg.relevance, ctx.seed)
-                            .context("offline designer: measuring each state dim's relevance to the return")?;
-                        let c = self.by_relevance(ctx, &rel, by, &all);
-                        (rel, c)
+                        choice => break (rel, choice),
                     }
                 };
                 self.relevance = Some((rel.clone(), by));
