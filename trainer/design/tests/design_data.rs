@@ -830,14 +830,19 @@ fn observation_relevance_chooses_the_agent_that_sees_what_matters() {
     for f in json["fields"].as_array().unwrap() {
         assert_eq!(f["senders"], serde_json::json!([1]), "{f}");
     }
-    let sent: Vec<u64> = json["fields"]
+    let sent = sent_obs(&json);
+    assert!(sent.contains(&2), "agent 1's view of hidden value B is sent: {json}");
+}
+
+/// The observation values a protocol's fields send (`{"obs": [...]}` fields), in field order.
+fn sent_obs(protocol: &serde_json::Value) -> Vec<u64> {
+    protocol["fields"]
         .as_array()
         .unwrap()
         .iter()
         .flat_map(|f| f["value"]["obs"].as_array().cloned().unwrap_or_default())
         .map(|v| v.as_u64().unwrap())
-        .collect();
-    assert!(sent.contains(&2), "agent 1's view of hidden value B is sent: {json}");
+        .collect()
 }
 
 /// The split-view task rewarded when hidden value B (agent 1's o[2]) is 1 or more.
@@ -941,6 +946,42 @@ fn values_by_entity_sends_the_whole_entity_the_return_needs() {
     let recovery = OfflineConfig { senders_by: lmac_design::offline::SendersBy::Recovery, ..cfg };
     let e = OfflineDesigner::new(recovery).initial(&c).unwrap_err();
     assert!(format!("{e:#}").contains("--values-by entity) needs --senders-by return"), "{e:#}");
+}
+
+/// `--values-by recovery` on LBF-shaped random walks: a grid cell of the state is recoverable
+/// from the teammate's row and column, not from a value model of the return (the walk's
+/// actions are random), and the teammate's view rows say nothing about absolute cells without
+/// them. Each entity of the sender's view is probed alone with a discriminator, and the
+/// sender's row and column (o[27], o[28], one value each) add the most per value, so phase 0
+/// sends them first; the ranking says what every probe added.
+#[test]
+fn values_by_recovery_sends_where_the_sender_is() {
+    let data = lbf_walk(300, 5);
+    let schema = lmac_shm_schema::schema::load_env("lbf:8x8-2p-2f-s1-coop").unwrap();
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    let c = ctx(&schema, &env, &data);
+    let cfg = OfflineConfig {
+        discriminator: quick_disc(),
+        fields_by: FieldsBy::ObservationRelevance,
+        values_by: lmac_design::offline::ValuesBy::Recovery,
+        critical_by: CriticalBy::Recovery,
+        ..Default::default()
+    };
+    let mut designer = OfflineDesigner::new(cfg.clone());
+    let p0 = designer.initial(&c).unwrap();
+    let t = designer.transcript();
+    let obs_rel = t.iter().find(|e| e.kind == "observation_relevance").expect("the ranking is in the transcript");
+    let probes: Vec<&str> = obs_rel.reply.lines().filter(|l| l.contains("sent alone to the others, it raises their recovery")).collect();
+    assert!(probes.len() >= 8, "every entity of the sender's view is probed: {}", obs_rel.reply);
+    for first in &probes[..2] {
+        assert!(first.contains("own field row") || first.contains("own field column"), "{}", obs_rel.reply);
+        assert!(first.contains("CHOSEN"), "{}", obs_rel.reply);
+    }
+    assert!(p0.protocol.message_design_instruction.contains("most raises their recovery of the critical dims per value sent first"));
+    let json = serde_json::to_value(&p0.protocol).unwrap();
+    let sent = sent_obs(&json);
+    assert!(sent.contains(&27) && sent.contains(&28), "the sender's row and column are sent: {json}");
+    assert!(sent.len() <= cfg.max_relevant_values, "{json}");
 }
 
 /// `--drop-unhelpful-phases` on a dataset whose state is noise (no message can help recover

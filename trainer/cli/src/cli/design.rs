@@ -122,16 +122,18 @@ pub(crate) struct DesignArgs {
     #[arg(long, default_value = "recovery")]
     pub(crate) senders_by: lmac_design::offline::SendersBy,
     /// What of a sender's view `--fields-by observation-relevance` sends: `value` (its values
-    /// one by one, most relevant to the return first) or `entity` (whole entities of the
+    /// one by one, most relevant to the return first), `entity` (whole entities of the
     /// schema, e.g. everything the sender sees of the Roach, the entity that matters most to
-    /// the receivers' value model first; needs `--senders-by return`)
+    /// the receivers' value model first; needs `--senders-by return`) or `recovery` (whole
+    /// entities, the one that, sent alone, most raises the receivers' recovery of the critical
+    /// dims per value first: a discriminator per entity)
     #[arg(long, default_value = "value")]
     pub(crate) values_by: lmac_design::offline::ValuesBy,
     /// How the offline designer chooses phase 1's fields: `least-squares` (the sender features
     /// that best explain the state dims phase 0 leaves poorly recovered) or `frame` (the values
     /// of phase 0's sender that place each receiver in its view, found by fitting each
     /// receiver's own view of the entity phase 0 sends, never a copy of what it sees itself;
-    /// least squares when none adds enough; needs `--values-by entity`)
+    /// least squares when none adds enough; needs `--values-by entity` or `recovery`)
     #[arg(long, default_value = "least-squares")]
     pub(crate) phase1_by: lmac_design::offline::Phase1By,
     /// With `--phase1-by frame`: fit each receiver's view on top of the rest of its own

@@ -202,6 +202,13 @@ pub enum ValuesBy {
     ///
     /// [`EnvSchema::obs_entities`]: lmac_shm_schema::schema::EnvSchema::obs_entities
     Entity,
+    /// Whole entities as with [`ValuesBy::Entity`], ranked instead by what each, sent alone to
+    /// the others, adds to their recovery of the critical dims per value sent (a discriminator
+    /// per sender and entity, nonlinear like the LMAC decoder it stands for). A value model of
+    /// the return cannot rank where a teammate is when the state writes it as grid cells (on
+    /// LBF 8x8 it ranked the view's top row first), but the teammate's own row and column make
+    /// its cell recoverable, so this rule sends them. Works with either `--senders-by`.
+    Recovery,
 }
 
 /// How phase 1 (recognition enhancement) chooses its fields.
@@ -213,7 +220,7 @@ pub enum Phase1By {
     /// The sender's further values that place each receiver in its view, so a receiver can
     /// turn phase 0's entity, seen in the sender's frame, into its own (module `frame`),
     /// never an exact copy of a value the receiver sees itself; least squares when none adds
-    /// enough. Needs [`ValuesBy::Entity`].
+    /// enough. Needs [`ValuesBy::Entity`] or [`ValuesBy::Recovery`].
     Frame,
 }
 
@@ -230,7 +237,7 @@ macro_rules! option_from_str {
 }
 
 option_from_str!(Phase1By, "least-squares or frame");
-option_from_str!(ValuesBy, "value or entity");
+option_from_str!(ValuesBy, "value, entity or recovery");
 option_from_str!(SendersBy, "recovery or return");
 option_from_str!(FieldsBy, "least-squares or observation-relevance");
 option_from_str!(CriticalBy, "relevance, action or recovery");
@@ -241,8 +248,8 @@ impl OfflineConfig {
         if self.values_by == ValuesBy::Entity && self.senders_by != SendersBy::Return {
             bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return: the entities are ranked in the receivers' value model of the return");
         }
-        if self.phase1_by == Phase1By::Frame && (self.values_by != ValuesBy::Entity || self.fields_by != FieldsBy::ObservationRelevance) {
-            bail!("offline designer: phase 1 by the sender's frame (--phase1-by frame) places the receivers in the view of the sender of phase 0's entity, so it needs --fields-by observation-relevance --values-by entity");
+        if self.phase1_by == Phase1By::Frame && (self.values_by == ValuesBy::Value || self.fields_by != FieldsBy::ObservationRelevance) {
+            bail!("offline designer: phase 1 by the sender's frame (--phase1-by frame) places the receivers in the view of the sender of phase 0's entity, so it needs --fields-by observation-relevance --values-by entity (or recovery)");
         }
         if self.frame_given_own_view && self.phase1_by != Phase1By::Frame {
             bail!("offline designer: --frame-given-own-view changes how phase 1's frame fit is made, so it needs --phase1-by frame");
@@ -296,7 +303,8 @@ pub struct OfflineDesigner {
     /// Factor on [`OfflineConfig::min_gain`]: doubled each time a phase added nothing to the
     /// phases before it, so the next one sends only what explains more per column.
     gain_scale: f64,
-    /// The first entity phase 0 sent whole ([`ValuesBy::Entity`]), for [`Phase1By::Frame`].
+    /// The first entity phase 0 sent whole ([`ValuesBy::Entity`], [`ValuesBy::Recovery`]), for
+    /// [`Phase1By::Frame`].
     sent_entity: Option<SentEntity>,
 }
 
@@ -606,21 +614,55 @@ impl OfflineDesigner {
             })
             .collect();
         lines.append(&mut agent_lines);
-        if self.cfg.values_by == ValuesBy::Entity {
-            // The senders' entities, the costliest to shuffle first; each sends every value of
-            // it that varies for its sender on B, whole, while the budget has room for it (the
-            // first entity chosen fills what room there is with its most relevant values).
-            let mut ranked: Vec<(usize, usize)> = senders.iter().flat_map(|&j| (0..entities.len()).map(move |k| (j, k))).collect();
-            ranked.sort_by(|&(a, x), &(b, y)| entity_importance[b][y].total_cmp(&entity_importance[a][x]).then((a, x).cmp(&(b, y))));
+        if self.cfg.values_by != ValuesBy::Value {
+            // The senders' entities, best first: by `entity`, the costliest to shuffle in the
+            // receivers' value model; by `recovery`, the most added to the receivers' recovery
+            // of the critical dims per value sent. Each sends every value of it that varies for
+            // its sender on B, whole, while the budget has room for it (the first entity chosen
+            // fills what room there is with its most relevant values).
             let meanings = &ctx.env.obs_names;
-            for &(j, k) in ranked.iter().take(8) {
+            let varying_of = |j: usize, k: usize| -> Vec<usize> {
+                entities[k].clone().filter(|&d| varies_for(data, j, d) && obs_cand(d).is_some()).collect()
+            };
+            let by_recovery = self.cfg.values_by == ValuesBy::Recovery;
+            // score[j][k] and what it measured, per sender j (others stay empty).
+            let mut score = vec![Vec::new(); n];
+            let mut score_text = vec![Vec::new(); n];
+            for &j in &senders {
+                if by_recovery {
+                    let probes: Vec<(usize, Vec<usize>)> = (0..entities.len()).map(|k| (j, varying_of(j, k))).collect();
+                    let gains = self.probe_gains(ctx, critical, &probes)?;
+                    for (g, (_, sent)) in gains.iter().zip(&probes) {
+                        let per_value = if sent.is_empty() { 0.0 } else { g / sent.len() as f64 };
+                        score[j].push(per_value);
+                        score_text[j].push(format!(
+                            "sent alone to the others, it raises their recovery of the critical dims by {g:+.4} ({per_value:+.4} per value sent)"
+                        ));
+                    }
+                } else {
+                    for k in 0..entities.len() {
+                        let imp = entity_importance[j][k];
+                        score[j].push(imp);
+                        let e = entities[k].clone();
+                        score_text[j].push(format!(
+                            "relevance {imp:.4} (its values one by one: {})",
+                            e.map(|d| format!("{:.3}", importance(j * od + d))).collect::<Vec<_>>().join(", ")
+                        ));
+                    }
+                }
+            }
+            let mut ranked: Vec<(usize, usize)> = senders.iter().flat_map(|&j| (0..entities.len()).map(move |k| (j, k))).collect();
+            ranked.sort_by(|&(a, x), &(b, y)| score[b][y].total_cmp(&score[a][x]).then((a, x).cmp(&(b, y))));
+            for &(j, k) in ranked.iter().take(if by_recovery { 12 } else { 8 }) {
                 let e = entities[k].clone();
-                let imp = entity_importance[j][k];
-                let mut varying: Vec<usize> = e.clone().filter(|&d| varies_for(data, j, d) && obs_cand(d).is_some()).collect();
+                let x = score[j][k];
+                let mut varying = varying_of(j, k);
                 let room = self.cfg.max_relevant_values.saturating_sub(picks.len()).min(per_block.saturating_sub(per_sender[j]));
-                let verdict = if !usable {
+                let verdict = if !usable && !by_recovery {
                     "not chosen: the value model explains too little".to_string()
-                } else if imp < self.cfg.min_relevance {
+                } else if by_recovery && x <= 0.0 {
+                    "not chosen: it adds nothing to the receivers' recovery".to_string()
+                } else if !by_recovery && x < self.cfg.min_relevance {
                     format!("not chosen: shuffling it costs less than {}", self.cfg.min_relevance)
                 } else if varying.is_empty() {
                     format!("not chosen: none of its values varies for agent {j} on B")
@@ -639,7 +681,11 @@ impl OfflineDesigner {
                     for &d in &varying {
                         let cand = obs_cand(d).context("offline designer: a varying value has no candidate (a bug)")?;
                         per_sender[j] += 1;
-                        picks.push(Pick { cand, links: to_everyone_from(n, j), gain: importance(j * od + d) });
+                        picks.push(Pick {
+                            cand,
+                            links: to_everyone_from(n, j),
+                            gain: if by_recovery { x } else { importance(j * od + d) },
+                        });
                     }
                     format!(
                         "CHOSEN: o[{}] sent by this agent to every other agent",
@@ -647,11 +693,11 @@ impl OfflineDesigner {
                     )
                 };
                 lines.push(format!(
-                    "agent {j}'s {} (o[{}..{}]): relevance {imp:.4} (its values one by one: {}); {verdict}",
+                    "agent {j}'s {} (o[{}..{}]): {}; {verdict}",
                     short(&entity_name(meanings.get(e.clone()).unwrap_or(&[]))),
                     e.start,
                     e.end,
-                    e.clone().map(|d| format!("{:.3}", importance(j * od + d))).collect::<Vec<_>>().join(", ")
+                    score_text[j][k]
                 ));
             }
         } else {
@@ -711,6 +757,8 @@ impl OfflineDesigner {
                     }
                     SendersBy::Return => "no agent's observation helps the others predict the return".to_string(),
                 }
+            } else if self.cfg.values_by == ValuesBy::Recovery {
+                "no entity of the senders' view, sent alone, adds to the others' recovery of the critical dims".to_string()
             } else if usable {
                 "no value of the senders' observation costs the value model anything when shuffled".to_string()
             } else {
@@ -732,45 +780,68 @@ impl OfflineDesigner {
                 picks.len(),
                 senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
             ),
+            ValuesBy::Recovery => format!(
+                "{head} Phase 0 sends whole entities (the schema's units and objects as the sender sees them), the one that, sent alone to the others, most raises their recovery of the critical dims per value sent first (a discriminator trained per sender and entity on B, measured on held-out episodes): {} value(s) of agent(s) {}, from the agent that sees them to every other agent.",
+                picks.len(),
+                senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
+            ),
         };
-        let steps = lines.into_iter().take(n + picks.len().max(8)).collect();
+        let steps = lines.into_iter().take(n + picks.len().max(if self.cfg.values_by == ValuesBy::Recovery { 12 } else { 8 })).collect();
         Ok(Some((picks, steps, how)))
     }
 
     /// Per agent j: how much sending all of j's observation to every other agent raises their
-    /// recovery of `dims` (mean E_t[chi] over the dims and the receivers, with against without
-    /// messages; a discriminator trained for each j on B's training episodes, measured on the
-    /// held-out ones; "without" is phase 0's own measurement).
+    /// recovery of `dims` ([`Self::probe_gains`] with one probe per agent).
     fn sender_gains(&self, ctx: &DesignContext, dims: &[usize]) -> Result<Vec<f64>> {
+        let od = ctx.env.obs_dim;
+        let probes: Vec<(usize, Vec<usize>)> = (0..ctx.env.n_agents).map(|j| (j, (0..od).collect())).collect();
+        self.probe_gains(ctx, dims, &probes)
+    }
+
+    /// Per probe (j, values): how much agent j sending its o[values] to every other agent
+    /// raises their recovery of `dims` (mean E_t[chi] over the dims and the receivers, with
+    /// against without messages; a discriminator trained per probe on B's training episodes,
+    /// measured on the held-out ones; "without" is phase 0's own measurement). 0 for a probe
+    /// with no values.
+    fn probe_gains(&self, ctx: &DesignContext, dims: &[usize], probes: &[(usize, Vec<usize>)]) -> Result<Vec<f64>> {
         let env = ctx.env;
         let n = env.n_agents;
         let disc = &self.cfg.discriminator;
         let without = self.without.as_ref().context("offline designer: phase 0's recovery without messages is not measured yet")?;
-        let mut gains = Vec::with_capacity(n);
-        for j in 0..n {
+        let mut gains = Vec::with_capacity(probes.len());
+        for (j, values) in probes.iter().map(|(j, v)| (*j, v)) {
+            if values.is_empty() {
+                gains.push(0.0);
+                continue;
+            }
+            let what = if values.len() == env.obs_dim {
+                "its whole observation".to_string()
+            } else {
+                format!("its o[{}]", values.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", "))
+            };
             let p = Protocol {
-                name: Some(format!("offline_sender_probe_{j}")),
+                name: Some(format!("offline_probe_{j}")),
                 phase: Some(0),
-                message_design_instruction: format!("probe: agent {j} sends its whole observation"),
+                message_design_instruction: format!("probe: agent {j} sends {what}"),
                 critical_state_dims: dims.iter().map(|&d| DimSpec::Dim(d)).collect(),
                 critical_state_reasoning: None,
                 sender_one_hot: true,
                 history_padding: HistoryPadding::default(),
                 layout: MessageLayout::default(),
                 fields: vec![Field {
-                    name: "all".into(),
+                    name: "probe".into(),
                     description: "probe".into(),
                     senders: Senders::List(vec![j]),
                     receivers: Receivers::Peer(vec![PeerLink { from: j, to: (0..n).filter(|&i| i != j).collect() }]),
-                    value: Expr::Obs((0..env.obs_dim).collect()),
+                    value: Expr::Obs(values.clone()),
                 }],
                 env: None,
                 schema_fingerprint: None,
             };
             let v = protocol::validate_phase(&p, env, &[])
-                .map_err(|e| anyhow!("offline designer: its sender probe is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
+                .map_err(|e| anyhow!("offline designer: its probe is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
             let with = meta::recovery_with(ctx, &[v], disc, dims)
-                .with_context(|| format!("offline designer: recovery with agent {j}'s observation"))?;
+                .with_context(|| format!("offline designer: recovery with agent {j} sending {what}"))?;
             let mut sum = 0.0;
             for (k, &d) in dims.iter().enumerate() {
                 let kw = without.position(d).with_context(|| format!("offline designer: s[{d}] has no recovery without messages"))?;
@@ -778,11 +849,9 @@ impl OfflineDesigner {
                     sum += with.rate(k, i) - without.rate(kw, i);
                 }
             }
-            gains.push(sum / (dims.len() * (n - 1)).max(1) as f64);
-            eprintln!(
-                "lmac: offline designer: agent {j}'s whole observation to the others: recovery of the critical dims {:+.3}",
-                gains[j]
-            );
+            let gain = sum / (dims.len() * (n - 1)).max(1) as f64;
+            gains.push(gain);
+            eprintln!("lmac: offline designer: agent {j} sending {what} to the others: recovery of the critical dims {gain:+.4}");
         }
         Ok(gains)
     }
