@@ -375,8 +375,10 @@ fn measure_on<'a>(
         x
     };
     let ys: Vec<f64> = train_rows.iter().map(|&(e, t)| g[e][t] as f64).collect();
-    if lmac_learn::stats::variance(&ys) < 1e-12 {
-        // A constant return (no reward on B): nothing depends on any dim.
+    let held_out_ys: Vec<f64> = test_rows.iter().map(|&(e, t)| g[e][t] as f64).collect();
+    if lmac_learn::stats::variance(&ys) < 1e-12 || lmac_learn::stats::variance(&held_out_ys) < 1e-12 {
+        // A constant return (no reward on B, or none in its held-out episodes): nothing
+        // depends on any dim, and a held-out R^2 against no variance would be noise over ~0.
         return Ok(Relevance {
             importance: vec![0.0; sd],
             groups: vec![0.0; groups.len()],
