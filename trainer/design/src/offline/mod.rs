@@ -617,6 +617,8 @@ impl OfflineDesigner {
             })
             .collect();
         lines.append(&mut agent_lines);
+        // Entities ranked and shown: every probe's with `recovery` (each cost a discriminator).
+        let shown_entities = if self.cfg.values_by == ValuesBy::Recovery { 12 } else { 8 };
         if self.cfg.values_by != ValuesBy::Value {
             // The senders' entities, best first: by `entity`, the costliest to shuffle in the
             // receivers' value model; by `recovery`, the most added to the receivers' recovery
@@ -624,16 +626,20 @@ impl OfflineDesigner {
             // its sender on B, whole, while the budget has room for it (the first entity chosen
             // fills what room there is with its most relevant values).
             let meanings = &ctx.env.obs_names;
-            let varying_of = |j: usize, k: usize| -> Vec<usize> {
-                entities[k].clone().filter(|&d| varies_for(data, j, d) && obs_cand(d).is_some()).collect()
-            };
+            // varying_by[j][k]: the values of entity k that vary for sender j on B (each a scan of B,
+            // so once per sender).
+            let mut varying_by: Vec<Vec<Vec<usize>>> = vec![Vec::new(); n];
+            for &j in &senders {
+                varying_by[j] =
+                    entities.iter().map(|e| e.clone().filter(|&d| varies_for(data, j, d) && obs_cand(d).is_some()).collect()).collect();
+            }
             let by_recovery = self.cfg.values_by == ValuesBy::Recovery;
             // score[j][k] and what it measured, per sender j (others stay empty).
             let mut score = vec![Vec::new(); n];
             let mut score_text = vec![Vec::new(); n];
             for &j in &senders {
                 if by_recovery {
-                    let probes: Vec<(usize, Vec<usize>)> = (0..entities.len()).map(|k| (j, varying_of(j, k))).collect();
+                    let probes: Vec<(usize, Vec<usize>)> = varying_by[j].iter().map(|v| (j, v.clone())).collect();
                     let gains = self.probe_gains(ctx, critical, &probes)?;
                     for (g, (_, sent)) in gains.iter().zip(&probes) {
                         let per_value = if sent.is_empty() { 0.0 } else { g / sent.len() as f64 };
@@ -656,10 +662,10 @@ impl OfflineDesigner {
             }
             let mut ranked: Vec<(usize, usize)> = senders.iter().flat_map(|&j| (0..entities.len()).map(move |k| (j, k))).collect();
             ranked.sort_by(|&(a, x), &(b, y)| score[b][y].total_cmp(&score[a][x]).then((a, x).cmp(&(b, y))));
-            for &(j, k) in ranked.iter().take(if by_recovery { 12 } else { 8 }) {
+            for &(j, k) in ranked.iter().take(shown_entities) {
                 let e = entities[k].clone();
                 let x = score[j][k];
-                let mut varying = varying_of(j, k);
+                let mut varying = varying_by[j][k].clone();
                 let room = self.cfg.max_relevant_values.saturating_sub(picks.len()).min(per_block.saturating_sub(per_sender[j]));
                 let verdict = if !usable && !by_recovery {
                     "not chosen: the value model explains too little".to_string()
@@ -789,7 +795,7 @@ impl OfflineDesigner {
                 senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
             ),
         };
-        let steps = lines.into_iter().take(n + picks.len().max(if self.cfg.values_by == ValuesBy::Recovery { 12 } else { 8 })).collect();
+        let steps = lines.into_iter().take(n + picks.len().max(shown_entities)).collect();
         Ok(Some((picks, steps, how)))
     }
 
