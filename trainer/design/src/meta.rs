@@ -91,6 +91,11 @@ pub struct Recovery {
     hits: Vec<u32>,
     /// Rows, indexed [agent][third] (the same for every dim).
     totals: Vec<u32>,
+    /// Successes per held-out episode, indexed [episode position][dim position], summed over
+    /// agents and steps: the unit [`gain_interval`] resamples.
+    episode_hits: Vec<u32>,
+    /// Rows (steps x agents) per held-out episode.
+    episode_rows: Vec<u32>,
 }
 
 impl Recovery {
@@ -101,12 +106,22 @@ impl Recovery {
         if let Some(&d) = dims.iter().find(|&&d| d >= sd) {
             bail!("state dim {d} is out of range (state_dim {sd})");
         }
-        let mut r = Recovery { dims: dims.to_vec(), n_agents: n, hits: vec![0; dims.len() * n * 3], totals: vec![0; n * 3] };
-        for chunk in episodes.chunks(64) {
+        let nd = dims.len();
+        let mut r = Recovery {
+            dims: dims.to_vec(),
+            n_agents: n,
+            hits: vec![0; nd * n * 3],
+            totals: vec![0; n * 3],
+            episode_hits: vec![0; episodes.len() * nd],
+            episode_rows: vec![0; episodes.len()],
+        };
+        for (c, chunk) in episodes.chunks(64).enumerate() {
             let pred = disc.predict(input, chunk)?;
             let mut row = 0;
-            for &e in chunk {
+            for (j, &e) in chunk.iter().enumerate() {
+                let pos = c * 64 + j;
                 let ep = &data.episodes[e];
+                r.episode_rows[pos] = (ep.len * n) as u32;
                 for t in 0..ep.len {
                     let th = third(t, ep.len);
                     let s = &ep.state[t * sd..(t + 1) * sd];
@@ -116,6 +131,7 @@ impl Recovery {
                         for (k, &d) in dims.iter().enumerate() {
                             if chi(p[d], s[d], alpha) {
                                 r.hits[(k * n + i) * 3 + th] += 1;
+                                r.episode_hits[pos * nd + k] += 1;
                             }
                         }
                         row += 1;
@@ -157,6 +173,63 @@ impl Recovery {
     pub fn position(&self, d: usize) -> Option<usize> {
         self.dims.iter().position(|&x| x == d)
     }
+}
+
+/// How much recovery of a set of dims changed between two measurements on the same held-out
+/// episodes, with a 95% interval from a paired bootstrap over those episodes. It covers which
+/// episodes happened to be held out, not how the two discriminators' training happened to go.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GainInterval {
+    /// Mean recovery over the dims, "now" minus "then".
+    pub gain: f64,
+    pub lo: f64,
+    pub hi: f64,
+    /// Held-out episodes resampled.
+    pub episodes: usize,
+}
+
+/// Bootstrap resamples behind a [`GainInterval`].
+const GAIN_RESAMPLES: usize = 2000;
+
+/// The gain in mean recovery of `dims` (every dim both measured when empty) from `then` to
+/// `now`, with its [`GainInterval`]; `None` when the two were not measured on the same
+/// episodes or a dim is missing from either.
+pub fn gain_interval(now: &Recovery, then: &Recovery, dims: &[usize], seed: u64) -> Option<GainInterval> {
+    use rand::{Rng, SeedableRng};
+    let dims: Vec<usize> =
+        if dims.is_empty() { now.dims.iter().copied().filter(|d| then.dims.contains(d)).collect() } else { dims.to_vec() };
+    if dims.is_empty() || now.episode_rows != then.episode_rows || now.episode_rows.is_empty() {
+        return None;
+    }
+    // Per episode: successes over the dims, now and then (each dim shares the episode's rows).
+    let per_episode = |r: &Recovery| -> Option<Vec<f64>> {
+        let pos: Vec<usize> = dims.iter().map(|&d| r.position(d)).collect::<Option<_>>()?;
+        let nd = r.dims.len();
+        Some((0..r.episode_rows.len()).map(|e| pos.iter().map(|&k| r.episode_hits[e * nd + k] as f64).sum()).collect())
+    };
+    let (a, b) = (per_episode(now)?, per_episode(then)?);
+    let rows: Vec<f64> = now.episode_rows.iter().map(|&x| x as f64 * dims.len() as f64).collect();
+    let diff: Vec<f64> = a.iter().zip(&b).map(|(x, y)| x - y).collect();
+    let gain_of = |pick: &mut dyn FnMut() -> usize| {
+        let (mut d, mut n) = (0.0, 0.0);
+        for _ in 0..diff.len() {
+            let e = pick();
+            d += diff[e];
+            n += rows[e];
+        }
+        d / n.max(1.0)
+    };
+    let mut i = 0;
+    let gain = gain_of(&mut || {
+        i += 1;
+        i - 1
+    });
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let mut gains: Vec<f64> = (0..GAIN_RESAMPLES).map(|_| gain_of(&mut || rng.random_range(0..diff.len()))).collect();
+    gains.sort_by(f64::total_cmp);
+    let at = |q: f64| gains[((q * (GAIN_RESAMPLES - 1) as f64).round() as usize).min(GAIN_RESAMPLES - 1)];
+    Some(GainInterval { gain, lo: at(0.025), hi: at(0.975), episodes: diff.len() })
 }
 
 pub use super::meta_info::{dim_label, skill, THIRDS};
@@ -409,6 +482,17 @@ pub fn evaluate(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &MetaCon
 pub struct Evaluation {
     pub meta: MetaInfo,
     pub dims: Vec<DimRates>,
+    /// Every measured dim's held-out recovery with the messages and without them (retrained):
+    /// what [`gain_interval`] compares across phases.
+    pub held_out: HeldOutRecovery,
+}
+
+/// Held-out recovery of every state dim with a phase's messages and without them (a
+/// discriminator retrained without).
+#[derive(Clone, Debug, PartialEq)]
+pub struct HeldOutRecovery {
+    pub with: Recovery,
+    pub without: Recovery,
 }
 
 /// [`evaluate`], keeping every measured dim.
@@ -449,5 +533,41 @@ pub fn evaluate_all(ctx: &DesignContext, phases: &[ValidatedProtocol], cfg: &Met
             without_zeroed: r4(m.zeroed.rates(k)),
         })
         .collect();
-    Ok(Evaluation { meta, dims })
+    Ok(Evaluation { meta, dims, held_out: HeldOutRecovery { with: m.with, without: m.without } })
+}
+
+#[cfg(test)]
+mod gain_tests {
+    use super::*;
+
+    /// A recovery of one dim by one agent over `hits.len()` episodes of 10 steps each.
+    fn recovery(hits: &[u32]) -> Recovery {
+        Recovery {
+            dims: vec![3],
+            n_agents: 1,
+            hits: vec![hits.iter().sum(), 0, 0],
+            totals: vec![10 * hits.len() as u32, 0, 0],
+            episode_hits: hits.to_vec(),
+            episode_rows: vec![10; hits.len()],
+        }
+    }
+
+    #[test]
+    fn the_gain_interval_tells_a_steady_gain_from_noise() {
+        // One more hit in every episode: +0.1, and every resample says so.
+        let then = recovery(&[5; 40]);
+        let steady = recovery(&[6; 40]);
+        let iv = gain_interval(&steady, &then, &[3], 7).expect("same episodes");
+        assert!((iv.gain - 0.1).abs() < 1e-12 && (iv.lo - 0.1).abs() < 1e-12 && iv.episodes == 40, "{iv:?}");
+        // One more hit in half the episodes, one fewer in the other half: +0 on average, and
+        // the interval spans zero.
+        let mixed: Vec<u32> = (0..40).map(|e| if e % 2 == 0 { 6 } else { 4 }).collect();
+        let iv = gain_interval(&recovery(&mixed), &then, &[], 7).expect("same episodes");
+        assert!(iv.gain.abs() < 1e-12 && iv.lo < 0.0 && iv.hi > 0.0, "{iv:?}");
+        // The same seed gives the same interval.
+        assert_eq!(gain_interval(&recovery(&mixed), &then, &[], 7), Some(iv));
+        // Different episodes or a dim not measured: no interval.
+        assert_eq!(gain_interval(&recovery(&[5; 39]), &then, &[3], 7), None);
+        assert_eq!(gain_interval(&steady, &then, &[4], 7), None);
+    }
 }

@@ -19,6 +19,7 @@
 //! is exactly what the file and the prompt show.
 
 use super::discriminator::{DiscriminatorConfig, TrainReport};
+use super::meta::GainInterval;
 use lmac_learn::stats::{mean, variance};
 use serde::{Deserialize, Serialize};
 
@@ -240,6 +241,10 @@ pub struct Verdict {
     pub skill_over_constant_guess: f64,
     /// The sentence the log, `summary.json` and the next phase's designer read.
     pub text: String,
+    /// For "does this phase add": the gain's 95% interval over the held-out episodes; the phase
+    /// adds only when the whole interval is above zero.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub interval: Option<super::meta::GainInterval>,
 }
 
 impl SetTrend {
@@ -265,13 +270,21 @@ impl SetTrend {
             };
             format!("the messages do NOT help on {what}: {worst} ({numbers}); the next phase should send something else for these dims")
         };
-        Verdict { messages_help: helps, skill_over_no_messages: r4(over_none), skill_over_constant_guess: r4(w.skill), text }
+        Verdict {
+            messages_help: helps,
+            skill_over_no_messages: r4(over_none),
+            skill_over_constant_guess: r4(w.skill),
+            text,
+            interval: None,
+        }
     }
 
     /// Does the newest phase add anything? `self`: phases 0..=k on the fixed dims, `before`:
     /// phases 0..k on the same dims. It helps when recovery with all k + 1 phases' messages is
-    /// above recovery with the first k phases' (both discriminators trained on the same B).
-    pub fn marginal_verdict(&self, before: &SetTrend, phase: usize, columns: usize) -> Verdict {
+    /// above recovery with the first k phases' (both discriminators trained on the same B): by
+    /// more than the held-out episodes' noise when `interval` ([`super::meta::gain_interval`]
+    /// of the two) is given.
+    pub fn marginal_verdict(&self, before: &SetTrend, phase: usize, columns: usize, interval: Option<GainInterval>) -> Verdict {
         let with = format!("with phases 0..={phase}");
         let against = format!("with phases 0..{phase}");
         self.adds_to(
@@ -279,6 +292,7 @@ impl SetTrend {
             phase,
             [&with, &against, "the earlier phases", "more message columns", "nothing more"],
             columns,
+            interval,
         )
     }
 
@@ -286,31 +300,50 @@ impl SetTrend {
     /// messages alone on the fixed dims. It helps when recovery with them is above recovery
     /// without messages (a discriminator retrained without them), as
     /// [`marginal_verdict`](Self::marginal_verdict) asks of a later phase against the earlier.
-    pub fn adds_over_no_messages(&self, phase: usize, columns: usize) -> Verdict {
+    pub fn adds_over_no_messages(&self, phase: usize, columns: usize, interval: Option<GainInterval>) -> Verdict {
         let with = format!("with phase {phase}'s messages");
         let none = self.without_retrained.mean_recovery;
-        self.adds_to(none, phase, [&with, "without messages", "no messages", "message columns", "nothing"], columns)
+        self.adds_to(none, phase, [&with, "without messages", "no messages", "message columns", "nothing"], columns, interval)
     }
 
     /// The verdict of recovery with the phase's messages against `then`, worded by `words`:
     /// [how "now" is named, how "then" is named, what is added to, the columns' noun, what the
     /// messages recover when they do not help].
-    fn adds_to(&self, then: f64, phase: usize, words: [&str; 5], columns: usize) -> Verdict {
+    fn adds_to(&self, then: f64, phase: usize, words: [&str; 5], columns: usize, interval: Option<GainInterval>) -> Verdict {
         let [with, against, base, noun, recover] = words;
         let now = self.with_messages.mean_recovery;
         let r4 = |x: f64| (x * 1e4).round() / 1e4;
         let over = skill(now, then);
-        let helps = now > then;
-        let numbers = format!(
+        let mut numbers = format!(
             "recovery on the {} fixed dims {now:.3} {with} against {then:.3} {against}: skill {over:.3} over {base}, for {columns} {noun}",
             self.dims
         );
+        if let Some(iv) = &interval {
+            numbers.push_str(&format!(
+                "; gain {:+.4}, 95% interval [{:+.4}, {:+.4}] over the {} held-out episodes",
+                iv.gain, iv.lo, iv.hi, iv.episodes
+            ));
+        }
+        let helps = match &interval {
+            Some(iv) => iv.lo > 0.0,
+            None => now > then,
+        };
         let text = if helps {
             format!("phase {phase} adds to {base} ({numbers})")
+        } else if now > then && interval.is_some() {
+            format!(
+                "phase {phase} does NOT add to {base} beyond the noise of the held-out episodes ({numbers}); its messages cost columns and recover {recover} that this data can tell apart"
+            )
         } else {
             format!("phase {phase} does NOT add to {base} ({numbers}); its messages cost columns and recover {recover}")
         };
-        Verdict { messages_help: helps, skill_over_no_messages: r4(over), skill_over_constant_guess: r4(self.with_messages.skill), text }
+        Verdict {
+            messages_help: helps,
+            skill_over_no_messages: r4(over),
+            skill_over_constant_guess: r4(self.with_messages.skill),
+            text,
+            interval,
+        }
     }
 
     /// One line for logs and the CLI.
@@ -466,15 +499,35 @@ mod verdict_tests {
     fn the_marginal_verdict_says_whether_a_phase_adds() {
         let before = SetTrend::over(&[rates(0, 0.92, 0.960, 0.94)], &[]);
         let after = SetTrend::over(&[rates(0, 0.92, 0.957, 0.94)], &[]);
-        let v = after.marginal_verdict(&before, 2, 1);
+        let v = after.marginal_verdict(&before, 2, 1, None);
         assert!(!v.messages_help && v.text.contains("phase 2 does NOT add"), "{}", v.text);
         assert!(
             v.text.contains("0.957 with phases 0..=2 against 0.960 with phases 0..2") && v.text.contains("1 more message columns"),
             "{}",
             v.text
         );
-        let v = before.marginal_verdict(&SetTrend::over(&[rates(0, 0.92, 0.958, 0.94)], &[]), 1, 0);
+        let v = before.marginal_verdict(&SetTrend::over(&[rates(0, 0.92, 0.958, 0.94)], &[]), 1, 0, None);
         assert!(v.messages_help && v.text.starts_with("phase 1 adds"), "{}", v.text);
         assert!((v.skill_over_no_messages - 0.0476).abs() < 1e-3, "(0.960 - 0.958) / (1 - 0.958): {v:?}");
+    }
+
+    /// The recipe's 1o_10b phase 2 (docs/results/design.md): 0.794 against 0.792 is a gain, but
+    /// one the held-out episodes cannot tell from noise, so with its interval the phase does not
+    /// add; an interval above zero does.
+    #[test]
+    fn a_phase_adds_only_beyond_the_held_out_noise() {
+        let before = SetTrend::over(&[rates(0, 0.469, 0.792, 0.4)], &[]);
+        let after = SetTrend::over(&[rates(0, 0.469, 0.794, 0.4)], &[]);
+        let noise = GainInterval { gain: 0.002, lo: -0.003, hi: 0.007, episodes: 200 };
+        let v = after.marginal_verdict(&before, 2, 21, Some(noise));
+        assert!(!v.messages_help, "{v:?}");
+        assert!(v.text.contains("beyond the noise of the held-out episodes") && v.text.contains("[-0.0030, +0.0070]"), "{}", v.text);
+        assert_eq!(v.interval, Some(noise));
+        let clear = GainInterval { gain: 0.002, lo: 0.001, hi: 0.003, episodes: 200 };
+        let v = after.marginal_verdict(&before, 2, 21, Some(clear));
+        assert!(v.messages_help && v.text.starts_with("phase 2 adds"), "{}", v.text);
+        // a loss stays a loss whatever its interval
+        let v = before.marginal_verdict(&after, 2, 21, Some(GainInterval { gain: -0.002, lo: -0.007, hi: 0.003, episodes: 200 }));
+        assert!(!v.messages_help && !v.text.contains("beyond the noise"), "{}", v.text);
     }
 }

@@ -20,7 +20,7 @@
 //!                           recovery.png plots the fixed-dim trend (the paper's Figure 3)
 //! ```
 
-use super::meta::{evaluate_all, Evaluation, MetaConfig};
+use super::meta::{evaluate_all, gain_interval, Evaluation, HeldOutRecovery, MetaConfig};
 use super::meta_info::{RecoverySummary, SetTrend, Verdict};
 use super::{DesignContext, Designer, PhaseProtocol};
 use anyhow::{bail, Context, Result};
@@ -91,6 +91,9 @@ pub struct PhaseEvaluation {
     /// a design sends something: this one recovered the fixed dims best).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub kept_because: Option<String>,
+    /// Every dim's held-out recovery, which the next phase's "adds" is measured against.
+    #[serde(skip)]
+    pub held_out: HeldOutRecovery,
 }
 
 /// The dims the trend is read on, fixed at phase 0: its task-critical dims (all dims when it
@@ -116,7 +119,7 @@ pub fn evaluate_phase(
 ) -> Result<(super::meta_info::MetaInfo, PhaseEvaluation)> {
     // `k` names the design phase: after a dropped phase, `phases` (the ones kept, this one
     // last) is shorter than k + 1.
-    let Evaluation { meta, dims } = evaluate_all(ctx, phases, meta_cfg)
+    let Evaluation { meta, dims, held_out } = evaluate_all(ctx, phases, meta_cfg)
         .with_context(|| format!("evaluating phase {k} with the {} phase(s) kept on the dataset", phases.len()))?;
     std::fs::create_dir_all(phase_dir).with_context(|| format!("creating {}", phase_dir.display()))?;
     write(&phase_dir.join("meta.json"), &serde_json::to_string_pretty(&meta.json())?)?;
@@ -136,6 +139,7 @@ pub fn evaluate_phase(
         adds: None,
         dropped: false,
         kept_because: None,
+        held_out,
     };
     eprintln!("lmac: phase {k}: {}", meta.summary_line());
     for d in &meta.dead_fields {
@@ -279,9 +283,13 @@ pub fn run_design(
         let adds = match &kept {
             Some((_, kept_ev)) => {
                 let added = ev.message_columns.saturating_sub(kept_ev.message_columns);
-                Some(ev.fixed_dims.marginal_verdict(&kept_ev.fixed_dims, k, added))
+                let interval = gain_interval(&ev.held_out.with, &kept_ev.held_out.with, &fixed, ctx.seed);
+                Some(ev.fixed_dims.marginal_verdict(&kept_ev.fixed_dims, k, added, interval))
             }
-            None if k > 0 || opts.drop_unhelpful_phases => Some(ev.fixed_dims.adds_over_no_messages(k, ev.message_columns)),
+            None if k > 0 || opts.drop_unhelpful_phases => {
+                let interval = gain_interval(&ev.held_out.with, &ev.held_out.without, &fixed, ctx.seed);
+                Some(ev.fixed_dims.adds_over_no_messages(k, ev.message_columns, interval))
+            }
             None => None,
         };
         if let Some(adds) = adds {
