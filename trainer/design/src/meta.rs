@@ -211,25 +211,18 @@ pub fn gain_interval(now: &Recovery, then: &Recovery, dims: &[usize], seed: u64)
     let (a, b) = (per_episode(now)?, per_episode(then)?);
     let rows: Vec<f64> = now.episode_rows.iter().map(|&x| x as f64 * dims.len() as f64).collect();
     let diff: Vec<f64> = a.iter().zip(&b).map(|(x, y)| x - y).collect();
-    let gain_of = |pick: &mut dyn FnMut() -> usize| {
-        let (mut d, mut n) = (0.0, 0.0);
-        for _ in 0..diff.len() {
-            let e = pick();
-            d += diff[e];
-            n += rows[e];
-        }
-        d / n.max(1.0)
+    // Mean recovery gain over the episodes `picked` (with repeats in a resample).
+    let gain_of = |picked: &mut dyn Iterator<Item = usize>| {
+        let (d, n) = picked.fold((0.0, 0.0), |(d, n), e| (d + diff[e], n + rows[e]));
+        d / f64::max(n, 1.0)
     };
-    let mut i = 0;
-    let gain = gain_of(&mut || {
-        i += 1;
-        i - 1
-    });
+    let n = diff.len();
+    let gain = gain_of(&mut (0..n));
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let mut gains: Vec<f64> = (0..GAIN_RESAMPLES).map(|_| gain_of(&mut || rng.random_range(0..diff.len()))).collect();
+    let mut gains: Vec<f64> = (0..GAIN_RESAMPLES).map(|_| gain_of(&mut (0..n).map(|_| rng.random_range(0..n)))).collect();
     gains.sort_by(f64::total_cmp);
     let at = |q: f64| gains[((q * (GAIN_RESAMPLES - 1) as f64).round() as usize).min(GAIN_RESAMPLES - 1)];
-    Some(GainInterval { gain, lo: at(0.025), hi: at(0.975), episodes: diff.len() })
+    Some(GainInterval { gain, lo: at(0.025), hi: at(0.975), episodes: n })
 }
 
 pub use super::meta_info::{dim_label, skill, THIRDS};
