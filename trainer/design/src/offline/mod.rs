@@ -662,6 +662,22 @@ impl OfflineDesigner {
             }
             let mut ranked: Vec<(usize, usize)> = senders.iter().flat_map(|&j| (0..entities.len()).map(move |k| (j, k))).collect();
             ranked.sort_by(|&(a, x), &(b, y)| score[b][y].total_cmp(&score[a][x]).then((a, x).cmp(&(b, y))));
+            if by_recovery {
+                let budget = self.cfg.max_relevant_values;
+                let useful: Vec<(usize, usize)> =
+                    ranked.iter().copied().filter(|&(j, k)| score[j][k] > 0.0 && !varying_by[j][k].is_empty()).collect();
+                let items: Vec<(f64, usize)> =
+                    useful.iter().map(|&(j, k)| (score[j][k] * varying_by[j][k].len() as f64, varying_by[j][k].len())).collect();
+                if let Some((i, greedy)) = worth_more_alone(&items, budget) {
+                    let best = useful[i];
+                    ranked.retain(|p| *p != best);
+                    ranked.insert(0, best);
+                    score_text[best.0][best.1].push_str(&format!(
+                        "; first: alone it adds more ({:+.4}) than the entities that fit the {budget} values by gain per value together ({greedy:+.4})",
+                        items[i].0
+                    ));
+                }
+            }
             for &(j, k) in ranked.iter().take(shown_entities) {
                 let e = entities[k].clone();
                 let x = score[j][k];
@@ -1276,5 +1292,42 @@ impl Designer for OfflineDesigner {
                 "importance": r.importance.iter().map(|x| (x * 1e4).round() / 1e4).collect::<Vec<f64>>(),
             }
         }))
+    }
+}
+
+/// Gain per value is the greedy order of a knapsack, which can pass over one item worth more
+/// than everything that order fits: on 1o_10b the Overseer's move feature (+0.33 of recovery
+/// for 4 values) fills the 6 values before the Roach (+0.37 for 5). The usual guard: when one
+/// item that fits alone gains more than the greedy selection in total, it goes first. `items`:
+/// (total gain, values) in gain-per-value order. Returns (that item's index, the greedy total).
+fn worth_more_alone(items: &[(f64, usize)], budget: usize) -> Option<(usize, f64)> {
+    let (mut used, mut greedy) = (0, 0.0);
+    for &(gain, size) in items {
+        if used + size <= budget {
+            used += size;
+            greedy += gain;
+        }
+    }
+    let best = (0..items.len()).filter(|&i| items[i].1 <= budget).max_by(|&a, &b| items[a].0.total_cmp(&items[b].0).then(b.cmp(&a)))?;
+    (items[best].0 > greedy).then_some((best, greedy))
+}
+
+#[cfg(test)]
+mod knapsack_tests {
+    use super::worth_more_alone;
+
+    /// The probes the designer measured on 1o_10b (the Overseer's move feature, the Roach, a
+    /// Baneling's slot) and on LBF 8x8 (the partner's column, row and view rows).
+    #[test]
+    fn one_entity_worth_more_than_the_greedy_fill_goes_first() {
+        let one_o_ten_b = [(0.3300, 4), (0.3667, 5), (0.0348, 6), (0.0308, 6)];
+        assert_eq!(worth_more_alone(&one_o_ten_b, 6), Some((1, 0.33)));
+        // With room for both, the greedy order takes both and stays.
+        assert_eq!(worth_more_alone(&one_o_ten_b, 9), None);
+        let lbf = [(0.0027, 1), (0.0026, 1), (0.0026, 2), (0.0025, 2), (0.0036, 3)];
+        assert_eq!(worth_more_alone(&lbf, 6), None);
+        // An item too big for the budget is never put first.
+        assert_eq!(worth_more_alone(&[(0.1, 2), (0.5, 7)], 6), None);
+        assert_eq!(worth_more_alone(&[], 6), None);
     }
 }
