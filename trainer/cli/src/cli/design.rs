@@ -126,7 +126,8 @@ pub(crate) struct DesignArgs {
     /// schema, e.g. everything the sender sees of the Roach, the entity that matters most to
     /// the receivers' value model first; needs `--senders-by return`) or `recovery` (whole
     /// entities, the one that, sent alone, most raises the receivers' recovery of the critical
-    /// dims per value first: a discriminator per entity)
+    /// dims per value first, unless one entity alone adds more than all that order fits: a
+    /// discriminator per entity)
     #[arg(long, default_value = "value")]
     pub(crate) values_by: lmac_design::offline::ValuesBy,
     /// How the offline designer chooses phase 1's fields: `least-squares` (the sender features
