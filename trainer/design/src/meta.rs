@@ -115,11 +115,12 @@ impl Recovery {
             episode_hits: vec![0; episodes.len() * nd],
             episode_rows: vec![0; episodes.len()],
         };
-        for (c, chunk) in episodes.chunks(64).enumerate() {
+        // pos: the episode's position in `episodes` (its row of `episode_hits`).
+        let mut pos = 0;
+        for chunk in episodes.chunks(64) {
             let pred = disc.predict(input, chunk)?;
             let mut row = 0;
-            for (j, &e) in chunk.iter().enumerate() {
-                let pos = c * 64 + j;
+            for &e in chunk {
                 let ep = &data.episodes[e];
                 r.episode_rows[pos] = (ep.len * n) as u32;
                 for t in 0..ep.len {
@@ -137,6 +138,7 @@ impl Recovery {
                         row += 1;
                     }
                 }
+                pos += 1;
             }
         }
         Ok(r)
@@ -219,14 +221,12 @@ pub fn gain_interval(now: &Recovery, then: &Recovery, dims: &[usize], seed: u64)
     let n = diff.len();
     let gain = gain_of(&mut (0..n));
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let mut gains: Vec<f64> = (0..GAIN_RESAMPLES).map(|_| gain_of(&mut (0..n).map(|_| rng.random_range(0..n)))).collect();
-    gains.sort_by(f64::total_cmp);
-    let at = |q: f64| gains[((q * (GAIN_RESAMPLES - 1) as f64).round() as usize).min(GAIN_RESAMPLES - 1)];
-    Some(GainInterval { gain, lo: at(0.025), hi: at(0.975), episodes: n })
+    let gains: Vec<f64> = (0..GAIN_RESAMPLES).map(|_| gain_of(&mut (0..n).map(|_| rng.random_range(0..n)))).collect();
+    Some(GainInterval { gain, lo: quantile(&gains, 0.025), hi: quantile(&gains, 0.975), episodes: n })
 }
 
 pub use super::meta_info::{dim_label, skill, THIRDS};
-pub use lmac_learn::stats::{mean, variance};
+pub use lmac_learn::stats::{mean, quantile, variance};
 
 /// Per dim of `dims`: E_t[chi] of the best-known constant guess, the median of the dim over
 /// (at most 20 000 evenly spread steps of) the training episodes, on the held-out episodes.

@@ -1,5 +1,5 @@
-//! The few statistics several parts of lmac need, each written once: mean, population variance
-//! and median of a list, and per-column moments of row-major data (standardising discriminator
+//! The few statistics several parts of lmac need, each written once: mean, population variance,
+//! median and quantiles of a list, and per-column moments of row-major data (standardising discriminator
 //! inputs and targets, correlations in the offline designer).
 
 /// Mean (0 for an empty list).
@@ -18,6 +18,17 @@ pub fn median(v: &[f64]) -> f64 {
     let mut v = v.to_vec();
     v.sort_by(|a, b| a.total_cmp(b));
     v.get(v.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// The q-quantile (q in [0, 1]) as the sorted list's element at round((len - 1) q), no
+/// interpolation (NaN for an empty list).
+pub fn quantile(v: &[f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut s = v.to_vec();
+    s.sort_by(|a, b| a.total_cmp(b));
+    s[(((s.len() - 1) as f64 * q).round() as usize).min(s.len() - 1)]
 }
 
 /// Per-column mean and population standard deviation of rows of `width` values.

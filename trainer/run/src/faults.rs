@@ -7,6 +7,7 @@
 //! Both drive `lmac train` (this executable) as a subprocess, exactly as a user would.
 
 use anyhow::{bail, Context, Result};
+use lmac_learn::stats::quantile;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 use std::io::{BufRead, BufReader};
@@ -191,15 +192,6 @@ pub fn metrics_t_env(dir: &Path) -> Vec<u64> {
         .skip(1)
         .filter_map(|l| l.split(',').next()?.parse().ok())
         .collect()
-}
-
-fn quantile(v: &[f64], q: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let mut s = v.to_vec();
-    s.sort_by(|a, b| a.total_cmp(b));
-    s[((s.len() - 1) as f64 * q).round() as usize]
 }
 
 /// The step a resumed run continues from, from its "resuming from ... at t_env N" line.

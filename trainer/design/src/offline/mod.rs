@@ -639,11 +639,13 @@ impl OfflineDesigner {
             // score[j][k] and what it measured, per sender j (others stay empty).
             let mut score = vec![Vec::new(); n];
             let mut score_text = vec![Vec::new(); n];
+            // probe_gain[j][k]: with `recovery`, what entity k of sender j adds in all.
+            let mut probe_gain = vec![Vec::new(); n];
             for &j in &senders {
                 if by_recovery {
                     let probes: Vec<(usize, Vec<usize>)> = varying_by[j].iter().map(|v| (j, v.clone())).collect();
-                    let gains = self.probe_gains(ctx, critical, &probes)?;
-                    for (g, (_, sent)) in gains.iter().zip(&probes) {
+                    probe_gain[j] = self.probe_gains(ctx, critical, &probes)?;
+                    for (g, (_, sent)) in probe_gain[j].iter().zip(&probes) {
                         let per_value = if sent.is_empty() { 0.0 } else { g / sent.len() as f64 };
                         score[j].push(per_value);
                         score_text[j].push(format!(
@@ -668,8 +670,7 @@ impl OfflineDesigner {
                 let budget = self.cfg.max_relevant_values;
                 let useful: Vec<(usize, usize)> =
                     ranked.iter().copied().filter(|&(j, k)| score[j][k] > 0.0 && !varying_by[j][k].is_empty()).collect();
-                let items: Vec<(f64, usize)> =
-                    useful.iter().map(|&(j, k)| (score[j][k] * varying_by[j][k].len() as f64, varying_by[j][k].len())).collect();
+                let items: Vec<(f64, usize)> = useful.iter().map(|&(j, k)| (probe_gain[j][k], varying_by[j][k].len())).collect();
                 if let Some((i, greedy)) = worth_more_alone(&items, budget) {
                     let best = useful[i];
                     ranked.retain(|p| *p != best);
