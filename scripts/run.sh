@@ -13,9 +13,10 @@ LMAC="$ROOT/target/release/lmac"
 "$LMAC" envs
 echo
 # Rerunning continues where an interrupted run stopped (the design and finished seeds are kept).
-# The design keeps only the phases whose messages add to the earlier ones' (--drop-unhelpful-phases:
-# its log and summary.json say which phases went and why).
+# The design is lmac design's default: its dataset is collected by 100k steps of QMIX+State, and
+# it keeps only the phases whose messages add to the earlier ones' (its log and summary.json say
+# which phases went and why).
 "$LMAC" experiment --env lbf:8x8-2p-2f-s1-coop --seeds 0,1,2 --steps 150k \
-  --algos lmac,qmix,fullcomm,qmix-state --design-steps 50k --dataset-episodes 500 --drop-unhelpful-phases --preset pymarl-parallel \
+  --algos lmac,qmix,fullcomm,qmix-state --preset pymarl-parallel \
   --out experiments/main-lbf8x8
 "$LMAC" bench pipeline --env lbf:8x8-2p-2f-s1-coop --envs 32 --steps 128000 --repeat 41

@@ -89,9 +89,9 @@ fn an_empty_algo_list_trains_only_the_variant_rows() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// `lmac design --collect-with qmix-state` collects the dataset B with QMIX+State's policy (the
-/// dataset and the design's options say so), and a method name it does not know is refused
-/// before anything is trained.
+/// `lmac design --collect-with qmix` collects the dataset B with QMIX's policy (the paper's;
+/// the default is QMIX+State's), the dataset and the design's options say so, and a method name
+/// it does not know is refused before anything is trained.
 #[test]
 fn a_design_collects_its_dataset_with_the_method_asked_for() {
     let out = std::env::temp_dir().join(format!("lmac-design-collect-{}", std::process::id()));
@@ -110,7 +110,7 @@ fn a_design_collects_its_dataset_with_the_method_asked_for() {
     assert!(!bad.status.success() && err.contains("qmix-sate"), "{err}");
     assert!(!err.contains("collecting the dataset: qmix-sate for"), "nothing is trained for an unknown method: {err}");
 
-    let ok = design("qmix-state");
+    let ok = design("qmix");
     assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
     let dir = std::fs::read_dir(out.join("lbf_8x8-2p-2f-s1-coop"))
         .unwrap()
@@ -118,8 +118,8 @@ fn a_design_collects_its_dataset_with_the_method_asked_for() {
         .find(|p| p.join("phase0/protocol.json").exists())
         .expect("a finished design");
     let options: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("options.json")).unwrap()).unwrap();
-    assert_eq!(options["collect_algo"], "qmix-state");
+    assert_eq!(options["collect_algo"], "qmix");
     let header: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("collect/dataset/header.json")).unwrap()).unwrap();
-    assert!(header["policy"].as_str().unwrap().starts_with("qmix-state "), "{header}");
+    assert!(header["policy"].as_str().unwrap().starts_with("qmix (qmix mixer) after "), "{header}");
     let _ = std::fs::remove_dir_all(&out);
 }

@@ -474,7 +474,7 @@ fn offline_designer_three_phases() {
     let schema = synthetic_schema(30);
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
-    let ocfg = OfflineConfig { discriminator: quick_disc(), ..Default::default() };
+    let ocfg = OfflineConfig { discriminator: quick_disc(), ..OfflineConfig::least_squares_rules() };
     let mcfg = MetaConfig { discriminator: quick_disc(), max_target_dims: 8, ..Default::default() };
     let mut designer = OfflineDesigner::new(ocfg);
     assert!(designer.needs_data_for_initial());
@@ -521,7 +521,7 @@ fn offline_designer_three_phases() {
     // No reward on this dataset: the relevance ranking cannot be used, and phase 0 says so.
     assert!(t[1].reply.contains("falls back to the hardest dims to recover"), "{}", t[1].reply);
     // Deterministic: the same inputs give the same phase 0.
-    let mut again = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..Default::default() });
+    let mut again = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..OfflineConfig::least_squares_rules() });
     assert_eq!(again.initial(&c).unwrap().protocol, phases[0].protocol);
     // Told that the newest phase added nothing, the designer asks more of the next one.
     let validated: Vec<ValidatedProtocol> = phases[..2].iter().map(|p| p.validated.clone()).collect();
@@ -541,7 +541,7 @@ fn offline_designer_reports_an_exhausted_budget() {
     let c = ctx(&schema, &env, &data);
     let mut designer = OfflineDesigner::new(OfflineConfig {
         discriminator: DiscriminatorConfig { updates: 50, ..Default::default() },
-        ..Default::default()
+        ..OfflineConfig::least_squares_rules()
     });
     let e = format!("{:#}", designer.initial(&c).unwrap_err());
     assert!(e.contains("no message budget for phase 0"), "{e}");
@@ -769,7 +769,7 @@ fn offline_designer_chooses_what_the_return_depends_on() {
     let schema = synthetic_schema(30);
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
-    let mut designer = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..Default::default() });
+    let mut designer = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..OfflineConfig::least_squares_rules() });
     let p0 = designer.initial(&c).unwrap();
     let rel = designer.relevance().expect("phase 0 measured relevance");
     assert_eq!(rel.ranking()[0], 3, "{rel:?}");
@@ -781,13 +781,19 @@ fn offline_designer_chooses_what_the_return_depends_on() {
     // Agent 1's o[2] (hidden value B) goes to agent 0.
     let json = serde_json::to_string(&p0.protocol).unwrap();
     assert!(json.contains("\"obs\":[2"), "{json}");
-    let mut old =
-        OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), critical_by: CriticalBy::Recovery, ..Default::default() });
+    let mut old = OfflineDesigner::new(OfflineConfig {
+        discriminator: quick_disc(),
+        critical_by: CriticalBy::Recovery,
+        ..OfflineConfig::least_squares_rules()
+    });
     assert_eq!(old.initial(&c).unwrap().validated.critical_dims, vec![0, 3, 4]);
     // `--critical-by action`: this B's actions are random, so no model of them explains
     // anything; phase 0 says so in the actions' terms and ranks the dims by the return instead.
-    let mut by_action =
-        OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), critical_by: CriticalBy::Action, ..Default::default() });
+    let mut by_action = OfflineDesigner::new(OfflineConfig {
+        discriminator: quick_disc(),
+        critical_by: CriticalBy::Action,
+        ..OfflineConfig::least_squares_rules()
+    });
     assert_eq!(by_action.initial(&c).unwrap().validated.critical_dims, vec![3]);
     let t = by_action.transcript();
     assert!(t[0].kind == "relevance" && t[0].reply.starts_with("A linear model of each agent's action"), "{}", t[0].reply);
@@ -812,7 +818,8 @@ fn observation_relevance_chooses_the_agent_that_sees_what_matters() {
     let schema = synthetic_schema(30);
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = ctx(&schema, &env, &data);
-    let cfg = OfflineConfig { discriminator: quick_disc(), fields_by: FieldsBy::ObservationRelevance, ..Default::default() };
+    let cfg =
+        OfflineConfig { discriminator: quick_disc(), fields_by: FieldsBy::ObservationRelevance, ..OfflineConfig::least_squares_rules() };
     let mut designer = OfflineDesigner::new(cfg);
     let p0 = designer.initial(&c).unwrap();
     assert_eq!(p0.validated.critical_dims, vec![3], "{}", p0.reasoning);
@@ -857,7 +864,7 @@ fn senders_by_return(values_by: lmac_design::offline::ValuesBy) -> OfflineConfig
         fields_by: FieldsBy::ObservationRelevance,
         senders_by: lmac_design::offline::SendersBy::Return,
         values_by,
-        ..Default::default()
+        ..OfflineConfig::least_squares_rules()
     }
 }
 
@@ -965,7 +972,7 @@ fn values_by_recovery_sends_where_the_sender_is() {
         fields_by: FieldsBy::ObservationRelevance,
         values_by: lmac_design::offline::ValuesBy::Recovery,
         critical_by: CriticalBy::Recovery,
-        ..Default::default()
+        ..OfflineConfig::least_squares_rules()
     };
     let mut designer = OfflineDesigner::new(cfg.clone());
     let p0 = designer.initial(&c).unwrap();

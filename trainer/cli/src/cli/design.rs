@@ -3,6 +3,7 @@
 use super::parse_steps;
 use anyhow::{Context, Result};
 use clap::Args;
+use lmac_design::offline::OfflineConfig;
 use lmac_run::workflow::{interrupt_flag, plot};
 
 #[derive(Args)]
@@ -44,13 +45,14 @@ pub(crate) struct DesignArgs {
     /// Corrections the LLM gets per reply (invalid JSON, validation errors) before the design fails.
     #[arg(long, default_value_t = 3)]
     pub(crate) max_retries: usize,
-    /// Env steps of the QMIX run whose epsilon-greedy policy collects the dataset (paper: 200k).
-    #[arg(long, default_value = "50k", value_parser = parse_steps)]
+    /// Env steps of the run whose epsilon-greedy policy collects the dataset (paper: 200k of QMIX).
+    #[arg(long, default_value = "100k", value_parser = parse_steps)]
     pub(crate) pretrain_steps: u64,
-    /// The method trained to collect the dataset: `qmix` (the paper's) or another method without
-    /// messages, e.g. `qmix-state` (its agents see the global state, so the dataset's returns show
-    /// what knowing a thing is worth to a policy that acts on it; `lmac train --help` lists them)
-    #[arg(long, default_value = "qmix", value_name = "ALGO")]
+    /// The method trained to collect the dataset: `qmix-state` (its agents see the global state,
+    /// so the dataset's actions and returns show what knowing a thing is worth to a policy that
+    /// acts on it; what `--critical-by action` reads), `qmix` (the paper's) or another method
+    /// without messages (`lmac train --help` lists them)
+    #[arg(long, default_value = "qmix-state", value_name = "ALGO")]
     pub(crate) collect_with: String,
     /// Episodes in the dataset (paper: 5000).
     #[arg(long, default_value_t = 1000)]
@@ -77,12 +79,15 @@ pub(crate) struct DesignArgs {
     /// discriminator given zeroed messages). Both are measured and written to recovery.json.
     #[arg(long, default_value = "retrained")]
     pub(crate) without: lmac_design::meta::NoMessages,
-    /// Drop a phase whose messages add nothing to the kept earlier phases' on the fixed dims
-    /// (phase 0, and a phase with none kept before it, against recovery without messages).
-    /// Every phase's verdict is printed and in summary.json either way; when every phase fails,
-    /// the one that recovered the fixed dims best is kept and summary.json says why. Without this
-    /// flag the final protocol keeps all phases, as the paper's does
+    /// Keep every phase in the final protocol, as the paper's does. By default a phase whose
+    /// messages add nothing to the kept earlier phases' recovery of the fixed dims (beyond the
+    /// held-out noise; phase 0, and a phase with none kept before it, against no messages) is
+    /// dropped, and when every phase fails the one that recovered the fixed dims best is kept.
+    /// Every phase's verdict is printed and in summary.json either way
     #[arg(long)]
+    pub(crate) keep_all_phases: bool,
+    /// The default (drop the phases that add nothing); accepted so older commands still run
+    #[arg(long, hide = true, conflicts_with = "keep_all_phases")]
     pub(crate) drop_unhelpful_phases: bool,
     /// How the offline designer chooses phase 0's task-critical dims: `relevance` (what the
     /// return depends on, from a value model fitted on the dataset, and agents recover poorly
@@ -91,35 +96,35 @@ pub(crate) struct DesignArgs {
     /// dataset collected by a policy that sees the state, `--collect-with qmix-state`; ranked as
     /// by `relevance` when those models explain under 25% of the actions) or `recovery` (the
     /// hardest to recover, its first rule)
-    #[arg(long, default_value = "relevance")]
+    #[arg(long, default_value_t = OfflineConfig::default().critical_by)]
     pub(crate) critical_by: lmac_design::offline::CriticalBy,
     /// Most task-critical dims the offline designer's relevance rule lists for phase 0 (the
     /// authors' GPT-4.1 designs name 4-12)
-    #[arg(long, default_value_t = 12, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    #[arg(long, default_value_t = OfflineConfig::default().max_relevant_dims, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub(crate) critical_dims: usize,
     /// Most agents that send one field of the offline designer (0: any). 1 gives each piece of
     /// information one sender (the one whose values explain the most), as the authors' designs do
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = OfflineConfig::default().senders_per_field)]
     pub(crate) senders_per_field: usize,
     /// How the offline designer chooses phase 0's message fields: `least-squares` (the sender
     /// features that best explain the critical dims beyond what receivers see) or
     /// `observation-relevance` (the agent whose whole observation, sent to the others, most
     /// raises their recovery of the critical dims sends the values of it that the team's return
     /// depends on most, by a value model of the joint observation)
-    #[arg(long, default_value = "least-squares")]
+    #[arg(long, default_value_t = OfflineConfig::default().fields_by)]
     pub(crate) fields_by: lmac_design::offline::FieldsBy,
     /// Most observation values `--fields-by observation-relevance` sends in phase 0
-    #[arg(long, default_value_t = 6, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    #[arg(long, default_value_t = OfflineConfig::default().max_relevant_values, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub(crate) relevant_values: usize,
     /// Most agents that send in phase 0 with `--fields-by observation-relevance` (those whose
     /// whole observation raises the others' recovery of the critical dims most)
-    #[arg(long, default_value_t = 1, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    #[arg(long, default_value_t = OfflineConfig::default().relevant_senders, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub(crate) relevant_senders: usize,
     /// How `--fields-by observation-relevance` ranks the senders: `recovery` (how much all an
     /// agent sees, sent to the others, raises their recovery of the critical dims) or `return`
     /// (how much it raises a value model's prediction of the team's return from another agent's
     /// own observation)
-    #[arg(long, default_value = "recovery")]
+    #[arg(long, default_value_t = OfflineConfig::default().senders_by)]
     pub(crate) senders_by: lmac_design::offline::SendersBy,
     /// What of a sender's view `--fields-by observation-relevance` sends: `value` (its values
     /// one by one, most relevant to the return first), `entity` (whole entities of the
@@ -128,14 +133,14 @@ pub(crate) struct DesignArgs {
     /// entities, the one that, sent alone, most raises the receivers' recovery of the critical
     /// dims per value first, unless one entity alone adds more than all that order fits: a
     /// discriminator per entity)
-    #[arg(long, default_value = "value")]
+    #[arg(long, default_value_t = OfflineConfig::default().values_by)]
     pub(crate) values_by: lmac_design::offline::ValuesBy,
     /// How the offline designer chooses phase 1's fields: `least-squares` (the sender features
     /// that best explain the state dims phase 0 leaves poorly recovered) or `frame` (the values
     /// of phase 0's sender that place each receiver in its view, found by fitting each
     /// receiver's own view of the entity phase 0 sends, never a copy of what it sees itself;
     /// least squares when none adds enough; needs `--values-by entity` or `recovery`)
-    #[arg(long, default_value = "least-squares")]
+    #[arg(long, default_value_t = OfflineConfig::default().phase1_by)]
     pub(crate) phase1_by: lmac_design::offline::Phase1By,
     /// With `--phase1-by frame`: fit each receiver's view on top of the rest of its own
     /// observation too, so nothing it could compute from what it sees is sent. On SMAC-Comm this
@@ -176,7 +181,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
     use lmac_design::llm::LlmMode;
     use lmac_design::llm_designer::{LlmDesigner, LlmDesignerOptions};
     use lmac_design::meta::MetaConfig;
-    use lmac_design::offline::{OfflineConfig, OfflineDesigner};
+    use lmac_design::offline::OfflineDesigner;
     use lmac_design::run::{run_design, DesignOptions};
     use lmac_design::Designer;
     let opts = DesignOptions {
@@ -192,7 +197,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
         dataset: a.dataset.clone(),
         phases: a.phases,
         without: a.without,
-        drop_unhelpful_phases: a.drop_unhelpful_phases,
+        drop_unhelpful_phases: !a.keep_all_phases,
     };
     // One discriminator configuration for the offline designer's phase-0 measurement and for
     // every phase's meta-information.

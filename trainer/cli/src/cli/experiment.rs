@@ -40,8 +40,8 @@ pub(crate) struct ExperimentArgs {
     /// Protocol designer: offline, or an LLM as in `lmac design --llm`.
     #[arg(long, default_value = "offline")]
     llm: String,
-    /// Env steps of the QMIX run that collects the design's dataset.
-    #[arg(long, default_value = "50k", value_parser = parse_steps)]
+    /// Env steps of the run that collects the design's dataset (as `lmac design --pretrain-steps`).
+    #[arg(long, default_value = "100k", value_parser = parse_steps)]
     design_steps: u64,
     /// Episodes in the design's dataset.
     #[arg(long, default_value_t = 1000)]
@@ -49,9 +49,13 @@ pub(crate) struct ExperimentArgs {
     /// Discriminator updates per design phase (default: the designer's).
     #[arg(long)]
     disc_updates: Option<usize>,
-    /// Drop a design phase whose messages add nothing to the earlier phases' (as `lmac design
-    /// --drop-unhelpful-phases`; the design's log and summary.json say which and why)
+    /// Keep every design phase, as the paper does (as `lmac design --keep-all-phases`; by
+    /// default a phase whose messages add nothing to the earlier phases' is dropped, and the
+    /// design's log and summary.json say which and why)
     #[arg(long)]
+    keep_all_phases: bool,
+    /// The default (drop the phases that add nothing); accepted so older commands still run
+    #[arg(long, hide = true, conflicts_with = "keep_all_phases")]
     drop_unhelpful_phases: bool,
     /// Use this design directory instead of designing one; `paper`: the LMAC authors' design
     /// for --env shipped in protocols/paper/ (an error naming the env when none is shipped).
@@ -258,7 +262,7 @@ fn shared_design(a: &ExperimentArgs, dir: &Path, interrupted: std::sync::Arc<std
     d.pretrain_steps = a.design_steps;
     d.dataset_episodes = a.dataset_episodes;
     d.disc_updates = a.disc_updates;
-    d.drop_unhelpful_phases = a.drop_unhelpful_phases;
+    d.keep_all_phases = a.keep_all_phases;
     d.seed = a.seeds.first().copied().unwrap_or(0);
     let p = std::fs::canonicalize(design_dir(&d, interrupted)?)?;
     std::fs::write(&note, p.display().to_string())?;

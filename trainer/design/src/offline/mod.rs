@@ -1,6 +1,20 @@
 //! The offline designer: the embedded default that needs no network. It is not an LLM and
 //! does not pretend to be one; every protocol it writes says "offline designer: ..." and
-//! explains its numbers. It designs from the data, deterministically:
+//! explains its numbers. It designs from the data, deterministically.
+//!
+//! **By default** ([`OfflineConfig::default`]) it designs for the task:
+//! - phase 0's critical dims are the few state dims the dataset's policy's actions depend on
+//!   most and agents recover poorly without messages ([`CriticalBy::Action`]; by the return's
+//!   value model where the action models explain too little);
+//! - one agent sends: the one whose view most helps the others predict the team's return
+//!   ([`SendersBy::Return`]); it sends whole entities of its view (a unit, an object), the one
+//!   that most raises the others' recovery of the critical dims per value first
+//!   ([`ValuesBy::Recovery`]);
+//! - phase 1 sends the values of that sender's view that place each receiver in the sender's
+//!   frame ([`Phase1By::Frame`]), so the receivers can use phase 0's entity;
+//! - phase 2, and any rule the data cannot support, by the greedy least squares below.
+//!
+//! [`OfflineConfig::least_squares_rules`] designs every phase by least squares:
 //!
 //! 1. **Targets and weights.** Phase 0 trains the no-message discriminator on B and takes the
 //!    state dims agents recover worst without messages as the task-critical set: mean E_t[chi]
@@ -230,12 +244,21 @@ pub enum Phase1By {
 }
 
 /// `FromStr` for an option enum through its serde (kebab-case) names, for the CLI.
+/// `Display` the same names, so the CLI can show the library's defaults as its own.
 macro_rules! option_from_str {
     ($t:ty, $choices:literal) => {
         impl std::str::FromStr for $t {
             type Err = String;
             fn from_str(s: &str) -> Result<Self, String> {
                 serde_json::from_value(serde_json::Value::String(s.into())).map_err(|_| format!("{s:?}: use {}", $choices))
+            }
+        }
+        impl std::fmt::Display for $t {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                match serde_json::to_value(self) {
+                    Ok(serde_json::Value::String(name)) => f.write_str(&name),
+                    _ => write!(f, "{self:?}"),
+                }
             }
         }
     };
@@ -248,23 +271,10 @@ option_from_str!(FieldsBy, "least-squares or observation-relevance");
 option_from_str!(CriticalBy, "relevance, action or recovery");
 
 impl OfflineConfig {
-    /// Combinations of options that cannot work, refused before anything is collected.
-    pub fn check(&self) -> Result<()> {
-        if self.values_by == ValuesBy::Entity && self.senders_by != SendersBy::Return {
-            bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return: the entities are ranked in the receivers' value model of the return");
-        }
-        if self.phase1_by == Phase1By::Frame && (self.values_by == ValuesBy::Value || self.fields_by != FieldsBy::ObservationRelevance) {
-            bail!("offline designer: phase 1 by the sender's frame (--phase1-by frame) places the receivers in the view of the sender of phase 0's entity, so it needs --fields-by observation-relevance --values-by entity (or recovery)");
-        }
-        if self.frame_given_own_view && self.phase1_by != Phase1By::Frame {
-            bail!("offline designer: --frame-given-own-view changes how phase 1's frame fit is made, so it needs --phase1-by frame");
-        }
-        Ok(())
-    }
-}
-
-impl Default for OfflineConfig {
-    fn default() -> Self {
+    /// The designer's first rules, the default until 2026-12-06: the critical dims by what the
+    /// return depends on (up to 12), and every phase's fields by greedy least squares on the
+    /// state dims. Kept for comparison and for schemas whose observations name no entities.
+    pub fn least_squares_rules() -> Self {
         OfflineConfig {
             discriminator: DiscriminatorConfig::default(),
             poor_threshold: 0.8,
@@ -292,6 +302,43 @@ impl Default for OfflineConfig {
             max_relevant_dims: 12,
             min_value_r2: 0.05,
             min_action_r2: 0.25,
+        }
+    }
+
+    /// Combinations of options that cannot work, refused before anything is collected.
+    pub fn check(&self) -> Result<()> {
+        if self.values_by == ValuesBy::Entity && self.senders_by != SendersBy::Return {
+            bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return: the entities are ranked in the receivers' value model of the return");
+        }
+        if self.phase1_by == Phase1By::Frame && (self.values_by == ValuesBy::Value || self.fields_by != FieldsBy::ObservationRelevance) {
+            bail!("offline designer: phase 1 by the sender's frame (--phase1-by frame) places the receivers in the view of the sender of phase 0's entity, so it needs --fields-by observation-relevance --values-by entity (or recovery)");
+        }
+        if self.frame_given_own_view && self.phase1_by != Phase1By::Frame {
+            bail!("offline designer: --frame-given-own-view changes how phase 1's frame fit is made, so it needs --phase1-by frame");
+        }
+        Ok(())
+    }
+}
+
+/// The default is the rule set measured best on SMAC-Comm's 1o_10b and LBF 8x8 (issue 28): the
+/// critical dims by what a state-seeing policy's actions depend on (4 of them), one sender
+/// chosen by what its view adds to the others' prediction of the return, whole entities of its
+/// view by what each adds to the others' recovery, and phase 1 placing each receiver in the
+/// sender's frame. On 1o_10b it trained LMAC to a best-checkpoint IQM of 9.70 against 9.01 for
+/// the authors' design and 7.26 for [`OfflineConfig::least_squares_rules`] on a QMIX dataset
+/// (3 seeds); on LBF
+/// 8x8 it sends 8 values of the partner's view. Every rule falls back, saying so, where the
+/// data cannot support it (no entities in the schema, an action model that explains too little).
+impl Default for OfflineConfig {
+    fn default() -> Self {
+        OfflineConfig {
+            fields_by: FieldsBy::ObservationRelevance,
+            senders_by: SendersBy::Return,
+            values_by: ValuesBy::Recovery,
+            phase1_by: Phase1By::Frame,
+            critical_by: CriticalBy::Action,
+            max_relevant_dims: 4,
+            ..OfflineConfig::least_squares_rules()
         }
     }
 }

@@ -804,7 +804,7 @@ mod tests {
     fn streamed_statistics_pick_what_the_dense_matrix_picked() {
         for seed in [1u64, 7, 12345] {
             let (mut s, cands, w) = problem(seed);
-            let cfg = OfflineConfig { min_gain: 0.0005, ..OfflineConfig::default() };
+            let cfg = OfflineConfig { min_gain: 0.0005, ..OfflineConfig::least_squares_rules() };
             for keep in [3, 6] {
                 let kept = prescreen(&mut s, &cands, &w, keep).unwrap();
                 assert_eq!(kept, dense_prescreen(&s, &cands, &w, keep), "seed {seed}");
@@ -828,7 +828,7 @@ mod tests {
         let kept = prescreen(&mut s, &cands, &w, 6).unwrap();
         let mut cols: Vec<usize> = kept.iter().flat_map(|&k| cands[k].col..cands[k].col + cands[k].width).collect();
         cols.sort_unstable();
-        let any = OfflineConfig { min_gain: 0.0005, ..OfflineConfig::default() };
+        let any = OfflineConfig { min_gain: 0.0005, ..OfflineConfig::least_squares_rules() };
         let one = OfflineConfig { senders_per_field: 1, ..any.clone() };
         let (free, _) = select(covariance(&mut s, cols.clone()).unwrap(), &cands, &kept, &w, 5, &any);
         let (picks, _) = select(covariance(&mut s, cols).unwrap(), &cands, &kept, &w, 5, &one);
@@ -848,7 +848,7 @@ mod tests {
     #[test]
     fn the_base_matters() {
         let (mut s, cands, w) = problem(7);
-        let cfg = OfflineConfig { min_gain: 0.0005, ..OfflineConfig::default() };
+        let cfg = OfflineConfig { min_gain: 0.0005, ..OfflineConfig::least_squares_rules() };
         let kept = prescreen(&mut s, &cands, &w, 6).unwrap();
         let mut cols: Vec<usize> = kept.iter().flat_map(|&k| cands[k].col..cands[k].col + cands[k].width).collect();
         cols.sort_unstable();
