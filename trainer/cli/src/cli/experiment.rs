@@ -30,7 +30,8 @@ pub(crate) struct ExperimentArgs {
     #[arg(long, default_value = "lmac,qmix,fullcomm,qmix-state", value_delimiter = ',')]
     algos: Vec<String>,
     /// Also train Table 1(a)'s rows: k = 0 and k = 1 (the design's first phases), LMAC without
-    /// the consistency loss and without the meta loss.
+    /// the consistency loss and without the meta loss. A design made here then keeps all three
+    /// phases, so the k rows are prefixes of it, as in the paper.
     #[arg(long)]
     ablations: bool,
     /// An extra row: LABEL=ALGO with settings after commas, e.g.
@@ -262,7 +263,8 @@ fn shared_design(a: &ExperimentArgs, dir: &Path, interrupted: std::sync::Arc<std
     d.pretrain_steps = a.design_steps;
     d.dataset_episodes = a.dataset_episodes;
     d.disc_updates = a.disc_updates;
-    d.keep_all_phases = a.keep_all_phases;
+    // The k = 0, 1 rows train the design's first phases: all three are kept for them.
+    d.keep_all_phases = a.keep_all_phases || a.ablations;
     d.seed = a.seeds.first().copied().unwrap_or(0);
     let p = std::fs::canonicalize(design_dir(&d, interrupted)?)?;
     std::fs::write(&note, p.display().to_string())?;
