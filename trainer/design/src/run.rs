@@ -295,7 +295,7 @@ pub fn run_design(
         if let Some(adds) = adds {
             eprintln!("lmac: phase {k}: {}", adds.text);
             if !adds.messages_help && opts.drop_unhelpful_phases {
-                eprintln!("lmac: phase {k}: dropped from the final protocol (--drop-unhelpful-phases)");
+                eprintln!("lmac: phase {k}: dropped from the final protocol (--keep-all-phases keeps every phase)");
                 let phase = phases.pop().context("a phase to drop")?;
                 let file = files.pop().context("a phase file to drop")?;
                 set_aside.push((k, phase, file));

@@ -991,7 +991,7 @@ fn values_by_recovery_sends_where_the_sender_is() {
     assert!(sent.len() <= cfg.max_relevant_values, "{json}");
 }
 
-/// `--drop-unhelpful-phases` on a dataset whose state is noise (no message can help recover
+/// Dropping the phases that add nothing (the default) on a dataset whose state is noise (no message can help recover
 /// it): every phase, phase 0 included, is judged against what was kept before it (no messages
 /// for phase 0); a phase in the final protocol either adds or says why it is there anyway; the
 /// training side reads exactly the phases kept; and something is always kept.

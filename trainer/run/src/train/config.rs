@@ -236,7 +236,7 @@ pub fn resolve_paper_spec(spec: &str, env: &str) -> Result<String> {
 
 /// The protocol files of `spec`: a design directory gives its `phase<i>/protocol.json` for
 /// i = 0..=k (all phases present when `k` is absent) except the phases its `summary.json` says
-/// were dropped (`lmac design --drop-unhelpful-phases` keeps their files for the record); files
+/// were dropped (`lmac design` keeps their files for the record); files
 /// joined by '+' give the first k + 1.
 pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
     let path = Path::new(spec);
