@@ -6,6 +6,10 @@ use clap::Args;
 use lmac_design::offline::OfflineConfig;
 use lmac_run::workflow::{interrupt_flag, plot};
 
+/// Env steps of the run that collects a design's dataset, unless told (`lmac design
+/// --pretrain-steps`, `lmac experiment --design-steps`).
+pub(crate) const DEFAULT_PRETRAIN_STEPS: &str = "100k";
+
 #[derive(Args)]
 pub(crate) struct DesignArgs {
     /// Environment, e.g. lbf:8x8-2p-2f-s1-coop.
@@ -46,7 +50,7 @@ pub(crate) struct DesignArgs {
     #[arg(long, default_value_t = 3)]
     pub(crate) max_retries: usize,
     /// Env steps of the run whose epsilon-greedy policy collects the dataset (paper: 200k of QMIX).
-    #[arg(long, default_value = "100k", value_parser = parse_steps)]
+    #[arg(long, default_value = DEFAULT_PRETRAIN_STEPS, value_parser = parse_steps)]
     pub(crate) pretrain_steps: u64,
     /// The method trained to collect the dataset: `qmix-state` (its agents see the global state,
     /// so the dataset's actions and returns show what knowing a thing is worth to a policy that

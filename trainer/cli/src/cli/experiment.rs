@@ -4,7 +4,7 @@
 //! design is reused once written, finished seeds are skipped, unfinished ones resume from their
 //! checkpoints.
 
-use super::design::{design_dir, DesignArgs};
+use super::design::{design_dir, DesignArgs, DEFAULT_PRETRAIN_STEPS};
 use super::parse_steps;
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -42,7 +42,7 @@ pub(crate) struct ExperimentArgs {
     #[arg(long, default_value = "offline")]
     llm: String,
     /// Env steps of the run that collects the design's dataset (as `lmac design --pretrain-steps`).
-    #[arg(long, default_value = "100k", value_parser = parse_steps)]
+    #[arg(long, default_value = DEFAULT_PRETRAIN_STEPS, value_parser = parse_steps)]
     design_steps: u64,
     /// Episodes in the design's dataset.
     #[arg(long, default_value_t = 1000)]

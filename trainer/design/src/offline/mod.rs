@@ -324,10 +324,10 @@ impl OfflineConfig {
 /// critical dims by what a state-seeing policy's actions depend on (4 of them), one sender
 /// chosen by what its view adds to the others' prediction of the return, whole entities of its
 /// view by what each adds to the others' recovery, and phase 1 placing each receiver in the
-/// sender's frame. On 1o_10b it trained LMAC to a best-checkpoint IQM of 9.70 against 9.01 for
-/// the authors' design and 7.26 for [`OfflineConfig::least_squares_rules`] on a QMIX dataset
-/// (3 seeds); on LBF
-/// 8x8 it sends 8 values of the partner's view. Every rule falls back, saying so, where the
+/// sender's frame. On 1o_10b its design trained LMAC to a best-checkpoint IQM of 9.59 against
+/// 9.01 for the authors' design and 7.26 for [`OfflineConfig::least_squares_rules`] on a QMIX
+/// dataset (3 seeds); on LBF 8x8 it sends 8 values of the partner's view and stays below the
+/// authors' design (0.781 against 0.815, 5 seeds). Every rule falls back, saying so, where the
 /// data cannot support it (no entities in the schema, an action model that explains too little).
 impl Default for OfflineConfig {
     fn default() -> Self {
