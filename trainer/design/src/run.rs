@@ -58,8 +58,10 @@ pub struct DesignOptions {
     pub without: super::meta::NoMessages,
     /// Drop a phase whose messages add nothing to the kept earlier phases' on the fixed dims
     /// (phase 0, or any phase when none before it was kept: nothing to recovery without
-    /// messages); its verdict says so either way. When every phase goes, the one that recovered
-    /// the fixed dims best is kept and `summary.json` says why. Off keeps the paper's three
+    /// messages); its verdict says so either way. A phase is not dropped where the
+    /// discriminator recovers the fixed dims no better than a constant guess on both sides of
+    /// the verdict (the gain measures nothing there). When every phase goes, phase 0 is kept.
+    /// `summary.json` says why a phase that does not add is kept. Off keeps the paper's three
     /// phases.
     pub drop_unhelpful_phases: bool,
 }
@@ -87,8 +89,10 @@ pub struct PhaseEvaluation {
     pub adds: Option<Verdict>,
     /// Dropped from the final protocol (see [`DesignOptions::drop_unhelpful_phases`]).
     pub dropped: bool,
-    /// Why a phase that does not add is in the final protocol anyway (every phase failed, and
-    /// a design sends something: this one recovered the fixed dims best).
+    /// Why a phase that does not add is in the final protocol anyway: the discriminator reads
+    /// the fixed dims no better than a constant guess on either side of the verdict, so it
+    /// cannot be measured; or every phase failed, and a design sends something (phase 0, the
+    /// designer's first).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub kept_because: Option<String>,
     /// Every dim's held-out recovery, which the next phase's "adds" is measured against.
@@ -292,9 +296,23 @@ pub fn run_design(
             }
             None => None,
         };
+        // Both sides of the verdict no better than a constant guess of each fixed dim: the
+        // discriminator reads this map's state neither with the phase's messages nor with what
+        // it is compared against, so the gain between them measures nothing (LBF's grid, where
+        // even the partner's whole view recovers the cells worse than the guess).
+        let baseline_skill = kept.as_ref().map_or(ev.fixed_dims.without_retrained.skill, |(_, e)| e.fixed_dims.with_messages.skill);
+        let unmeasurable = ev.fixed_dims.with_messages.skill <= 0.0 && baseline_skill <= 0.0;
         if let Some(adds) = adds {
             eprintln!("lmac: phase {k}: {}", adds.text);
-            if !adds.messages_help && opts.drop_unhelpful_phases {
+            if !adds.messages_help && opts.drop_unhelpful_phases && unmeasurable {
+                let why = format!(
+                    "the discriminator recovers the fixed dims no better than a constant guess of each, with this phase's messages (skill {:.3} over the guess) and without them (skill {baseline_skill:.3}), so what the phase adds cannot be measured on this data; it is kept as the designer made it",
+                    ev.fixed_dims.with_messages.skill
+                );
+                eprintln!("lmac: phase {k}: kept: {why}");
+                ev.kept_because = Some(why);
+                meta.verdicts.push(adds.text.clone());
+            } else if !adds.messages_help && opts.drop_unhelpful_phases {
                 eprintln!("lmac: phase {k}: dropped from the final protocol (--keep-all-phases keeps every phase)");
                 let phase = phases.pop().context("a phase to drop")?;
                 let file = files.pop().context("a phase file to drop")?;
@@ -337,14 +355,21 @@ pub fn run_design(
     }
     persist_transcript(designer)?;
     if phases.is_empty() {
-        // Every phase was dropped. LMAC is a method that communicates, so the design keeps the
-        // phase whose messages recovered the fixed dims best, and says that none helped.
-        let recovery = |k: usize| evaluations[k].fixed_dims.with_messages.mean_recovery;
-        let best = (0..set_aside.len()).max_by(|&a, &b| recovery(set_aside[a].0).total_cmp(&recovery(set_aside[b].0)).then(b.cmp(&a)));
-        let (k, phase, file) = set_aside.swap_remove(best.context("a dropped phase to keep")?);
+        // Every phase was dropped. LMAC is a method that communicates, so the design keeps one
+        // and says that none helped. Their recoveries are all within the held-out noise of no
+        // messages, so they cannot rank the phases: the designer's first, phase 0, is kept (a
+        // best-by-recovery pick chose, on LBF, a phase of one value over phase 0's whole views
+        // by 0.948 against 0.948).
+        anyhow::ensure!(!set_aside.is_empty(), "design: no phase was made, so none can be kept");
+        let (k, phase, file) = set_aside.remove(0);
         let why = format!(
-            "no phase's messages add to recovery without messages on the fixed dims, and a design must send something: phase {k} recovered them best ({:.3}); its messages should not be expected to help",
-            recovery(k)
+            "no phase's messages add to recovery without messages on the fixed dims beyond the held-out noise, and a design must send something: phase {k}, the first the designer made, is kept (recovery {:.3}; the others {}); its messages should not be expected to help recover these dims",
+            evaluations[k].fixed_dims.with_messages.mean_recovery,
+            set_aside
+                .iter()
+                .map(|(j, _, _)| format!("phase {j} {:.3}", evaluations[*j].fixed_dims.with_messages.mean_recovery))
+                .collect::<Vec<_>>()
+                .join(", ")
         );
         eprintln!("lmac: phase {k}: kept in the final protocol after all: {why}");
         evaluations[k].dropped = false;

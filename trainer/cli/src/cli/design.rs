@@ -86,7 +86,8 @@ pub(crate) struct DesignArgs {
     /// Keep every phase in the final protocol, as the paper's does. By default a phase whose
     /// messages add nothing to the kept earlier phases' recovery of the fixed dims (beyond the
     /// held-out noise; phase 0, and a phase with none kept before it, against no messages) is
-    /// dropped, and when every phase fails the one that recovered the fixed dims best is kept.
+    /// dropped, and when every phase fails phase 0 is kept (their recoveries are within the
+    /// noise, so they cannot rank the phases).
     /// Every phase's verdict is printed and in summary.json either way
     #[arg(long)]
     pub(crate) keep_all_phases: bool,
@@ -154,6 +155,12 @@ pub(crate) struct DesignArgs {
     /// authors' phase 1 sends it
     #[arg(long)]
     pub(crate) frame_given_own_view: bool,
+    /// With `--values-by recovery`: rank the sender's entities even where a discriminator reads
+    /// the critical dims no better than a constant guess with the sender's whole view. By
+    /// default the designer then sends every agent's whole view instead (on LBF's grid state),
+    /// as the per-entity gains it would rank by are noise there
+    #[arg(long)]
+    pub(crate) rank_when_blind: bool,
     #[arg(long, default_value_t = 0)]
     pub(crate) seed: u64,
     /// Where design directories go.
@@ -225,6 +232,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             values_by: a.values_by,
             phase1_by: a.phase1_by,
             frame_given_own_view: a.frame_given_own_view,
+            whole_view_when_blind: !a.rank_when_blind,
             ..Default::default()
         };
         // Before the dataset is collected, which the offline designer's phase 0 waits for.

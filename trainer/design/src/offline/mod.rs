@@ -9,7 +9,10 @@
 //! - one agent sends: the one whose view most helps the others predict the team's return
 //!   ([`SendersBy::Return`]); it sends whole entities of its view (a unit, an object), the one
 //!   that most raises the others' recovery of the critical dims per value first
-//!   ([`ValuesBy::Recovery`]);
+//!   ([`ValuesBy::Recovery`]); where a discriminator cannot read even its whole view (the
+//!   receivers recover the critical dims with it no better than a constant guess), the
+//!   per-entity ranking would measure noise, and every agent sends its whole view instead
+//!   ([`OfflineConfig::whole_view_when_blind`]);
 //! - phase 1 sends the values of that sender's view that place each receiver in the sender's
 //!   frame ([`Phase1By::Frame`]), so the receivers can use phase 0's entity;
 //! - phase 2, and any rule the data cannot support, by the greedy least squares below.
@@ -145,6 +148,17 @@ pub struct OfflineConfig {
     /// 8% on LBF 8x8's QMIX+State one (the way to a food is not linear in grid cells), where
     /// the ranking after the first one or two dims is noise.
     pub min_action_r2: f64,
+    /// [`ValuesBy::Recovery`]: first probe the best sender's whole view; where the receivers
+    /// recover the critical dims with it no better than a constant guess of each dim, the
+    /// discriminator cannot see what a message adds on this map, its per-entity gains are noise
+    /// and a compact pick would follow the cost per value, not the task. Then every agent sends
+    /// all of its view that varies on B to every other agent (FullComm's message, as far as the
+    /// budget allows), saying why. On LBF 8x8 the grid state is read no better than the guess
+    /// even with the partner's whole view, and LMAC with that message (read directly) reached
+    /// 0.904 against 0.809-0.781 for 8-column picks. False: rank the entities anyway (the
+    /// designs before 2026-12-06's second session; designs recorded before it parse as false).
+    #[serde(default)]
+    pub whole_view_when_blind: bool,
 }
 
 /// How phase 0 chooses the task-critical dims.
@@ -302,6 +316,7 @@ impl OfflineConfig {
             max_relevant_dims: 12,
             min_value_r2: 0.05,
             min_action_r2: 0.25,
+            whole_view_when_blind: false,
         }
     }
 
@@ -338,6 +353,7 @@ impl Default for OfflineConfig {
             phase1_by: Phase1By::Frame,
             critical_by: CriticalBy::Action,
             max_relevant_dims: 4,
+            whole_view_when_blind: true,
             ..OfflineConfig::least_squares_rules()
         }
     }
@@ -352,12 +368,22 @@ pub struct OfflineDesigner {
     relevance: Option<(super::relevance::Relevance, CriticalBy)>,
     /// Phase 0's recovery of every state dim without messages (None before it).
     without: Option<Recovery>,
+    /// E_t[chi] of a constant guess of each dim of `without`, in its order.
+    guess: Vec<f64>,
     /// Factor on [`OfflineConfig::min_gain`]: doubled each time a phase added nothing to the
     /// phases before it, so the next one sends only what explains more per column.
     gain_scale: f64,
     /// The first entity phase 0 sent whole ([`ValuesBy::Entity`], [`ValuesBy::Recovery`]), for
     /// [`Phase1By::Frame`].
     sent_entity: Option<SentEntity>,
+}
+
+/// What one probe message measured: how much it raises the receivers' recovery of the critical
+/// dims over no messages, and that recovery (mean E_t[chi] over the dims and the receivers).
+#[derive(Clone, Copy, Debug)]
+struct Probe {
+    gain: f64,
+    recovery: f64,
 }
 
 /// An entity phase 0 sent: by whom, which of its values, and its name.
@@ -370,7 +396,15 @@ struct SentEntity {
 
 impl OfflineDesigner {
     pub fn new(cfg: OfflineConfig) -> Self {
-        OfflineDesigner { cfg, transcript: Vec::new(), relevance: None, without: None, gain_scale: 1.0, sent_entity: None }
+        OfflineDesigner {
+            cfg,
+            transcript: Vec::new(),
+            relevance: None,
+            without: None,
+            guess: Vec::new(),
+            gain_scale: 1.0,
+            sent_entity: None,
+        }
     }
 
     pub fn config(&self) -> &OfflineConfig {
@@ -666,9 +700,56 @@ impl OfflineDesigner {
             })
             .collect();
         lines.append(&mut agent_lines);
+        // Can the discriminator see a message here at all? The most one agent can send is all it
+        // sees; when the receivers recover the critical dims with it no better than a constant
+        // guess, every entity's probe below would measure noise, and a compact pick would follow
+        // the cost per value rather than the task. Then every agent sends its whole view.
+        let mut blind: Option<String> = None;
+        if self.cfg.whole_view_when_blind && self.cfg.values_by == ValuesBy::Recovery {
+            let best = agents[0];
+            let whole = self.probe_gains(ctx, critical, &[(best, (0..od).collect())])?[0];
+            let guess = self.guess_rate(critical)?;
+            let measured = format!(
+                "with all agent {best} sees (the agent ranked first as a sender), the others recover the critical dims at {:.3} ({:+.4} over no messages) against {guess:.3} for a constant guess of each dim",
+                whole.recovery, whole.gain
+            );
+            if whole.recovery <= guess {
+                blind = Some(measured);
+            } else {
+                lines.push(format!("the discriminator can read a message here: {measured}; the entities are ranked"));
+            }
+        }
         // Entities ranked and shown: every probe's with `recovery` (each cost a discriminator).
         let shown_entities = if self.cfg.values_by == ValuesBy::Recovery { 12 } else { 8 };
-        if self.cfg.values_by != ValuesBy::Value {
+        if let Some(measured) = &blind {
+            // FullComm's message, each agent's block cut to what the whole budget gives one
+            // sender (its values the return's model uses most kept first).
+            let block = (ctx.env.message_budget / (n - 1)).saturating_sub(n);
+            lines.push(format!(
+                "the discriminator cannot read a message here: {measured}, so its gains per entity would be noise; every agent sends all of its view that varies on B, to every other agent"
+            ));
+            for &j in &agents {
+                let mut varying: Vec<usize> = (0..od).filter(|&d| varies_for(data, j, d) && obs_cand(d).is_some()).collect();
+                let cut = varying.len().saturating_sub(block);
+                varying.sort_by(|&a, &b| importance(j * od + b).total_cmp(&importance(j * od + a)).then(a.cmp(&b)));
+                varying.truncate(block);
+                varying.sort_unstable();
+                for &d in &varying {
+                    let cand = obs_cand(d).context("offline designer: a varying value has no candidate (a bug)")?;
+                    per_sender[j] += 1;
+                    picks.push(Pick { cand, links: to_everyone_from(n, j), gain: importance(j * od + d) });
+                }
+                let left_out = if cut > 0 {
+                    format!(" ({cut} least relevant left out: a sender's block holds {block} values)")
+                } else {
+                    String::new()
+                };
+                lines.push(format!(
+                    "agent {j}: CHOSEN: o[{}] sent to every other agent{left_out}",
+                    varying.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")
+                ));
+            }
+        } else if self.cfg.values_by != ValuesBy::Value {
             // The senders' entities, best first: by `entity`, the costliest to shuffle in the
             // receivers' value model; by `recovery`, the most added to the receivers' recovery
             // of the critical dims per value sent. Each sends every value of it that varies for
@@ -691,7 +772,7 @@ impl OfflineDesigner {
             for &j in &senders {
                 if by_recovery {
                     let probes: Vec<(usize, Vec<usize>)> = varying_by[j].iter().map(|v| (j, v.clone())).collect();
-                    probe_gain[j] = self.probe_gains(ctx, critical, &probes)?;
+                    probe_gain[j] = self.probe_gains(ctx, critical, &probes)?.into_iter().map(|p| p.gain).collect();
                     for (g, (_, sent)) in probe_gain[j].iter().zip(&probes) {
                         let per_value = if sent.is_empty() { 0.0 } else { g / sent.len() as f64 };
                         score[j].push(per_value);
@@ -821,7 +902,7 @@ impl OfflineDesigner {
             format!("{head}\nMost relevant observation values:\n{}", lines.join("\n")),
         );
         eprintln!("lmac: offline designer: {head}");
-        for line in lines.iter().take(n.min(4) + 8) {
+        for line in lines.iter().take(n + 9) {
             eprintln!("lmac:   {line}");
         }
         if picks.is_empty() {
@@ -845,6 +926,11 @@ impl OfflineDesigner {
         }
         let total: f64 = picks.iter().map(|p| p.gain).sum();
         let how = match self.cfg.values_by {
+            _ if blind.is_some() => format!(
+                "{head} Phase 0 sends every agent's whole view ({} values in all, each from the agent that sees it to every other agent): a discriminator could not read even the best sender's whole view ({}), so no finer choice could be measured on this map.",
+                picks.len(),
+                blind.as_deref().unwrap_or_default()
+            ),
             ValuesBy::Value => format!(
                 "{head} Phase 0 sends the {} most relevant values of agent(s) {} (relevance {total:.3} summed), each from the agent that sees it to every other agent.",
                 picks.len(),
@@ -870,15 +956,26 @@ impl OfflineDesigner {
     fn sender_gains(&self, ctx: &DesignContext, dims: &[usize]) -> Result<Vec<f64>> {
         let od = ctx.env.obs_dim;
         let probes: Vec<(usize, Vec<usize>)> = (0..ctx.env.n_agents).map(|j| (j, (0..od).collect())).collect();
-        self.probe_gains(ctx, dims, &probes)
+        Ok(self.probe_gains(ctx, dims, &probes)?.into_iter().map(|p| p.gain).collect())
+    }
+
+    /// Mean E_t[chi] of a constant guess of each of `dims` (phase 0's measurement).
+    fn guess_rate(&self, dims: &[usize]) -> Result<f64> {
+        let without = self.without.as_ref().context("offline designer: phase 0's recovery without messages is not measured yet")?;
+        let rates = dims
+            .iter()
+            .map(|&d| without.position(d).and_then(|k| self.guess.get(k).copied()))
+            .collect::<Option<Vec<f64>>>()
+            .context("offline designer: a critical dim has no constant-guess rate (a bug)")?;
+        Ok(meta::mean(&rates))
     }
 
     /// Per probe (j, values): how much agent j sending its o[values] to every other agent
     /// raises their recovery of `dims` (mean E_t[chi] over the dims and the receivers, with
     /// against without messages; a discriminator trained per probe on B's training episodes,
-    /// measured on the held-out ones; "without" is phase 0's own measurement). 0 for a probe
-    /// with no values.
-    fn probe_gains(&self, ctx: &DesignContext, dims: &[usize], probes: &[(usize, Vec<usize>)]) -> Result<Vec<f64>> {
+    /// measured on the held-out ones; "without" is phase 0's own measurement), and the
+    /// receivers' recovery with the probe. 0 for a probe with no values.
+    fn probe_gains(&self, ctx: &DesignContext, dims: &[usize], probes: &[(usize, Vec<usize>)]) -> Result<Vec<Probe>> {
         let env = ctx.env;
         let n = env.n_agents;
         let disc = &self.cfg.discriminator;
@@ -886,7 +983,7 @@ impl OfflineDesigner {
         let mut gains = Vec::with_capacity(probes.len());
         for (j, values) in probes.iter().map(|(j, v)| (*j, v)) {
             if values.is_empty() {
-                gains.push(0.0);
+                gains.push(Probe { gain: 0.0, recovery: 0.0 });
                 continue;
             }
             let what = if values.len() == env.obs_dim {
@@ -917,15 +1014,17 @@ impl OfflineDesigner {
                 .map_err(|e| anyhow!("offline designer: its probe is invalid (a bug): {}", protocol::errors_to_text(&e)))?;
             let with = meta::recovery_with(ctx, &[v], disc, dims)
                 .with_context(|| format!("offline designer: recovery with agent {j} sending {what}"))?;
-            let mut sum = 0.0;
+            let (mut sum, mut recovered) = (0.0, 0.0);
             for (k, &d) in dims.iter().enumerate() {
                 let kw = without.position(d).with_context(|| format!("offline designer: s[{d}] has no recovery without messages"))?;
                 for i in (0..n).filter(|&i| i != j) {
                     sum += with.rate(k, i) - without.rate(kw, i);
+                    recovered += with.rate(k, i);
                 }
             }
-            let gain = sum / (dims.len() * (n - 1)).max(1) as f64;
-            gains.push(gain);
+            let cells = (dims.len() * (n - 1)).max(1) as f64;
+            let gain = sum / cells;
+            gains.push(Probe { gain, recovery: recovered / cells });
             eprintln!("lmac: offline designer: agent {j} sending {what} to the others: recovery of the critical dims {gain:+.4}");
         }
         Ok(gains)
@@ -1146,6 +1245,7 @@ impl Designer for OfflineDesigner {
             format!("{why}\n{}", listing.join("\n")),
         );
         self.without = Some(m.without);
+        self.guess = m.guess;
         self.design(ctx, 0, &[], Targets { dims, weights, why }, &critical)
     }
 
