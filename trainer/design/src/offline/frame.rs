@@ -166,7 +166,7 @@ impl OfflineDesigner {
         let obs_cand = |d: usize| cands.iter().position(|c| c.kind == Kind::Obs && c.dim == Some(d));
         let label = |d: usize| ctx.env.obs_names.get(d).map(|s| short(s)).unwrap_or_else(|| "unnamed".into());
         let Some(sent) = self.sent_entity.clone() else {
-            let reason = "phase 0 sent no whole entity (its fields were chosen by least squares)";
+            let reason = "phase 0 sent no single entity to place the receivers by (it sent every agent's whole view, or chose its fields by least squares)";
             eprintln!("lmac: offline designer: phase 1's fields by least squares instead: {reason}");
             self.log(1, "fields_by", "offline designer: choose phase 1's fields".into(), format!("By least squares instead: {reason}."));
             return Ok(None);
