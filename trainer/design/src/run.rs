@@ -306,8 +306,9 @@ pub fn run_design(
             eprintln!("lmac: phase {k}: {}", adds.text);
             if !adds.messages_help && opts.drop_unhelpful_phases && unmeasurable {
                 let why = format!(
-                    "the discriminator recovers the fixed dims no better than a constant guess of each, with this phase's messages (skill {:.3} over the guess) and without them (skill {baseline_skill:.3}), so what the phase adds cannot be measured on this data; it is kept as the designer made it",
-                    ev.fixed_dims.with_messages.skill
+                    "the discriminator recovers the fixed dims no better than a constant guess of each, with this phase's messages (skill {:.3} over the guess) and with what it is compared against ({baseline_skill:.3}: {base}), so what the phase adds cannot be measured on this data; it is kept as the designer made it",
+                    ev.fixed_dims.with_messages.skill,
+                    base = if kept.is_some() { "the phases kept before it" } else { "no messages" }
                 );
                 eprintln!("lmac: phase {k}: kept: {why}");
                 ev.kept_because = Some(why);
