@@ -657,9 +657,14 @@ impl OfflineDesigner {
         let mut value_importance: Option<Vec<Vec<f64>>> = None;
         // Per sender and entity (SendersBy::Return only).
         let mut entity_importance: Vec<Vec<f64>> = Vec::new();
+        // Per agent, its whole view sent to the others (SendersBy::Recovery only; the check
+        // below reuses it).
+        let mut whole_views: Option<Vec<Probe>> = None;
         let (gains, gain_text): (Vec<f64>, Vec<String>) = match self.cfg.senders_by {
             SendersBy::Recovery => {
-                let g = self.sender_gains(ctx, critical)?;
+                let probes = self.whole_view_probes(ctx, critical)?;
+                let g: Vec<f64> = probes.iter().map(|p| p.gain).collect();
+                whole_views = Some(probes);
                 let text = g
                     .iter()
                     .map(|x| format!("all it sees, sent to the others, raises their recovery of the critical dims by {x:+.3}"))
@@ -712,7 +717,10 @@ impl OfflineDesigner {
         let mut blind: Option<String> = None;
         if self.cfg.whole_view_when_blind && self.cfg.values_by == ValuesBy::Recovery {
             let best = agents[0];
-            let whole = self.probe_gains(ctx, critical, &[(best, (0..od).collect())])?[0];
+            let whole = match &whole_views {
+                Some(probes) => probes[best],
+                None => self.probe_gains(ctx, critical, &[(best, (0..od).collect())])?[0],
+            };
             let guess = self.guess_rate(critical)?;
             let measured = format!(
                 "with all agent {best} sees (the agent ranked first as a sender), the others recover the critical dims at {:.3} ({:+.4} over no messages) against {guess:.3} for a constant guess of each dim",
@@ -930,23 +938,22 @@ impl OfflineDesigner {
             return Ok(None);
         }
         let total: f64 = picks.iter().map(|p| p.gain).sum();
-        let how = match self.cfg.values_by {
-            _ if blind.is_some() => format!(
-                "{head} Phase 0 sends every agent's whole view ({} values in all, each from the agent that sees it to every other agent): a discriminator could not read even the best sender's whole view ({}), so no finer choice could be measured on this map.",
-                picks.len(),
-                blind.as_deref().unwrap_or_default()
+        let how = match (&blind, self.cfg.values_by) {
+            (Some(measured), _) => format!(
+                "{head} Phase 0 sends every agent's whole view ({} values in all, each from the agent that sees it to every other agent): a discriminator could not read even the best sender's whole view ({measured}), so no finer choice could be measured on this map.",
+                picks.len()
             ),
-            ValuesBy::Value => format!(
+            (None, ValuesBy::Value) => format!(
                 "{head} Phase 0 sends the {} most relevant values of agent(s) {} (relevance {total:.3} summed), each from the agent that sees it to every other agent.",
                 picks.len(),
                 senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
             ),
-            ValuesBy::Entity => format!(
+            (None, ValuesBy::Entity) => format!(
                 "{head} Phase 0 sends whole entities (the schema's units and objects as the sender sees them), the one whose values shuffled together cost that model most first: {} value(s) of agent(s) {}, from the agent that sees them to every other agent.",
                 picks.len(),
                 senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
             ),
-            ValuesBy::Recovery => format!(
+            (None, ValuesBy::Recovery) => format!(
                 "{head} Phase 0 sends whole entities (the schema's units and objects as the sender sees them), the one that, sent alone to the others, most raises their recovery of the critical dims per value sent first (a discriminator trained per sender and entity on B, measured on held-out episodes): {} value(s) of agent(s) {}, from the agent that sees them to every other agent.",
                 picks.len(),
                 senders.iter().map(|j| j.to_string()).collect::<Vec<_>>().join(", ")
@@ -958,10 +965,10 @@ impl OfflineDesigner {
 
     /// Per agent j: how much sending all of j's observation to every other agent raises their
     /// recovery of `dims` ([`Self::probe_gains`] with one probe per agent).
-    fn sender_gains(&self, ctx: &DesignContext, dims: &[usize]) -> Result<Vec<f64>> {
+    fn whole_view_probes(&self, ctx: &DesignContext, dims: &[usize]) -> Result<Vec<Probe>> {
         let od = ctx.env.obs_dim;
         let probes: Vec<(usize, Vec<usize>)> = (0..ctx.env.n_agents).map(|j| (j, (0..od).collect())).collect();
-        Ok(self.probe_gains(ctx, dims, &probes)?.into_iter().map(|p| p.gain).collect())
+        self.probe_gains(ctx, dims, &probes)
     }
 
     /// Mean E_t[chi] of a constant guess of each of `dims` (phase 0's measurement).
