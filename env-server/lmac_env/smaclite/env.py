@@ -86,6 +86,9 @@ class SmacliteVecEnv(VecEnv):
         self._others = np.array([[j for j in range(N) if j != i] for i in range(N)],
                                 dtype=np.int64).reshape(N, N - 1)
         self._st_last_off = N * lay["st_al"] + E * lay["st_en"]
+        # Where the state's one-hot last actions start (SMAC's state_last_action; the PettingZoo
+        # adapter can drop them, as the LMAC authors' runs do).
+        self.state_last_action_offset = self._st_last_off
         # static parts of the observation/state
         tb = spec.unit_type_bits
         self._ally_type = np.zeros((N, tb), np.float32)
