@@ -40,6 +40,20 @@ pub enum RewardStandardisation {
     Released,
 }
 
+/// How the TD target treats an episode the time limit cut.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum TimeLimit {
+    /// Bootstrap from what the agents saw after the last step, as EPyMARL does for an env that
+    /// reports `episode_limit` (and gymnasium's truncation).
+    #[default]
+    Bootstrap,
+    /// The end of the episode, its last target the reward alone: SMAC with
+    /// `continuing_episode: False` (the LMAC authors' runs) reports no `episode_limit`, so their
+    /// runner never bootstraps at the limit.
+    Terminal,
+}
+
 /// All learner hyperparameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
@@ -113,6 +127,9 @@ pub struct LearnConfig {
     /// Standardised rewards in the TD targets: `method` (default: as the method's reference
     /// code), `off`, `valid-steps` or `released`.
     pub reward_standardisation: RewardStandardisation,
+    /// An episode cut by the time limit: `bootstrap` from the step after it (default) or
+    /// `terminal`, as the LMAC authors' SMAC runs treat it.
+    pub time_limit: TimeLimit,
 }
 
 impl Default for LearnConfig {
@@ -148,6 +165,7 @@ impl Default for LearnConfig {
             data_parallel: true,
             fused_gru: true,
             reward_standardisation: RewardStandardisation::Method,
+            time_limit: TimeLimit::Bootstrap,
         }
     }
 }

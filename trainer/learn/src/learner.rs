@@ -10,7 +10,7 @@ use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use super::buffer::{episode_rows, Batch, ReplayBuffer};
-use super::config::{ConfigError, LearnConfig, MixerKind, OptimizerKind, RewardStandardisation};
+use super::config::{ConfigError, LearnConfig, MixerKind, OptimizerKind, RewardStandardisation, TimeLimit};
 use super::methods::{AgentConfig, AgentNet, StepActions, TrainContext};
 use super::mixer::{Mixer, QplexInputs};
 use super::{InputLayout, LearnRng};
@@ -234,8 +234,11 @@ impl Learner {
     }
 
     /// Store a finished episode; advances `t_env` and the episode count.
-    pub fn add_episode(&mut self, ep: Episode) -> Result<(), LearnError> {
+    pub fn add_episode(&mut self, mut ep: Episode) -> Result<(), LearnError> {
         ep.check(&self.dims).map_err(LearnError::BadEpisode)?;
+        if ep.truncated && self.cfg.time_limit == TimeLimit::Terminal {
+            (ep.terminated, ep.truncated, ep.next) = (true, false, None);
+        }
         let l = ep.len;
         self.counters.t_env += l as u64;
         self.counters.episodes += 1;

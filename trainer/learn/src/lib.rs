@@ -36,7 +36,7 @@ pub mod stats;
 pub mod window_attention;
 
 pub use buffer::{Batch, ReplayBuffer};
-pub use config::{ConfigError, LearnConfig, MixerKind, OptimizerKind, RewardStandardisation};
+pub use config::{ConfigError, LearnConfig, MixerKind, OptimizerKind, RewardStandardisation, TimeLimit};
 pub use controller::Controller;
 pub use input_row::{InputLayout, RowParts};
 pub use learner::{Counters, LearnError, Learner, QNet, RewardStats, TrainStats};

@@ -111,3 +111,19 @@ fn an_episode_with_a_badly_sized_next_step_is_refused() {
     let err = l.add_episode(ep).unwrap_err().to_string();
     assert!(err.contains("next state 3 (expected 4)"), "{err}");
 }
+
+/// `learn.time_limit = "terminal"` (SMAC as the LMAC authors run it): the same truncated
+/// episodes train as terminated ones, the last target the reward alone, so the reward still
+/// reaches Q but nothing is bootstrapped past the limit.
+#[test]
+fn a_terminal_time_limit_trains_truncated_episodes_as_terminated() {
+    use lmac_learn::TimeLimit;
+    let cfg = LearnConfig { batch_size: 1, time_limit: TimeLimit::Terminal, ..Default::default() };
+    let mut l = Learner::new(DIMS, cfg, Device::default()).unwrap();
+    l.add_episode(truncated_episode(true)).unwrap();
+    let stored = l.buffer().get(0).clone();
+    assert!(stored.terminated && !stored.truncated && stored.next.is_none(), "stored as a termination");
+    let b = Batch::from_episodes(&[&stored], &DIMS, l.layout());
+    assert_eq!(b.t, LEN, "no next step in the batch");
+    assert_eq!((b.mask[LEN - 1], b.terminated[LEN - 1]), (1.0, 1.0), "the last transition trains on the reward alone");
+}
