@@ -67,7 +67,7 @@ class LmacEpymarlEnv(MultiAgentEnv):
         self._obs = self._masks = None
 
     def _keep(self, obs, infos):
-        self._obs = [np.asarray(obs[a], np.float32) for a in self.agents]
+        self._obs = [np.asarray(obs[a]["observation"], np.float32) for a in self.agents]
         self._masks = [infos[a]["action_mask"].astype(int).tolist() for a in self.agents]
 
     def reset(self, seed=None):

@@ -5,7 +5,8 @@ mean with the sample SD over seeds (fewer than 5 seeds: no IQM, no CI), the diff
 group's mean from the first group's with a Welch 95% interval, and the mean test win-rate curve.
 
 A group is LABEL=GLOB, the GLOB matching run directories (each with a `metrics.csv` holding
-`t_env`, `test_return_mean` and `test_win_rate`: lmac's runs and scripts/epymarl_qmix.py's):
+`t_env`, `test_return_mean` and `test_win_rate`: lmac's runs and scripts/epymarl_qmix.py's) or
+such CSV files themselves:
 
     .venv/bin/python scripts/learner_compare.py --out docs/figures/epymarl_qmix_1o10b/compare \\
         'epymarl-qmix=docs/figures/epymarl_qmix_1o10b/epymarl/seed_*' \\
@@ -40,10 +41,16 @@ def t975(df: float) -> float:
     return 1.96
 
 
+def metrics_file(run: pathlib.Path) -> pathlib.Path:
+    """A run directory's metrics.csv, or a metrics CSV itself (the flat `<label>_seed<k>.csv`
+    copies under docs/figures)."""
+    return run if run.suffix == ".csv" else run / "metrics.csv"
+
+
 def tests_of(run: pathlib.Path):
-    rows = [r for r in csv.DictReader(open(run / "metrics.csv")) if r.get("test_return_mean") not in (None, "")]
+    rows = [r for r in csv.DictReader(open(metrics_file(run))) if r.get("test_return_mean") not in (None, "")]
     if not rows:
-        raise SystemExit(f"{run}/metrics.csv has no test phases")
+        raise SystemExit(f"{metrics_file(run)} has no test phases")
     t = [int(float(r["t_env"])) for r in rows]
     ret = [float(r["test_return_mean"]) for r in rows]
     win = [float(r["test_win_rate"] or 0.0) for r in rows]
@@ -89,7 +96,7 @@ def main(argv=None) -> int:
         label, sep, pattern = g.partition("=")
         if not sep:
             p.error(f"{g!r}: expected LABEL=GLOB")
-        runs = sorted(pathlib.Path(x) for x in glob.glob(pattern) if (pathlib.Path(x) / "metrics.csv").exists())
+        runs = sorted(pathlib.Path(x) for x in glob.glob(pattern) if metrics_file(pathlib.Path(x)).is_file())
         if not runs:
             p.error(f"{label}: no run directory with a metrics.csv matches {pattern!r}")
         groups[label] = [seed_figures(r) for r in runs]

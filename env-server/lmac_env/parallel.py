@@ -12,7 +12,9 @@ conventions:
   SMAC); when it ends every agent is terminated or truncated at once and ``env.agents`` empties;
 - every agent receives the team reward (``infos[agent]["team_reward"]`` says it is shared, so a
   learner that sums rewards over agents must average them instead);
-- ``infos[agent]["action_mask"]`` holds the available actions (int8, 1 = available);
+- an observation is ``{"observation": values, "action_mask": available actions}`` (int8,
+  1 = available), PettingZoo's convention for masks that its ``parallel_api_test`` samples
+  with; ``infos[agent]["action_mask"]`` holds the same mask;
 - ``state()`` is the global state the lmac pipeline writes, ``state_space`` its space;
 - an episode that reaches the schema's ``episode_limit`` (or the env's own time limit) is
   truncated, one that the env ends is terminated, as the lmac learner sees them;
@@ -27,19 +29,25 @@ import functools
 
 import numpy as np
 
-from .core import Batch
+from typing import Callable
+
+from .core import Batch, VecEnv
 from .registry import make
 
 
-def parallel_env(name: str, seed: int = 0, state_last_action: bool = True, render_mode=None):
+def parallel_env(name: str, seed: int = 0, state_last_action: bool = True, render_mode=None,
+                 make_vec: Callable[[int], VecEnv] | None = None):
     """A PettingZoo ParallelEnv of the lmac environment ``name`` (``FAMILY:VARIANT``).
 
     state_last_action  False drops the agents' one-hot last actions from ``state()``, where the
                        environment puts them there (the SMAC-Comm maps; SMAC's own setting of
                        that name, which the LMAC authors run as False); an error elsewhere.
+    make_vec           ``make_vec(seed)`` builds the one-env VecEnv, for an environment its name
+                       alone does not reach (one on a schema outside the schema directory);
+                       default ``lmac_env.make(name, 1, seed)``.
     """
     return LmacParallelEnv(name, seed=seed, state_last_action=state_last_action,
-                           render_mode=render_mode)
+                           render_mode=render_mode, make_vec=make_vec)
 
 
 def _parallel_base():
@@ -51,7 +59,8 @@ def _parallel_base():
 class LmacParallelEnv(_parallel_base()):
     metadata = {"name": "lmac", "render_modes": [], "is_parallelizable": True}
 
-    def __init__(self, name: str, seed: int = 0, state_last_action: bool = True, render_mode=None):
+    def __init__(self, name: str, seed: int = 0, state_last_action: bool = True, render_mode=None,
+                 make_vec: Callable[[int], VecEnv] | None = None):
         from gymnasium import spaces
         if render_mode is not None:
             raise ValueError(f"{name}: lmac environments do not render (render_mode={render_mode!r})")
@@ -59,7 +68,8 @@ class LmacParallelEnv(_parallel_base()):
         self.name = name
         self.metadata = dict(self.metadata, name=name)
         self._seed = int(seed)
-        self._env = make(name, 1, seed=self._seed)
+        self._make = make_vec or (lambda s: make(name, 1, seed=s))
+        self._env = self._make(self._seed)
         schema = self.schema = self._env.schema
         self._batch = Batch.allocate(schema, 1)
         self._state_end = schema.state_dim
@@ -71,7 +81,9 @@ class LmacParallelEnv(_parallel_base()):
             self._state_end = int(offset)
         self.possible_agents = [f"agent_{i}" for i in range(schema.n_agents)]
         self.agents: list[str] = []
-        self._obs_space = spaces.Box(-np.inf, np.inf, (schema.obs_dim,), np.float32)
+        self._obs_space = spaces.Dict({
+            "observation": spaces.Box(-np.inf, np.inf, (schema.obs_dim,), np.float32),
+            "action_mask": spaces.Box(0, 1, (schema.n_actions,), np.int8)})
         self._act_space = spaces.Discrete(schema.n_actions)
         self.state_space = spaces.Box(-np.inf, np.inf, (self._state_end,), np.float32)
         self.episode_limit = schema.episode_limit
@@ -88,10 +100,11 @@ class LmacParallelEnv(_parallel_base()):
 
     def _out(self, won: bool | None = None):
         b = self._batch
-        obs = {a: b.obs[0, i].copy() for i, a in enumerate(self.possible_agents)}
-        infos = {}
+        obs, infos = {}, {}
         for i, a in enumerate(self.possible_agents):
-            info = {"action_mask": b.avail[0, i].astype(np.int8), "team_reward": True}
+            mask = b.avail[0, i].astype(np.int8)
+            obs[a] = {"observation": b.obs[0, i].copy(), "action_mask": mask}
+            info = {"action_mask": mask, "team_reward": True}
             if won is not None:
                 info["won"] = won
             infos[a] = info
@@ -101,7 +114,7 @@ class LmacParallelEnv(_parallel_base()):
         if seed is not None:  # Gymnasium's convention: a seed given restarts its random stream
             self._env.close()
             self._seed = int(seed)
-            self._env = make(self.name, 1, seed=self._seed)
+            self._env = self._make(self._seed)
         self._env.reset(np.array([0]), self._batch)
         self._t = 0
         self._ended = False

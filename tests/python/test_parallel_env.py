@@ -51,7 +51,8 @@ def test_same_episodes_as_the_pipeline_env(name):
     rng = np.random.default_rng(0)
     for t in range(vec.schema.episode_limit):
         for i, a in enumerate(env.possible_agents):
-            np.testing.assert_array_equal(obs[a], out.obs[0, i])
+            np.testing.assert_array_equal(obs[a]["observation"], out.obs[0, i])
+            np.testing.assert_array_equal(obs[a]["action_mask"], out.avail[0, i])
             np.testing.assert_array_equal(infos[a]["action_mask"], out.avail[0, i])
         np.testing.assert_array_equal(env.state(), out.state[0])
         acts = _actions_from(env, rng)
@@ -83,7 +84,7 @@ def test_time_limit_truncates_and_seeds_repeat():
     with pytest.raises(RuntimeError, match="call reset"):
         env.step({})
     again, _ = env.reset(seed=7)
-    np.testing.assert_array_equal(first["agent_3"], again["agent_3"])
+    np.testing.assert_array_equal(first["agent_3"]["observation"], again["agent_3"]["observation"])
 
 
 def test_state_without_last_actions():

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from lmac_env import pz, registry
+from lmac_env import parallel_env, pz, registry
 from lmac_env.core import SCHEMA_DIR, Batch, Schema
 from lmac_env.server import FLAG_FINAL, FLAG_FIRST, Driver, Meta, _random_actions
 
@@ -307,18 +307,13 @@ def test_generate_command_writes_and_refuses_to_overwrite(tmp_path, capsys):
 @pytest.mark.parametrize("name", SHIPPED + ["pz:pz_toy"])
 def test_pettingzoo_parallel_api_test_on_the_adapted_env(name, tmp_path):
     make_vec = (lambda seed: vec(name, 1, seed, tmp_path=tmp_path)) if name == "pz:pz_toy" else None
-    par = pz.as_parallel_env(name, seed=0, make_vec=make_vec)
+    par = parallel_env(name, seed=0, make_vec=make_vec)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # PettingZoo reports API slips as warnings
         parallel_api_test(par, num_cycles=150)
     obs, _ = par.reset(seed=3)
     a = par.possible_agents[0]
     assert par.observation_space(a).contains(obs[a])
-
-
-def test_parallel_view_of_a_non_pettingzoo_family():
-    par = pz.as_parallel_env("lbf:8x8-2p-2f-s1-coop", seed=0)
-    parallel_api_test(par, num_cycles=40)
 
 
 # -- families found without a registry edit ---------------------------------------------------
