@@ -64,13 +64,12 @@ fn a_trained_run_is_evaluated_at_each_message_cut_and_a_shape_change_is_refused(
     // nothing else.
     let seed_dir = group.join("seed0");
     let config = seed_dir.join("config.toml");
-    let text = std::fs::read_to_string(&config).unwrap();
-    let edited = if text.contains("[method]") {
-        text.replace("[method]", "[method]\nmsg_dim = 2")
-    } else {
-        format!("{text}\n[method]\nmsg_dim = 2\n")
-    };
-    std::fs::write(&config, edited).unwrap();
+    // The saved config states every method setting (msg_dim = 3 among them): edit it in place.
+    let mut doc: toml::Table = toml::from_str(&std::fs::read_to_string(&config).unwrap()).unwrap();
+    let method = doc.get_mut("method").and_then(toml::Value::as_table_mut).expect("config.toml states the method's settings");
+    assert_eq!(method.get("msg_dim").and_then(toml::Value::as_integer), Some(3), "the default is written out");
+    method.insert("msg_dim".into(), toml::Value::Integer(2));
+    std::fs::write(&config, toml::to_string_pretty(&doc).unwrap()).unwrap();
     std::fs::remove_file(seed_dir.join("marl_eval.json")).unwrap();
     let metrics_before = std::fs::read(seed_dir.join("metrics.csv")).unwrap();
     let rerun = lmac().args(["train", "--resume"]).arg(&seed_dir).output().unwrap();

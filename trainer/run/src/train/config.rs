@@ -117,18 +117,25 @@ pub struct TrainConfig {
     /// method, unknown keys are errors.
     #[serde(skip_serializing_if = "toml::Table::is_empty")]
     pub method: toml::Table,
+    /// The source tree that resolved this configuration (written with every new run; absent in
+    /// runs made before lmac recorded it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub build: Option<super::build::BuildInfo>,
 }
 
 /// Named bundles of settings (`lmac train --preset NAME`), applied before `--set` overrides.
-/// `paper` is what the defaults already are, spelled out so that a config pins it.
+/// `paper` is the default schedule spelled out so that a config pins it, with the LMAC authors'
+/// treatment of the time limit.
 pub const PRESETS: &[(&str, &str)] = &[
     (
         "paper",
-        "the LMAC paper's schedule, the default (the authors' EPyMARL episode runner, Table C.3): one \
-         update of 32 episodes per collected episode once the buffer holds 32, target copy every 200 \
-         episodes (= 200 updates), and each update on both cores (acting waits for the learner at this \
-         ratio, so the second core is free): the batch's two halves on two threads where the method's \
-         losses split exactly (learn.data_parallel), else the target network unrolled on the second",
+        "the LMAC authors' settings: the paper's schedule, which is the default (the authors' EPyMARL \
+         episode runner, Table C.3): one update of 32 episodes per collected episode once the buffer \
+         holds 32, target copy every 200 episodes (= 200 updates), and each update on both cores \
+         (acting waits for the learner at this ratio, so the second core is free): the batch's two \
+         halves on two threads where the method's losses split exactly (learn.data_parallel), else the \
+         target network unrolled on the second; and the time limit a termination, as their runner \
+         treats it (learn.time_limit)",
     ),
     (
         "epymarl",
@@ -167,7 +174,11 @@ pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
         ]
     };
     Ok(match name {
-        "paper" => schedule("1.0", true),
+        "paper" => {
+            let mut o = schedule("1.0", true);
+            o.push("learn.time_limit=\"terminal\"".into());
+            o
+        }
         "epymarl" => schedule("1.0", false),
         "pymarl-parallel" => schedule("0.125", false),
         other => bail!("--preset: unknown preset {other:?}; known: {}", PRESETS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")),
@@ -333,7 +344,41 @@ impl TrainConfig {
             }
         })?;
         cfg.check().map_err(|e| anyhow::anyhow!("{origin}: {e:#}"))?;
+        let mut cfg = cfg;
+        cfg.write_method_defaults()?;
+        cfg.build = Some(super::build::BuildInfo::current());
         Ok(cfg)
+    }
+
+    /// Fill `[method]` with every setting of `run.algo`'s method that the run left at its
+    /// default, so the saved `config.toml` states every setting the run trained with (a later
+    /// build with other defaults still reads back what this run used). Defaults come from the
+    /// method's settings schema, the one the configuration reference is generated from;
+    /// settings whose default is "absent" stay absent.
+    pub fn write_method_defaults(&mut self) -> Result<()> {
+        let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
+        let Some(schema) = m.settings else { return Ok(()) };
+        let schema = schema();
+        let Some(props) = schema.as_value().get("properties").and_then(serde_json::Value::as_object) else {
+            return Ok(());
+        };
+        for (key, prop) in props {
+            let Some(default) = prop.get("default").filter(|d| !d.is_null()) else { continue };
+            if self.method.contains_key(key) {
+                continue;
+            }
+            let mut value =
+                toml::Value::try_from(default).with_context(|| format!("method.{key}: its default {default} has no TOML form"))?;
+            // An f32 setting's default arrives widened (0.1 as 0.10000000149011612): write the
+            // shortest text that reads back to the same f32.
+            if let toml::Value::Float(x) = value {
+                if (x as f32) as f64 == x {
+                    value = toml::Value::Float(format!("{:?}", x as f32).parse().unwrap_or(x));
+                }
+            }
+            self.method.insert(key.clone(), value);
+        }
+        Ok(())
     }
 
     /// Validate everything: the run, the learner, the protocol against the environment and the
@@ -503,12 +548,14 @@ mod tests {
         assert_eq!((paper.run.updates_per_episode, paper.learn.target_update_interval_episodes), (1.0, 200));
         assert!(paper.learn.parallel_target, "the paper schedule unrolls the target on the second core");
         assert!(paper.learn.data_parallel, "and splits the batch over both cores where the method allows");
+        assert_eq!(paper.learn.time_limit, crate::learn::TimeLimit::Terminal, "the authors' runner does not bootstrap at the limit");
         let default = TrainConfig::resolve(None, &[]).unwrap();
         assert_eq!(
             (default.run.updates_per_episode, default.learn.target_update_interval_episodes, default.learn.data_parallel),
             (1.0, 200, true),
             "the paper's schedule is the default"
         );
+        assert_eq!(default.learn.time_limit, crate::learn::TimeLimit::Bootstrap, "lmac bootstraps at a time limit by default");
         let old = TrainConfig::resolve(None, &preset_overrides("pymarl-parallel").unwrap()).unwrap();
         assert_eq!(old.run.updates_per_episode, 0.125);
         assert!(!old.learn.parallel_target && !old.learn.data_parallel, "the old default's one learner thread");
@@ -518,6 +565,43 @@ mod tests {
     /// Issue 30: every number is range-checked (1e300 updates per episode hung the run at t_env
     /// 800, a 60000-wide GRU aborted the process), and errors name the file and the field by its
     /// path whatever the value's type.
+    /// A saved config states every setting the run trained with: the method's defaults written
+    /// out (LMAC's `[method]` was empty when nothing was set), a `--set` kept, f32 defaults in
+    /// their short form, and the source tree that resolved it; it reads back to the same config.
+    #[test]
+    fn a_resolved_config_writes_every_method_setting_and_its_build() {
+        let o: Vec<String> = ["run.algo=\"lmac\"", "run.env=\"smaclite:1o_10b_vs_1r\"", "run.protocol=\"paper\"", "method.window=5"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        let c = TrainConfig::resolve(None, &o).unwrap();
+        assert_eq!(c.method.get("window").and_then(toml::Value::as_integer), Some(5), "a --set stays");
+        assert_eq!(c.method.get("encoder").and_then(toml::Value::as_str), Some("window"), "a default is written");
+        assert_eq!(c.method.get("dropout").and_then(toml::Value::as_float), Some(0.1), "an f32 default in its short form");
+        assert!(!c.method.contains_key("alpha"), "a setting whose default is absent stays absent");
+        let build = c.build.clone().expect("the build is recorded");
+        assert!(build.commit == "unknown" || build.commit.len() == 40, "{build:?}");
+        let text = toml::to_string_pretty(&c).unwrap();
+        assert!(text.contains("[method]") && text.contains("[build]"), "{text}");
+        let back: TrainConfig = toml::from_str(&text).unwrap();
+        assert_eq!(back, c);
+        let qmix = TrainConfig::resolve(None, &[]).unwrap();
+        assert!(qmix.method.is_empty(), "a method without settings has no [method]");
+    }
+
+    /// A resume by another build, or of a run started from a modified tree, says so.
+    #[test]
+    fn a_build_difference_is_named() {
+        use super::super::build::BuildInfo;
+        let a = BuildInfo { commit: "a".repeat(40), modified: false };
+        let b = BuildInfo { commit: "b".repeat(40), modified: false };
+        assert_eq!(a.difference(&a), None);
+        let note = a.difference(&b).unwrap();
+        assert!(note.contains(&"a".repeat(40)) && note.contains(&"b".repeat(40)), "{note}");
+        let dirty = BuildInfo { modified: true, ..a.clone() };
+        assert!(dirty.difference(&dirty).unwrap().contains("(modified)"));
+    }
+
     #[test]
     fn out_of_range_settings_are_refused_naming_the_file_and_the_field() {
         let refused = |file: Option<&Path>, o: &[&str]| {

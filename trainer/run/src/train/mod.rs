@@ -9,6 +9,7 @@
 
 mod actor;
 pub mod budget;
+pub mod build;
 mod checkpoints;
 pub mod config;
 mod dataset_out;

@@ -50,6 +50,9 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
             )
         };
         eprintln!("lmac: trainer: resuming from {} at t_env {} ({} updates), {buffer_note}", info.dir.display(), c.t_env, c.updates);
+        if let Some(note) = cfg.build.as_ref().and_then(|b| b.difference(&super::build::BuildInfo::current())) {
+            eprintln!("lmac: trainer: warning: {note}");
+        }
         l
     } else {
         refuse_restart_over_metrics(run_dir)?;
