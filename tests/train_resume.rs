@@ -84,6 +84,11 @@ fn resume_and_check(dir: &Path, stop_kind: &str, save_buffer: bool, shm_before: 
     } else {
         assert!(stderr.contains("refills it with 32 episodes"), "the run says the buffer is refilled: {stderr}");
     }
+    // Off a terminal (stderr is a pipe here) each test phase prints a progress line.
+    assert!(
+        stderr.contains("lmac: seed 0: t_env ") && stderr.contains(&format!("/{STEPS} (100%)")) && stderr.contains("test return"),
+        "a progress line at the final test phase: {stderr}"
+    );
     let t = metrics_t_env(dir);
     assert!(t.windows(2).all(|w| w[0] <= w[1]), "metrics.csv t_env steps backwards after {stop_kind}: {t:?}");
     assert!(*t.last().unwrap() >= STEPS, "the resumed run reaches {STEPS} env steps: {t:?}");

@@ -177,6 +177,12 @@ impl TrainActor {
             method: s.method.iter().map(|&(k, v)| (k.to_string(), v)).collect(),
         };
         drop(s);
+        // Off a terminal the bar draws nothing: a line per test phase (per metrics row when the
+        // run has no tests) keeps a long run from being an hour of silence in a log.
+        let quiet = self.bar.as_ref().is_none_or(indicatif::ProgressBar::is_hidden);
+        if quiet && (test.is_some() || self.cfg.run.test_episodes == 0) {
+            eprintln!("{}", progress_line(&row, self.cfg.run.steps, self.cfg.learn.seed));
+        }
         if test.is_none() || self.log_due {
             self.train_returns.clear();
         }
@@ -316,4 +322,27 @@ impl Actor for TrainActor {
             || self.failed.is_some()
             || self.shared.lock().error.is_some()
     }
+}
+
+/// One line of progress for a log: where the run is, how fast it goes, what it returns, and
+/// roughly when it ends.
+fn progress_line(row: &MetricsRow, steps: u64, seed: u64) -> String {
+    let pct = 100.0 * row.t_env.min(steps) as f64 / steps.max(1) as f64;
+    let eta = if row.env_steps_per_s > 0.0 {
+        let s = (steps.saturating_sub(row.t_env) as f64 / row.env_steps_per_s) as u64;
+        format!("{}h{:02}m", s / 3600, (s % 3600) / 60)
+    } else {
+        "-".into()
+    };
+    let opt = |v: Option<f64>, digits: usize| v.map_or("-".into(), |x| format!("{x:.digits$}"));
+    format!(
+        "lmac: seed {seed}: t_env {}/{steps} ({pct:.0}%), {} updates, {:.0} env steps/s, eps {:.2}, train return {}, test return {}, win rate {}, eta {eta}",
+        row.t_env,
+        row.updates,
+        row.env_steps_per_s,
+        row.epsilon,
+        opt(row.train_return_mean, 3),
+        opt(row.test_return_mean, 3),
+        opt(row.test_win_rate, 3),
+    )
 }
