@@ -13,6 +13,7 @@ def test_check_passes_a_fitting_schema_and_refuses_a_wrong_size(tmp_path):
     r = run(["envs", "--check"], tmp_path)
     assert r.returncode == 0, r.stderr
     assert NAME in r.stdout
+    assert "OK: 1 schema valid and finished" in r.stderr and "sizes match the environment for 1" in r.stderr, r.stderr
     path = write_schema(tmp_path, obs_dim=4)
     r = run(["envs", "--check"], tmp_path)
     assert r.returncode != 0

@@ -20,20 +20,24 @@ fn place_name(path: &Path) -> Option<String> {
 /// Build every schema's environment and compare what it writes with the schema
 /// (`python -m lmac_env.sizes check`, one Python for all; the env servers run the same check on
 /// their first reset and step). An env whose package or game is missing here is only noted.
-fn check_sizes(rows: &[EnvSchema]) -> Result<()> {
+/// Compare every schema's sizes with its environment; the number of environments that could not
+/// be checked here (a game or package missing), each named in a note.
+fn check_sizes(rows: &[EnvSchema]) -> Result<usize> {
     let mut c = supervisor::python_command()?;
     c.args(["-m", "lmac_env.sizes", "check"]).args(rows.iter().map(|s| s.name.as_str()));
     let out = c.output().context("starting Python (LMAC_PYTHON, else the repository's .venv)")?;
+    let mut skipped = 0;
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         if let Some(rest) = line.strip_prefix("skip ") {
             eprintln!("note: sizes not checked against the environment: {rest}");
+            skipped += 1;
         }
     }
     if !out.status.success() {
         eprint!("{}", String::from_utf8_lossy(&out.stderr));
         bail!("a schema does not fit its environment (see above)");
     }
-    Ok(())
+    Ok(skipped)
 }
 
 /// `python -m lmac_env.pz <args>` with the project's Python (as env servers are started).
@@ -83,7 +87,15 @@ pub(crate) fn envs(check: bool, json: bool) -> Result<i32> {
         }
     }
     if check && !rows.is_empty() {
-        check_sizes(&rows)?;
+        let skipped = check_sizes(&rows)?;
+        // On stderr, so that --json keeps stdout one JSON document.
+        eprintln!(
+            "OK: {} {} valid and finished, each named by its place; sizes match the environment for {}{}",
+            rows.len(),
+            if rows.len() == 1 { "schema" } else { "schemas" },
+            rows.len() - skipped,
+            if skipped > 0 { format!(" ({skipped} not checked here, noted above)") } else { String::new() }
+        );
     }
     if json {
         let v: Vec<_> = rows
