@@ -297,4 +297,22 @@ fn protocol_check_reports_the_authors_placeholders_as_constant() {
     let warnings: Vec<&str> = text.lines().filter(|l| l.contains("constant by construction")).collect();
     assert_eq!(warnings.len(), 1, "{text}");
     assert!(warnings[0].contains("phase 2") && warnings[0].contains("`overseer_anchor`") && warnings[0].contains("value 0"), "{text}");
+
+    // `paper`, `paper:<task>` and the design directory name the same phases, as for `lmac train --protocol`.
+    let lmac = |args: &[&str]| std::process::Command::new(env!("CARGO_BIN_EXE_lmac")).args(args).output().expect("running lmac");
+    let total = |t: &str| t.lines().find(|l| l.starts_with("all phases:")).map(str::to_string);
+    for spec in ["paper", "paper:1o_10b_vs_1r", dir.to_str().unwrap()] {
+        let out = lmac(&["protocol", "check", "--env", "smaclite:1o_10b_vs_1r", spec]);
+        let by_name = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{spec}: {}", String::from_utf8_lossy(&out.stderr));
+        assert_eq!(total(&by_name), total(&text), "{spec}: {by_name}");
+    }
+    let explained = lmac(&["protocol", "explain", "paper:1o_10b_vs_1r"]);
+    assert!(explained.status.success() && !explained.stdout.is_empty(), "{}", String::from_utf8_lossy(&explained.stderr));
+    let bare = lmac(&["protocol", "explain", "paper"]);
+    assert!(
+        !bare.status.success() && String::from_utf8_lossy(&bare.stderr).contains("give --env"),
+        "{}",
+        String::from_utf8_lossy(&bare.stderr)
+    );
 }

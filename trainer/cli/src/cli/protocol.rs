@@ -8,7 +8,8 @@ use lmac_shm_schema::schema::load_env;
 pub(crate) enum ProtocolCmd {
     /// Validate protocol phase files (in order) against an environment; errors are the text an LLM gets back.
     Check {
-        /// Protocol JSON files: phase 0, then phase 1, ... (concatenated in this order).
+        /// Protocol JSON files: phase 0, then phase 1, ... (concatenated in this order). A design
+        /// directory, `paper` (the authors' design for --env) or `paper:<task>` stands for its phase files.
         #[arg(required = true)]
         files: Vec<String>,
         #[arg(long)]
@@ -20,6 +21,7 @@ pub(crate) enum ProtocolCmd {
     },
     /// Explain protocol files in plain words: who sends what to whom and why.
     Explain {
+        /// Protocol JSON files, a design directory, `paper` (with --env) or `paper:<task>`.
         #[arg(required = true)]
         files: Vec<String>,
         /// Name dimensions by their meaning in this environment.
@@ -35,7 +37,7 @@ pub(crate) enum ProtocolCmd {
     /// against a constant guess; dead fields too. Writes <out>/phase<k>/{meta,recovery}.json and
     /// <out>/summary.json.
     Measure {
-        /// Protocol JSON files: phase 0, then phase 1, ...
+        /// Protocol JSON files: phase 0, then phase 1, ...; a design directory, `paper` or `paper:<task>`.
         #[arg(required = true)]
         files: Vec<String>,
         #[arg(long)]
@@ -68,6 +70,7 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
             Ok(0)
         }
         ProtocolCmd::Check { files, env, dataset } => {
+            let files = expand_specs(&files, Some(&env))?;
             let schema = load_env(&env).map_err(anyhow::Error::msg)?;
             let penv = lmac_protocol_runner::protocol_env(&schema);
             let refs: Vec<&str> = files.iter().map(|s| s.as_str()).collect();
@@ -100,9 +103,11 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
             }
         }
         ProtocolCmd::Measure { files, env, dataset, out, dims, disc_updates, seed } => {
+            let files = expand_specs(&files, Some(&env))?;
             measure(&files, &env, &dataset, &out, dims, disc_updates, seed)
         }
         ProtocolCmd::Explain { files, env, dataset } => {
+            let files = expand_specs(&files, env.as_deref())?;
             let mut ps = Vec::new();
             for f in &files {
                 let text = std::fs::read_to_string(f).with_context(|| format!("reading {f}"))?;
@@ -129,6 +134,26 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
             Ok(0)
         }
     }
+}
+
+/// The phase files of each protocol argument, in order: a file as it is; a design directory
+/// (from `lmac design`), `paper` (the authors' design for `env`) or `paper:<task>` as its phase
+/// files, every form `lmac train --protocol` accepts.
+fn expand_specs(args: &[String], env: Option<&str>) -> Result<Vec<String>> {
+    let mut files = Vec::new();
+    for a in args {
+        let named = a == "paper" || a.starts_with("paper:") || std::path::Path::new(a).is_dir();
+        if !named {
+            files.push(a.clone());
+            continue;
+        }
+        if a == "paper" && env.is_none() {
+            anyhow::bail!("`paper` names the authors' design for --env: give --env, or name the task (paper:<task>)");
+        }
+        let spec = lmac_run::train::resolve_paper_spec(a, env.unwrap_or_default())?;
+        files.extend(lmac_run::train::protocol_files(&spec, None)?);
+    }
+    Ok(files)
 }
 
 /// Lines describing the dead fields of `phases` on the dataset in `dir` (one line saying there
