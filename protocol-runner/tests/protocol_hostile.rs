@@ -53,3 +53,13 @@ fn oversized_protocol_files_are_refused_naming_the_file() {
     assert!(e.contains("huge.json"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A protocol saved with a byte-order mark (some editors write one) parses as without it.
+#[test]
+fn a_leading_byte_order_mark_is_not_part_of_the_json() {
+    let file = concat!(env!("CARGO_MANIFEST_DIR"), "/../protocols/paper/smaclite_1o_10b_vs_1r/phase0/protocol.json");
+    let text = std::fs::read_to_string(file).unwrap();
+    let plain = parse_str(&text).expect("the shipped protocol parses");
+    let with_bom = parse_str(&format!("\u{feff}{text}")).expect("the same text after a byte-order mark parses");
+    assert_eq!(serde_json::to_value(&with_bom).unwrap(), serde_json::to_value(&plain).unwrap());
+}

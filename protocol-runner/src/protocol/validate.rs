@@ -249,8 +249,10 @@ fn parse_error(e: serde_path_to_error::Error<serde_json::Error>) -> ValidationEr
     ValidationError::new(ErrorKind::Parse, path, format!("invalid protocol JSON: {msg}"))
 }
 
-/// Parse protocol JSON text (no validation against an environment yet).
+/// Parse protocol JSON text (no validation against an environment yet). A leading byte-order
+/// mark, which some editors write, is not part of the JSON.
 pub fn parse_str(text: &str) -> Result<Protocol, Vec<ValidationError>> {
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let mut de = serde_json::Deserializer::from_str(text);
     let p: Protocol = serde_path_to_error::deserialize(&mut de).map_err(|e| vec![parse_error(e)])?;
     de.end().map_err(|e| {
