@@ -7,7 +7,8 @@ StarCraft II among them) with the same dynamics, seeds and time limit the lmac p
 One lmac ``VecEnv`` with one environment stands behind the adapter. Per PettingZoo's
 conventions:
 
-- agents are ``agent_0 .. agent_{n-1}`` in the schema's order and stay in ``env.agents`` until
+- agents are ``agent_0 .. agent_{n-1}`` in the schema's order (a PettingZoo game's own names
+  for ``pz:`` environments) and stay in ``env.agents`` until
   the episode ends (a dead SMAC unit keeps acting with its only available action, no-op, as in
   SMAC); when it ends every agent is terminated or truncated at once and ``env.agents`` empties;
 - every agent receives the team reward (``infos[agent]["team_reward"]`` says it is shared, so a
@@ -79,7 +80,9 @@ class LmacParallelEnv(_parallel_base()):
                 raise ValueError(f"{name}: state_last_action=False, but this environment's state "
                                  "has no last actions to drop")
             self._state_end = int(offset)
-        self.possible_agents = [f"agent_{i}" for i in range(schema.n_agents)]
+        # A PettingZoo game's own agent names (its VecEnv keeps them), else agent_0 .. agent_{n-1}.
+        self.possible_agents = list(getattr(self._env, "agents", None) or
+                                    [f"agent_{i}" for i in range(schema.n_agents)])
         self.agents: list[str] = []
         self._obs_space = spaces.Dict({
             "observation": spaces.Box(-np.inf, np.inf, (schema.obs_dim,), np.float32),
