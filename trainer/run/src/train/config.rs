@@ -333,7 +333,7 @@ impl TrainConfig {
             (Some(p), false) => format!("config {} with --set overrides", p.display()),
             (None, _) => "config".to_string(),
         };
-        let cfg: TrainConfig = serde_path_to_error::deserialize(v).map_err(|e| {
+        let mut cfg: TrainConfig = serde_path_to_error::deserialize(v).map_err(|e| {
             let path = e.path().to_string();
             // toml's own message, without the key it appends itself (the path here names it).
             let e = e.into_inner().message().trim().to_string();
@@ -344,7 +344,6 @@ impl TrainConfig {
             }
         })?;
         cfg.check().map_err(|e| anyhow::anyhow!("{origin}: {e:#}"))?;
-        let mut cfg = cfg;
         cfg.write_method_defaults()?;
         cfg.build = Some(super::build::BuildInfo::current());
         Ok(cfg)
@@ -562,11 +561,8 @@ mod tests {
         assert!(!c.learn.parallel_target && !c.learn.data_parallel, "epymarl is the schedule on one core");
     }
 
-    /// Issue 30: every number is range-checked (1e300 updates per episode hung the run at t_env
-    /// 800, a 60000-wide GRU aborted the process), and errors name the file and the field by its
-    /// path whatever the value's type.
     /// A saved config states every setting the run trained with: the method's defaults written
-    /// out (LMAC's `[method]` was empty when nothing was set), a `--set` kept, f32 defaults in
+    /// out (LMAC's `[method]` holds them when nothing was set), a `--set` kept, f32 defaults in
     /// their short form, and the source tree that resolved it; it reads back to the same config.
     #[test]
     fn a_resolved_config_writes_every_method_setting_and_its_build() {
@@ -602,6 +598,9 @@ mod tests {
         assert!(dirty.difference(&dirty).unwrap().contains("(modified)"));
     }
 
+    /// Every number is range-checked (a value like 1e300 updates per episode would hang a run, a
+    /// 60000-wide GRU abort the process), and errors name the file and the field by its path
+    /// whatever the value's type.
     #[test]
     fn out_of_range_settings_are_refused_naming_the_file_and_the_field() {
         let refused = |file: Option<&Path>, o: &[&str]| {
