@@ -1,4 +1,4 @@
-"""End to end at the paper's schedule, how the learner uses the second core (issue 26, goal 3):
+"""End to end at the paper's schedule, how the learner uses the second core:
 `lmac train` on smaclite:1o_10b_vs_1r at `--preset paper` with the authors' design, in these
 settings measured back to back, alternating, `--rounds` times (`--settings` picks some):
 

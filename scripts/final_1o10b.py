@@ -1,6 +1,6 @@
 """Final test return (mean of the last 5 test phases), win rate and peak (the best mean of 5
 consecutive test phases) of every smaclite:1o_10b_vs_1r run committed under docs/figures, with
-the best checkpoint's greedy evaluation where the run has one (marl_eval.json). Issue 13/15
+the best checkpoint's greedy evaluation where the run has one (marl_eval.json).
 figures:
 
     .venv/bin/python scripts/final_1o10b.py qmix,fullcomm,qmix-state,lmac,lmac-gru-gate,lmac-fullproto,lmac-td,lmac-raw,lmac-k0,lmac-k1,lmac-k2,lmac-no-cons,lmac-no-meta,lmac-cons-detached,ndq,ndq-rerun,cola,t2mac,maic,masia docs/figures/final_1o10b_all.json

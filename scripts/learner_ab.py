@@ -1,4 +1,4 @@
-"""One learner update of every method, two lmac builds side by side (issue 26's before/after):
+"""One learner update of every method, two lmac builds side by side (before/after):
 `lmac bench learner` for each method and shape, the builds alternating within each round, rounds
 repeated, medians and after/before ratios written as JSON.
 

@@ -281,7 +281,7 @@ fn cmdline(pid: i32) -> Vec<String> {
     raw.split(|&b| b == 0).filter(|a| !a.is_empty()).map(|a| String::from_utf8_lossy(a).into_owned()).collect()
 }
 
-/// Issue 30, item 1: the trainer's report is never written through a symlink another local user
+/// The trainer's report is never written through a symlink another local user
 /// planted. The attacker reads the run id and the report's path from the trainer's argv (which
 /// every user can) and links every name the report may use to a file of the victim's: the names
 /// it had in the shared temp directory (`lmac-<run>-report.json` and `.tmp`) and its own path

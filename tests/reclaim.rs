@@ -1,4 +1,4 @@
-//! Issue 30, item 5: shared memory left by runs killed whole is reclaimed (`lmac clean` and every
+//! Shared memory left by runs killed whole is reclaimed (`lmac clean` and every
 //! start), never a live run's or another user's; a parent killed during start-up takes its
 //! children with it even while they wait for slabs that will never come. Real `lmac` processes,
 //! real /dev/shm and iceoryx2.

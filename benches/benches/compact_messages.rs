@@ -1,5 +1,5 @@
 //! Message columns and runner cost of a designed protocol in the compact layout against the
-//! earlier sender-blocks layout (issue 14): per receiving agent the columns it uses, the plan's
+//! earlier sender-blocks layout: per receiving agent the columns it uses, the plan's
 //! width (the widest receiver's), how many of them are sender one-hots, and the plan's cost per
 //! batched step of 32 environments. Prints one JSON object (docs/figures/compact_messages.json).
 //!

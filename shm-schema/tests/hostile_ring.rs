@@ -247,7 +247,7 @@ fn cleanup_leaves_other_applications_dead_nodes_alone() {
     assert!(cleaned <= 2, "cleaned {cleaned} nodes, only ours may be");
 }
 
-/// Issue 30: lmac's iceoryx2 files live in a namespace of this user's own: a root directory that
+/// lmac's iceoryx2 files live in a namespace of this user's own: a root directory that
 /// is 0700, and iceoryx2's node-id counter in /dev/shm (which iceoryx2 creates 0666) made 0600.
 #[test]
 fn the_ring_lives_in_a_namespace_of_this_users_own() {

@@ -111,7 +111,7 @@ fn one_agent_is_a_valid_schema_without_message_columns() {
     assert!(zero.validate(Path::new(FILE)).unwrap_err().to_string().contains("n_agents: must be at least 1"));
 }
 
-/// Issue 30: a group of 65536 dimensions with a 1 MB meaning fits every per-field bound, but its
+/// A group of 65536 dimensions with a 1 MB meaning fits every per-field bound, but its
 /// descriptions would need 64 GiB (the process aborted). Refused at parse time, naming the group.
 #[test]
 fn descriptions_that_would_expand_past_memory_are_refused_naming_the_group() {

@@ -69,7 +69,7 @@ pub struct MetaInfo {
     /// observes; see `dead_fields`), one line each: candidates to replace.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub dead_fields: Vec<String>,
-    /// The design loop's verdicts, said plainly (issue 28): whether the messages of phases
+    /// The design loop's verdicts, said plainly: whether the messages of phases
     /// 0..=k help on the fixed dims at all, and whether the newest phase added anything to the
     /// phases before it (or was dropped). Filled by the design loop, read by every designer.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -227,7 +227,7 @@ pub struct SetTrend {
     pub without_zeroed: SideTrend,
 }
 
-/// Whether a phase's messages help on a set of dims, said plainly (issue 28): they help when the
+/// Whether a phase's messages help on a set of dims, said plainly: they help when the
 /// recovery with messages beats both the no-message baseline (a discriminator retrained without
 /// them) and a constant guess of each dim's median.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

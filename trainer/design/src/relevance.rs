@@ -1,4 +1,4 @@
-//! Task relevance of each state dim, measured on the dataset B (issue 28): how much the team's
+//! Task relevance of each state dim, measured on the dataset B: how much the team's
 //! return depends on the dim, as opposed to how hard agents find it to recover.
 //!
 //! A value model V(s) -> discounted return-to-go is fitted on B's training episodes (on the
@@ -260,7 +260,7 @@ impl ReturnGain {
     }
 }
 
-/// The sender question asked of the task (issue 28): for each agent j, how much its whole
+/// The sender question asked of the task: for each agent j, how much its whole
 /// observation, put beside another agent's own, raises a value model's held-out R^2 of the
 /// return-to-go. Each episode of B is seen by one receiver i != j, the receivers taken in turn
 /// over the episodes (so an episode is never in both the training and the held-out half, and

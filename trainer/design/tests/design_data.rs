@@ -760,7 +760,7 @@ fn phase_evaluation_reads_the_trend_on_fixed_dims_with_both_definitions() {
     assert!(dir.join("phase1/meta.json").exists());
 }
 
-/// Issue 28: with a return that depends on hidden value B (state dim 3, seen by agent 1 only),
+/// With a return that depends on hidden value B (state dim 3, seen by agent 1 only),
 /// relevance picks that dim alone; hidden value A and the episode constant are as hard to
 /// recover but the return does not depend on them. `critical_by = recovery` keeps the old rule.
 #[test]
@@ -808,7 +808,7 @@ fn offline_designer_chooses_what_the_return_depends_on() {
     assert!(measured["relevance"]["what"].as_str().unwrap().starts_with("permutation importance"), "{measured}");
 }
 
-/// Issue 28, `fields_by = observation-relevance`: the return depends on hidden value B, which
+/// The return depends on hidden value B, which
 /// only agent 1 sees (its o[2]). Sending all of agent 1's observation raises agent 0's recovery
 /// of s[3]; agent 0's observation tells agent 1 nothing it lacks. So agent 1 is the one
 /// sender, and o[2] is among what it sends, to agent 0.

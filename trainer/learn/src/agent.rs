@@ -115,7 +115,7 @@ impl RnnAgent {
     /// The GRU's hidden states over time from zero: `inputs[t]` [N, in] -> [T, N, H] (what
     /// `unroll` reads, and the methods whose heads read h). fc1 and the GRU's input projection
     /// do not depend on h, so they run once over all steps; only the recurrence is sequential,
-    /// and it is one fused operation (issue 16: per-step burn ops cost about 30 operations
+    /// and it is one fused operation (per-step burn ops cost about 30 operations
     /// and allocations per step forward and backward, which dominated the update).
     pub fn hidden_states(&self, inputs: &[Tensor<2>]) -> Tensor<3> {
         assert!(!inputs.is_empty(), "unroll needs at least one step");

@@ -1,4 +1,4 @@
-//! A GRU unrolled over a whole sequence as one burn operation (issue 16).
+//! A GRU unrolled over a whole sequence as one burn operation.
 //!
 //! The agent's update is small matrices over sequential steps, so its cost was per-operation
 //! overhead, not arithmetic: a plain burn unroll makes about fifteen tensor operations per

@@ -1,4 +1,4 @@
-//! The LMAC window encoder's attention over a whole unroll as one burn operation (issue 26).
+//! The LMAC window encoder's attention over a whole unroll as one burn operation.
 //!
 //! Per step t, row n and head h: scores_o = q_t . k_{t-o} / sqrt(d) for the entries
 //! o < min(W, t + 1) (steps before the unroll's first are not there), softmax over o, and the

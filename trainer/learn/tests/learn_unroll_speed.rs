@@ -1,4 +1,4 @@
-//! The unrolls batch over time what does not depend on the recurrence (issue 16, learner speed).
+//! The unrolls batch over time what does not depend on the recurrence.
 //! Each is checked here against a plain per-step reference written out in this file: the
 //! Q-values, the method's logged terms and the gradient of every parameter of one loss, to 1e-5.
 //! The LMAC case trains with dropout, so the reference also pins the dropout draw order.

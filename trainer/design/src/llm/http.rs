@@ -382,7 +382,7 @@ fn parse_http_date(s: &str) -> Option<u64> {
 mod tests {
     use super::*;
 
-    /// Issue 30's rule, never panic on bytes from outside: huge or odd numbers from a server
+    /// The rule: never panic on bytes from outside: huge or odd numbers from a server
     /// are bounded or ignored, not turned into a panicking Duration.
     #[test]
     fn hostile_retry_after_headers_do_not_panic() {

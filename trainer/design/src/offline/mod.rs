@@ -167,7 +167,7 @@ pub struct OfflineConfig {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum CriticalBy {
-    /// What the return depends on and agents cannot see (issue 28): relevance to the return
+    /// What the return depends on and agents cannot see: relevance to the return
     /// (a value model's permutation importance on B) x how badly agents recover the dim
     /// without messages; only dims that are both relevant and poorly recovered.
     Relevance,
@@ -337,7 +337,7 @@ impl OfflineConfig {
     }
 }
 
-/// The default is the rule set measured best on SMAC-Comm's 1o_10b and LBF 8x8 (issue 28): the
+/// The default is the rule set measured best on SMAC-Comm's 1o_10b and LBF 8x8: the
 /// critical dims by what a state-seeing policy's actions depend on (4 of them), one sender
 /// chosen by what its view adds to the others' prediction of the return, whole entities of its
 /// view by what each adds to the others' recovery, and phase 1 placing each receiver in the
