@@ -222,6 +222,37 @@ def test_roach_ten_banelings_kill_nine_do_not():
             assert out.terminated[0] == 1 and env.won[0]
 
 
+def test_liberty_variant_eight_banelings_kill_and_the_roach_reaches_less():
+    """`-liberty` takes the game's Liberty.SC2Mod numbers: 19 per burst against the Roach, so 8
+    of 10 kill it (7 do not), and its weapon reaches 3 + 0.5 + 0.375 from its centre, not 5."""
+    for n, dies in ((8, True), (7, False)):
+        env, out = new("1o_10b_vs_1r-liberty", 1)
+        r = np.array([16.0, 2.0])
+        ang = np.linspace(0, np.pi, 10)
+        ring = r + 1.5 * np.stack([np.cos(ang), np.sin(ang)], -1)
+        _place(env, out, list(ring) + [r], [r])
+        env.step(np.array([[6] * n + [1] * (10 - n) + [1]]), out)
+        assert (not env.alive[0, 11]) == dies
+        if not dies:
+            assert env.hp[0, 11] == pytest.approx(145 - 7 * 19 + 0.1367, abs=1e-3)
+    for data, dist, hit in (("1o_10b_vs_1r", 4.5, True), ("1o_10b_vs_1r-liberty", 4.5, False),
+                            ("1o_10b_vs_1r-liberty", 3.8, True)):
+        env, out = new(data, 1)
+        r = np.array([16.0, 16.0])
+        agents = [[2.0 + i, 30.0] for i in range(10)] + [[16.0, 3.0]]
+        agents[0] = [16.0 + dist, 16.0]
+        _place(env, out, agents, [r])
+        env.step(np.array([[1] * 11]), out)
+        assert (env.hp[0, 0] < 30) == hit, (data, dist)
+    for m in ("1o_10b_vs_1r", "2o_20b_vs_2r"):
+        path = schema_path(f"smaclite:{m}-liberty")
+        assert path.read_text() == render(MAPS[m], "smaclite", "liberty"), \
+            "run python -m lmac_env.smaclite.schemas --write"
+        assert "Liberty.SC2Mod" in tomllib.loads(path.read_text())["task"]
+    with pytest.raises(ValueError, match="unit-data variants"):
+        SmacliteVecEnv("5z_vs_1ul-liberty", 1)
+
+
 def test_roach_cannot_hit_the_flying_overseer():
     env, out = new("1o_10b_vs_1r", 1)
     r = np.array([16.0, 2.0])

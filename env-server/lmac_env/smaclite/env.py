@@ -22,7 +22,7 @@ from ..core import Batch, Schema, VecEnv, schema_path
 from ..sizes import SizeMismatch
 from . import units as U
 from .maps import (BANE_ENEMY_POINT, BANE_REGIONS, CLIFF_CORNERS, CLIFF_REGIONS, MAPS,
-                   Z5_ATTACK_POINT, Z5_REGION, mask_from_rows, obs_layout)
+                   Z5_ATTACK_POINT, Z5_REGION, mask_from_rows, obs_layout, split_variant)
 
 MAP_SIZE = 32.0
 PAD = 4            # walkable mask padding (cells of "not walkable" around the map)
@@ -35,9 +35,11 @@ _DIRS = np.array([[0, 0], [0, 0], [0, 1], [0, -1], [1, 0], [-1, 0]], dtype=np.fl
 
 class SmacliteVecEnv(VecEnv):
     def __init__(self, variant: str, num_envs: int, seed: int = 0):
-        if variant not in MAPS:
-            raise ValueError(f"unknown smaclite map {variant!r}; known: {', '.join(MAPS)}")
-        spec = self.spec = MAPS[variant]
+        map_name, data = split_variant(variant)
+        spec = self.spec = MAPS[map_name]
+        self.unit_data = data
+        units = U.unit_data(data)
+        self.bane_damage, self.bane_bonus_light = U.BANE_BURST[data]
         self.schema = Schema.load(schema_path(f"smaclite:{variant}"))
         lay = self.layout = obs_layout(spec)
         for k in ("obs_dim", "state_dim", "n_actions"):
@@ -49,7 +51,7 @@ class SmacliteVecEnv(VecEnv):
         self.E = E = len(spec.enemies)
         self.A = lay["n_actions"]
         kinds = list(spec.agents) + list(spec.enemies)
-        ut = [U.UNITS[k] for k in kinds]
+        ut = [units[k] for k in kinds]
         f = lambda attr: np.array([getattr(u, attr) for u in ut], dtype=np.float64)
         self.max_hp, self.max_sh, self.armor = f("hp"), f("shield"), f("armor")
         self.radius, self.speed, self.regen = f("radius"), f("speed"), f("regen")
@@ -149,7 +151,7 @@ class SmacliteVecEnv(VecEnv):
         d = np.linalg.norm(pe[:, None, :, :] - pa[:, :, None, :], axis=-1)   # (B,N,E)
         rad = U.BANE_SPLASH + self.radius[N:]
         hit = mask[:, :, None] & (d <= rad) & (self.alive[:, N:] & ~self.air[N:])[:, None, :]
-        per = np.maximum(U.BANE_DAMAGE + U.BANE_BONUS_LIGHT * self.light[N:] - self.armor[N:],
+        per = np.maximum(self.bane_damage + self.bane_bonus_light * self.light[N:] - self.armor[N:],
                          U.MIN_DAMAGE)
         dmg = hit.sum(1) * per                   # enemies here have no shields
         self.hp[:, N:] -= dmg

@@ -20,6 +20,8 @@ import dataclasses
 
 import numpy as np
 
+from .units import LIBERTY_MAPS
+
 BANE_T = [
     "................................",  # y=31
     "................................",  # y=30
@@ -124,6 +126,20 @@ MAPS = {
         enemy_type_id=(0,), shield_bits_ally=1, ally_max_cd=35.0, ally_max_shield=80.0,
         description="5 Zealots vs 1 Ultralisk in a horizontal band"),
 }
+
+def split_variant(variant: str) -> tuple[str, str]:
+    """`1o_10b_vs_1r` -> (map, "liquipedia"); `1o_10b_vs_1r-liberty` -> (map, "liberty"): the
+    same map with the game's Liberty.SC2Mod unit data (units.py)."""
+    name, sep, data = variant.partition("-")
+    if name not in MAPS:
+        raise ValueError(f"unknown smaclite map {name!r}; known: {', '.join(MAPS)}")
+    if not sep:
+        return name, "liquipedia"
+    if data != "liberty" or name not in LIBERTY_MAPS:
+        known = ", ".join(f"{m}-liberty" for m in LIBERTY_MAPS)
+        raise ValueError(f"unknown smaclite variant {variant!r}; the unit-data variants are {known}")
+    return name, data
+
 
 # Spawn data (MAP: Regions / Objects), rectangles as (x0, y0, x1, y1)
 BANE_REGIONS = [(0.0, 30.0, 14.0, 32.0), (18.0, 30.0, 32.0, 32.0), (15.0, 0.5, 17.0, 30.5)]

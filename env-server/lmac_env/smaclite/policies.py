@@ -212,12 +212,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--maps", nargs="*", default=list(MAPS))
     args = ap.parse_args(argv)
-    print(f"{'map':14s} {'policy':9s} {'episodes':>8s} {'win rate':>8s} {'return':>7s} "
+    print(f"{'map':21s} {'policy':9s} {'episodes':>8s} {'win rate':>8s} {'return':>7s} "
           f"{'length':>6s}")
     for m in args.maps:
         for p in ("scripted", "local", "random"):
             r = evaluate(m, p, args.episodes, args.envs, args.seed)
-            print(f"{m:14s} {p:9s} {r['episodes']:8d} {r['win_rate']:8.3f} "
+            print(f"{m:21s} {p:9s} {r['episodes']:8d} {r['win_rate']:8.3f} "
                   f"{r['mean_return']:7.2f} {r['mean_length']:6.1f}", flush=True)
     return 0
 

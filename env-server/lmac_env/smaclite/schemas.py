@@ -12,6 +12,7 @@ import sys
 
 from ..core import SCHEMA_DIR
 from .maps import MAPS, MapSpec, obs_layout
+from .units import LIBERTY_MAPS
 
 # Message columns per receiver of the LMAC authors' design for a map (protocols/paper/), where it
 # is wider than FullComm's: the smaclite schema's budget is raised to fit it.
@@ -74,6 +75,28 @@ TASKS = {
         "lives last. Agents see units within 9 and can order an attack within 6."),
 }
 
+# The "-liberty" variants (units.py: the game's Liberty.SC2Mod unit data) describe their numbers.
+LIBERTY_TASK = {
+    "1o_10b_vs_1r": [("deals 15 damage, so all 10 are needed", "deals 19 damage, so 8 of the 10 "
+                      "are needed"), ("within 5 of its centre", "within 3.9 of its centre")],
+    "2o_20b_vs_2r": [("deals 15 damage to every Roach within 2.2 of it, so ten Banelings per Roach",
+                      "deals 19 damage to every Roach within 2.2 of it, so eight Banelings per "
+                      "Roach")],
+}
+
+
+def task_text(name: str, data: str) -> str:
+    task = TASKS[name]
+    if data == "liberty":
+        for old, new in LIBERTY_TASK[name]:
+            assert old in task, (name, old)
+            task = task.replace(old, new)
+        task += (" Unit data of the game's Liberty.SC2Mod (the Baneling burst 20, +15 against "
+                 "Light; the Roach's weapon range 3 and radius 0.5) in place of the multiplayer "
+                 "values.")
+    return task
+
+
 REWARD = (
     "SMAC reward with reward_only_positive: each step |damage dealt to the enemy's health and "
     "shields (negative when the enemy is healed or regenerates, so healing also yields a "
@@ -124,15 +147,15 @@ def actions_of(spec: MapSpec) -> list[str]:
 UNSPLIT = {"bane_vs_hM", "1o_10b_vs_1r", "5z_vs_1ul"}
 
 
-def render(spec: MapSpec, family: str) -> str:
+def render(spec: MapSpec, family: str, data: str = "liquipedia") -> str:
     lay = obs_layout(spec)
     n, e = len(spec.agents), len(spec.enemies)
     sr = spec.sight_range
     ally_types, enemy_types = TYPE_NAMES[spec.name]
-    task = TASKS[spec.name]
+    task = task_text(spec.name, data)
     if family == "smaclite":
         task = ("Lightweight re-implementation (numpy, not StarCraft II) of " + task)
-        name = f"smaclite:{spec.name}"
+        name = f"smaclite:{spec.name}" + ("" if data == "liquipedia" else f"-{data}")
     else:
         task = ("Runs the real StarCraft II game through the SMAC API (needs StarCraft II, "
                 "pysc2 and smac installed, and the SMAC-Comm map files). " + task)
@@ -155,8 +178,9 @@ def render(spec: MapSpec, family: str) -> str:
               "# stepping with one sub-batch against 0.53-0.59 with two).",
               "double_buffer = false"]
     L.append(f"alpha = {0.005 if spec.name == 'bane_vs_hM' else 0.05}")
-    from .units import UNITS
-    max_reward = e * 10 + 200 + sum(UNITS[k].hp + UNITS[k].shield for k in spec.enemies)
+    from .units import unit_data
+    units = unit_data(data)
+    max_reward = e * 10 + 200 + sum(units[k].hp + units[k].shield for k in spec.enemies)
     L.append("reward = " + _q(REWARD.format(max_reward=max_reward, win=WIN[spec.name],
                                              loss=LOSS[spec.name], limit=spec.episode_limit)))
     L.append("actions = [" + ", ".join(_q(a) for a in actions_of(spec)) + "]")
@@ -263,15 +287,17 @@ def main() -> int:
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     stale = []
-    for family in ("smaclite", "smac"):
-        for spec in MAPS.values():
-            path = SCHEMA_DIR / family / f"{spec.name}.toml"
-            text = render(spec, family)
-            if args.write:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_text(text)
-            elif not path.exists() or path.read_text() != text:
-                stale.append(str(path))
+    files = [(family, spec, "liquipedia", spec.name) for family in ("smaclite", "smac")
+             for spec in MAPS.values()]
+    files += [("smaclite", MAPS[m], "liberty", f"{m}-liberty") for m in LIBERTY_MAPS]
+    for family, spec, data, variant in files:
+        path = SCHEMA_DIR / family / f"{variant}.toml"
+        text = render(spec, family, data)
+        if args.write:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+        elif not path.exists() or path.read_text() != text:
+            stale.append(str(path))
     if stale:
         print("out of date (run with --write):\n  " + "\n  ".join(stale))
         return 1

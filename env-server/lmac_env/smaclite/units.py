@@ -122,3 +122,28 @@ ULTRA_SPLASH_FRACTION = 0.33  # LIQ: Kaiser Blades splash 33%
 ULTRA_SPLASH_RADIUS = 1.0     # ASSUMED: victims whose centre is within 1.0 of the primary target
 ULTRA_ACQUIRE = 6.0           # ASSUMED: attack-move acquisition radius (centre distance)
 MIN_DAMAGE = 0.5             # SC2: armour never reduces a hit below 0.5
+
+# The SMAC-Comm map files depend only on the game's ``Liberty.SC2Mod``, not on the multiplayer
+# mod the Liquipedia values above describe. Where the two differ, "liberty" takes the Liberty
+# values, read from Blizzard's XML of game versions 5.0.10-5.0.14 (SMAC runs 4.10, whose data
+# could not be read here): the Baneling's burst, the Roach's weapon range and radius, the
+# Hydralisk's life. Not modelled: the Roach's missile (a 0.17 s wind-up, within one step) and
+# the Ultralisk's 180-degree cleave, so only the cliff maps have a "liberty" variant.
+UNIT_DATA = ("liquipedia", "liberty")
+LIBERTY_CHANGES = {
+    "roach": dict(reach=3.0, radius=0.5, source="Liberty.SC2Mod Roach: AcidSaliva range 3, "
+                  "radius 0.5 (InnerRadius 0.625); MAP as above"),
+    "hydralisk": dict(hp=80.0, source="Liberty.SC2Mod Hydralisk LifeMax 80; MAP as above"),
+}
+BANE_BURST = {"liquipedia": (BANE_DAMAGE, BANE_BONUS_LIGHT),  # (damage, bonus vs Light)
+              "liberty": (20.0, 15.0)}                        # Liberty.SC2Mod Volatile Burst
+LIBERTY_MAPS = ("1o_10b_vs_1r", "2o_20b_vs_2r")
+
+
+def unit_data(name: str) -> dict[str, UnitType]:
+    """The unit table of one data set (`UNIT_DATA`)."""
+    if name == "liquipedia":
+        return UNITS
+    if name == "liberty":
+        return {k: dataclasses.replace(u, **LIBERTY_CHANGES.get(k, {})) for k, u in UNITS.items()}
+    raise ValueError(f"unknown unit data {name!r}; known: {', '.join(UNIT_DATA)}")
