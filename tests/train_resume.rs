@@ -180,7 +180,7 @@ fn chaos_kills_every_kind_of_process_and_every_resume_continues() {
     assert!(new_shm_files(&shm_before).is_empty(), "{:?}", new_shm_files(&shm_before));
 }
 
-/// Issue 30: kills inside the checkpoint save (the trainer aborts at a step of the save
+/// Kills inside the checkpoint save (the trainer aborts at a step of the save
 /// protocol) and in the start-up window of a resume, besides kills of a running pipeline.
 #[test]
 fn chaos_kills_inside_the_save_and_at_start_up_and_every_resume_continues() {
@@ -249,7 +249,7 @@ fn short_training(out: &Path, steps: u64, set: &[&str], env: &[(&str, &str)]) ->
     c
 }
 
-/// Issue 30, item 3, end to end with real crashes: the trainer aborts inside the save of its
+/// The trainer aborts inside the save of its
 /// second checkpoint just after `checkpoint` became `checkpoint.old` (the window of the issue),
 /// the resume aborts in its first save at the same step, and the next resume still continues
 /// from the complete checkpoint (t_env 2000), not from 0, and reaches the target.
@@ -280,7 +280,7 @@ fn two_crashes_inside_checkpoint_saves_resume_from_the_surviving_checkpoint() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// Issue 30, item 3, the end state: a finished run whose checkpoint is only `checkpoint.tmp`
+/// A finished run whose checkpoint is only `checkpoint.tmp`
 /// (complete: its manifest verifies) is still finished, not trained again from t_env 0; with no
 /// usable checkpoint at all, a resume refuses instead of dropping the metrics.
 #[test]
@@ -317,7 +317,7 @@ fn group_of(stderr: &str) -> PathBuf {
     PathBuf::from(line.split_once(" run(s) in ").expect("the group").1.trim())
 }
 
-/// Issue 30, item 4: two `lmac train --out R` started together with the same stamp (forced with
+/// Two `lmac train --out R` started together with the same stamp (forced with
 /// LMAC_STAMP; the clock to the second gave the same one) get two group directories, and each
 /// is trained with its own config (its own learning rate and step target).
 #[test]
@@ -391,4 +391,43 @@ fn a_run_survives_its_binary_being_replaced() {
         assert!(metrics_t_env(s).last().copied().unwrap_or(0) >= 3000, "{} reached its steps", s.display());
     }
     let _ = std::fs::remove_dir_all(&tmp);
+}
+
+/// A resume compares the run's `config.toml` with the configuration its checkpoint was trained
+/// with, before any process starts: an edited learning rate or algorithm is refused with the list
+/// of changes (the labels would otherwise follow the file while the network follows the
+/// checkpoint); a longer step target is not a change; `--allow-changed` continues under the new
+/// settings, saying each.
+#[test]
+fn a_resume_refuses_an_edited_run_unless_allowed() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("lmac-resume-edited-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let run = short_training(&out, 2000, &[], &[]).output().unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let dir = seed_dir(&out);
+    let cfg_path = dir.join("config.toml");
+    let original = std::fs::read_to_string(&cfg_path).unwrap();
+    let edited =
+        original.replace("algo = \"qmix\"", "algo = \"vdn\"").replace("lr = 0.0005", "lr = 0.002").replace("steps = 2000", "steps = 4000");
+    assert_ne!(edited, original);
+    std::fs::write(&cfg_path, &edited).unwrap();
+    let refused = lmac().arg("train").arg("--resume").arg(&dir).output().unwrap();
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success(), "{stderr}");
+    assert!(stderr.contains("differs from the configuration its checkpoint") && stderr.contains("--allow-changed"), "{stderr}");
+    assert!(stderr.contains("run.algo: \"qmix\" -> \"vdn\"") && stderr.contains("learn.lr: 0.0005 -> 0.002"), "{stderr}");
+    assert!(!stderr.contains("run.steps"), "the step target is free to change: {stderr}");
+    assert!(!stderr.contains("env server"), "refused before the pipeline started: {stderr}");
+    // Only the step target changed: resumes.
+    std::fs::write(&cfg_path, original.replace("steps = 2000", "steps = 4000")).unwrap();
+    let longer = lmac().arg("train").arg("--resume").arg(&dir).output().unwrap();
+    assert!(longer.status.success(), "{}", String::from_utf8_lossy(&longer.stderr));
+    // Allowed: trains on under the new learning rate, saying so.
+    std::fs::write(&cfg_path, original.replace("steps = 2000", "steps = 6000").replace("lr = 0.0005", "lr = 0.002")).unwrap();
+    let allowed = lmac().arg("train").arg("--resume").arg(&dir).arg("--allow-changed").output().unwrap();
+    let stderr = String::from_utf8_lossy(&allowed.stderr);
+    assert!(allowed.status.success(), "{stderr}");
+    assert!(stderr.contains("resuming with a changed setting (--allow-changed): learn.lr: 0.0005 -> 0.002"), "{stderr}");
+    let _ = std::fs::remove_dir_all(&out);
 }

@@ -267,7 +267,9 @@ def serve(args) -> int:
         return 0
     except lmac_shm.StoppedError:
         return 0
-    except SizeMismatch as e:
+    except (SizeMismatch, lmac_shm.RefusedError) as e:
+        # A refused set-up (a layout mismatch, a namespace that is not this user's alone): one
+        # line saying what and where, no traceback.
         print(f"lmac: {who}: {e}", file=sys.stderr, flush=True)
         return 2
     except lmac_shm.PeerError as e:

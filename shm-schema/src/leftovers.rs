@@ -13,7 +13,7 @@
 //! - **nothing followed**: a slab name that is not a regular file (a planted symlink) is skipped.
 
 use crate::ring::{config_without_machine_wide_cleanup, ring_config, run_of_node};
-use crate::slab::{owner_pid, parse_slab_name, shm_file_path};
+use crate::slab::{header_state, parse_slab_name, shm_file_path, SlabHeaderState};
 use iceoryx2::node::{DeadNodeView, NodeView};
 use iceoryx2::prelude::*;
 use std::collections::HashSet;
@@ -165,11 +165,16 @@ pub fn survey() -> Survey {
         } else if live_runs.contains(&run) {
             kept.push(found("its run has live processes".into()));
         } else {
-            match owner_pid(&name) {
-                Some(pid) if creator_alive(pid, changed) => kept.push(found(format!("its env server (pid {pid}) is alive"))),
-                Some(pid) => dead.push(found(format!("its env server (pid {pid}) is dead"))),
-                None if changed.elapsed().unwrap_or_default() < UNFINISHED_GRACE => kept.push(found("being created".into())),
-                None => dead.push(found("its creator never finished it".into())),
+            match header_state(&name) {
+                SlabHeaderState::Ready(pid) if creator_alive(pid, changed) => {
+                    kept.push(found(format!("its env server (pid {pid}) is alive")))
+                }
+                SlabHeaderState::Ready(pid) => dead.push(found(format!("its env server (pid {pid}) is dead"))),
+                SlabHeaderState::Unfinished if changed.elapsed().unwrap_or_default() < UNFINISHED_GRACE => {
+                    kept.push(found("being created".into()))
+                }
+                SlabHeaderState::Unfinished => dead.push(found("its creator never finished it".into())),
+                SlabHeaderState::Foreign => kept.push(found("not an lmac slab (no lmac header)".into())),
             }
         }
     }

@@ -3,10 +3,13 @@
 //! - [`layout`]: the byte layout of one batched step (a slot) computed from a schema;
 //! - [`slab`]: K slots in POSIX shared memory, mapped read-write by every process;
 //! - [`ring`]: the iceoryx2 control plane passing slot ownership around the ring;
-//! - [`leftovers`]: what dead runs leave in shared memory, found and removed (`lmac clean`).
+//! - [`leftovers`]: what dead runs leave in shared memory, found and removed (`lmac clean`);
+//! - [`safe_fs`]: how every lmac crate reads and writes files that others may have placed:
+//!   bounded reads of regular files only, writes that never follow a planted link.
 pub mod layout;
 pub mod leftovers;
 pub mod ring;
+pub mod safe_fs;
 pub mod schema;
 pub mod slab;
 

@@ -199,6 +199,9 @@ pub fn private_namespace() -> Result<(), RingError> {
 /// nobody else can write; else say what is wrong.
 fn ensure_private_dir(dir: &std::path::Path, uid: u32) -> Result<(), String> {
     use std::os::unix::fs::{DirBuilderExt, MetadataExt};
+    // With a trailing slash, lstat resolves a symlink: look at the name itself.
+    let trimmed = dir.to_string_lossy();
+    let dir = std::path::Path::new(trimmed.trim_end_matches('/'));
     match std::fs::DirBuilder::new().mode(0o700).create(dir) {
         Ok(()) => {}
         Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
@@ -720,7 +723,7 @@ mod tests {
     use super::*;
     use std::os::unix::fs::PermissionsExt;
 
-    /// Issue 30: iceoryx2's default root, /tmp/iceoryx2, is one directory for every user; lmac's
+    /// iceoryx2's default root, /tmp/iceoryx2, is one directory for every user; lmac's
     /// own is used only when it is this user's alone.
     #[test]
     fn the_namespace_root_is_used_only_when_it_is_private() {
@@ -737,6 +740,10 @@ mod tests {
         let link = base.join("link");
         std::os::unix::fs::symlink(&fresh, &link).unwrap();
         assert!(ensure_private_dir(&link, uid).unwrap_err().contains("not a directory"));
+        // Also when named with a trailing slash, as the namespace root is: lstat would follow it.
+        let slashed = std::path::PathBuf::from(format!("{}/", link.display()));
+        assert!(ensure_private_dir(&slashed, uid).unwrap_err().contains("not a directory"));
+        assert_eq!(private_root(uid).trim_end_matches('/'), format!("/tmp/lmac-iox2-{uid}"));
         // A directory others may write to is refused; so is someone else's.
         let open = base.join("open");
         std::fs::create_dir(&open).unwrap();

@@ -135,7 +135,7 @@ impl EnvSchema {
         if size > MAX_FILE_BYTES {
             return Err(err("", format!("the file is {size} bytes; a schema file is at most {MAX_FILE_BYTES}")));
         }
-        let bytes = std::fs::read(path).map_err(|e| err("", format!("cannot read the file: {e}")))?;
+        let bytes = crate::safe_fs::read_capped(path, MAX_FILE_BYTES).map_err(|e| err("", format!("cannot read the file: {e}")))?;
         let text =
             String::from_utf8(bytes).map_err(|e| err("", format!("the file is not UTF-8 text (byte {})", e.utf8_error().valid_up_to())))?;
         Self::parse(&text, path)

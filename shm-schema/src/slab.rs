@@ -216,27 +216,45 @@ pub fn slab_name(run: &str, member: usize) -> String {
     format!("lmac-{run}-s{member}")
 }
 
-/// The run and ring member of a slab name as [`slab_name`] spells it, or None for any other name.
+/// The run and ring member of a slab name as [`slab_name`] spells it with a run id lmac makes
+/// (12 lowercase hex digits), or None for any other name: other programs' files in /dev/shm
+/// that happen to start with "lmac-" are never lmac's to touch.
 pub fn parse_slab_name(name: &str) -> Option<(&str, usize)> {
     let (run, member) = name.strip_prefix("lmac-")?.rsplit_once("-s")?;
     let m: usize = member.parse().ok()?;
+    let run_id = run.len() == 12 && run.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
     // Exactly as spelt: "-s01" or "-s+1" is not a name lmac makes.
-    (!run.is_empty() && m.to_string() == member).then_some((run, m))
+    (run_id && m.to_string() == member).then_some((run, m))
 }
 
-/// The pid recorded in an initialised slab's header (the env server that created it), read
-/// without mapping it or following a link; None when `name` is not a complete lmac slab (too
-/// short, another magic number, or its creator never finished the header).
-pub fn owner_pid(name: &str) -> Option<u32> {
+/// What the header of a slab file says about it, read without mapping it or following a link.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SlabHeaderState {
+    /// Complete: the pid of the env server that created it.
+    Ready(u32),
+    /// lmac's magic number, but its creator never marked it ready.
+    Unfinished,
+    /// Not an lmac slab (another magic number, too short, unreadable): never lmac's to remove.
+    Foreign,
+}
+
+/// Read the header of the slab file `name` (see [`SlabHeaderState`]).
+pub fn header_state(name: &str) -> SlabHeaderState {
     use std::io::Read;
     use std::os::unix::fs::OpenOptionsExt;
-    let mut f = std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NOFOLLOW).open(shm_file_path(name)).ok()?;
+    let open = std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK).open(shm_file_path(name));
+    let Ok(mut f) = open else { return SlabHeaderState::Foreign };
     let mut h = [0u8; header_offsets::OWNER_PID + 4];
-    f.read_exact(&mut h).ok()?;
+    if f.read_exact(&mut h).is_err() || h[..8] != MAGIC.to_ne_bytes() {
+        return SlabHeaderState::Foreign;
+    }
     // The header is the creator's in-memory struct: native byte order.
     let word = |at: usize| u32::from_ne_bytes(h[at..at + 4].try_into().expect("4 bytes"));
-    let complete = h[..8] == MAGIC.to_ne_bytes() && word(header_offsets::STATE) == STATE_READY;
-    complete.then(|| word(header_offsets::OWNER_PID))
+    if word(header_offsets::STATE) == STATE_READY {
+        SlabHeaderState::Ready(word(header_offsets::OWNER_PID))
+    } else {
+        SlabHeaderState::Unfinished
+    }
 }
 
 /// Path of a slab's file on Linux (for tests and cleanup).

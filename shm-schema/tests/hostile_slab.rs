@@ -118,3 +118,29 @@ fn a_slab_larger_than_dev_shm_is_refused_at_creation() {
     assert!(free <= total);
     assert!(!Path::new(&shm_file_path(&name)).exists(), "the refused slab's file must be removed");
 }
+
+/// Start-up and `lmac clean` touch only files named as lmac names its slabs (a 12-hex-digit run
+/// id) that carry lmac's header: another program's `lmac-<anything>-s<N>` file, or a file of
+/// lmac's name without lmac's magic number, is neither removed nor counted as dead.
+#[test]
+fn cleanup_never_takes_another_programs_file_for_a_slab() {
+    use lmac_shm_schema::leftovers::survey;
+    use lmac_shm_schema::slab::{header_state, parse_slab_name, SlabHeaderState};
+    let pid = std::process::id();
+    let other = format!("lmac-otherapp{pid}-s1");
+    let lookalike = format!("lmac-{:012x}-s0", 0xfeed_0000_0000u64 + pid as u64);
+    for n in [&other, &lookalike] {
+        std::fs::write(shm_file_path(n), vec![0u8; 4096]).unwrap();
+    }
+    assert_eq!(parse_slab_name(&other), None);
+    assert!(parse_slab_name(&lookalike).is_some());
+    assert_eq!(header_state(&lookalike), SlabHeaderState::Foreign);
+    let s = survey();
+    let listed = |name: &str| s.dead.iter().chain(&s.kept).filter(|f| f.name == name).map(|f| f.why.clone()).collect::<Vec<_>>();
+    assert!(listed(&other).is_empty(), "{:?}", listed(&other));
+    assert!(!s.dead.iter().any(|f| f.name == lookalike));
+    assert_eq!(listed(&lookalike), vec!["not an lmac slab (no lmac header)".to_string()]);
+    for n in [&other, &lookalike] {
+        std::fs::remove_file(shm_file_path(n)).unwrap();
+    }
+}

@@ -102,3 +102,11 @@ def test_bad_schema_file_is_a_clear_error(tmp_path):
     bad.write_text('name = "x:y"\n')
     with pytest.raises(ValueError, match="bad.toml"):
         lmac_shm.Slab.create("lmac-pytest-bad", str(bad), 1, 0, 1)
+
+
+def test_a_refused_ring_setting_is_its_own_error_class():
+    """The env server reports a refused set-up (here a ring member that does not exist; also an
+    iceoryx2 directory that is not this user's alone) in one line, by catching RefusedError."""
+    assert issubclass(lmac_shm.RefusedError, ValueError)
+    with pytest.raises(lmac_shm.RefusedError, match="does not exist in a ring of 2 members"):
+        lmac_shm.Port("pytestrefused", "env", 5, 2, 2, 1.0)

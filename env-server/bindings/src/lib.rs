@@ -25,6 +25,12 @@ create_exception!(lmac_shm, SlotReleasedError, PyRuntimeError, "The slot was han
 create_exception!(lmac_shm, SlotViewsAliveError, PyRuntimeError, "Numpy views of the slot are still alive.");
 create_exception!(lmac_shm, PeerError, PyRuntimeError, "A peer process of the ring died or vanished.");
 create_exception!(lmac_shm, StoppedError, PyRuntimeError, "The process was asked to stop.");
+create_exception!(
+    lmac_shm,
+    RefusedError,
+    PyValueError,
+    "lmac refused to use a setting or a shared resource (an iceoryx2 directory that is not this user's alone, say); the message says which and why."
+);
 
 fn parse_stage(s: &str) -> PyResult<Stage> {
     match s {
@@ -46,7 +52,7 @@ fn ring_err(e: RingError) -> PyErr {
         RingError::PeerDied { .. } | RingError::PeerGone { .. } | RingError::PeerMissing { .. } | RingError::BadMessage { .. } => {
             PeerError::new_err(e.to_string())
         }
-        RingError::Usage(_) => PyValueError::new_err(e.to_string()),
+        RingError::Usage(_) => RefusedError::new_err(e.to_string()),
         _ => PyRuntimeError::new_err(e.to_string()),
     }
 }
@@ -413,5 +419,6 @@ fn lmac_shm(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("SlotViewsAliveError", m.py().get_type::<SlotViewsAliveError>())?;
     m.add("PeerError", m.py().get_type::<PeerError>())?;
     m.add("StoppedError", m.py().get_type::<StoppedError>())?;
+    m.add("RefusedError", m.py().get_type::<RefusedError>())?;
     Ok(())
 }

@@ -342,16 +342,10 @@ pub fn check_str(text: &str, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec
 /// a huge log) from being read into memory whole.
 pub const MAX_FILE_BYTES: u64 = 16 << 20;
 
-/// A protocol file's text, at most [`MAX_FILE_BYTES`]; the error names the file.
+/// A protocol file's text, at most [`MAX_FILE_BYTES`], from a regular file only (a FIFO is
+/// refused, not waited on); the error names the file.
 pub fn read_protocol_file(path: &std::path::Path) -> Result<String, String> {
-    use std::io::Read;
-    let file = std::fs::File::open(path).map_err(|e| format!("cannot read protocol file {}: {e}", path.display()))?;
-    let mut text = String::new();
-    file.take(MAX_FILE_BYTES + 1).read_to_string(&mut text).map_err(|e| format!("cannot read protocol file {}: {e}", path.display()))?;
-    if text.len() as u64 > MAX_FILE_BYTES {
-        return Err(format!("protocol file {} is larger than {MAX_FILE_BYTES} bytes: not a protocol", path.display()));
-    }
-    Ok(text)
+    lmac_shm_schema::safe_fs::read_text_capped(path, MAX_FILE_BYTES).map_err(|e| format!("cannot read protocol file {e}"))
 }
 
 /// Read, parse and validate a protocol file.

@@ -276,6 +276,9 @@ fn paper_specs_find_the_shipped_design_or_name_the_env() {
     // Another task's design on this env: refused by the design's env.
     let e = format!("{:#}", config("smaclite:1o_10b_vs_1r", "paper:bane_vs_hM").unwrap_err());
     assert!(e.contains("was made for smaclite:bane_vs_hM"), "{e}");
+    // The same map with other unit data observes the same values: its design runs there.
+    let liberty = config("smaclite:1o_10b_vs_1r-liberty", "paper:1o_10b_vs_1r").unwrap();
+    assert_eq!(liberty.protocol().unwrap().to_string(), want.join("+"));
     // Not a paper spec: unchanged (a directory or files).
     assert_eq!(lmac_run::train::resolve_paper_spec("a.json+b.json", "x:y").unwrap(), "a.json+b.json");
     assert_eq!(lmac_run::train::resolve_paper_spec("papers/x", "x:y").unwrap(), "papers/x");

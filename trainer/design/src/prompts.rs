@@ -140,7 +140,8 @@ impl Templates {
         let mut texts = BTreeMap::new();
         for s in SPECS {
             let p = dir.join(s.name);
-            let text = std::fs::read_to_string(&p).with_context(|| format!("reading the prompt template {}", p.display()))?;
+            let text =
+                lmac_shm_schema::safe_fs::read_text_capped(&p, lmac_shm_schema::safe_fs::TEXT_CAP).context("reading a prompt template")?;
             texts.insert(s.name, text);
         }
         let t = Templates { texts, source: dir.display().to_string() };

@@ -191,7 +191,7 @@ pub fn run_design(
     let penv = lmac_protocol_runner::protocol_env(&schema);
     // A directory of this design's own, even when another starts in the same second.
     let dir = lmac_run::run_dir::create_unique_dir(
-        &opts.out.join(opts.env.replace(':', "_")),
+        &opts.out.join(lmac_run::run_dir::env_dir_name(&opts.env)),
         &format!("{}-{}", lmac_run::run_dir::stamp(), designer.name().replace([':', '/'], "_")),
     )?;
     write(&dir.join("options.json"), &serde_json::to_string_pretty(opts)?)?;

@@ -24,6 +24,7 @@ use std::path::{Path, PathBuf};
 
 use burn::module::Module;
 use burn::tensor::Device;
+use lmac_shm_schema::safe_fs::{open_regular, read_capped, DATA_CAP, TEXT_CAP};
 use serde::{Deserialize, Serialize};
 
 use super::buffer::ReplayBuffer;
@@ -58,6 +59,14 @@ struct StateJson {
     rng: LearnRng,
     epsilon: f32,
     has_buffer: bool,
+    /// The run's whole configuration when the checkpoint was saved (absent before runs
+    /// recorded it).
+    #[serde(default)]
+    run_config: Option<String>,
+    /// Written with a manifest (every checkpoint since manifests): one missing was removed, and
+    /// the files' sums can no longer be checked, so the checkpoint is refused.
+    #[serde(default)]
+    manifested: bool,
 }
 
 fn ck(e: impl std::fmt::Display, what: &str, path: &Path) -> LearnError {
@@ -82,6 +91,8 @@ pub struct CheckpointInfo {
     pub dims: EpisodeDims,
     pub counters: Counters,
     pub has_buffer: bool,
+    /// The run's whole configuration the checkpoint was trained with, when it was recorded.
+    pub run_config: Option<String>,
 }
 
 /// Largest dimension a checkpoint may declare: far above any environment here, low enough that
@@ -128,7 +139,7 @@ fn file_sum(p: &Path) -> Result<FileSum, LearnError> {
 /// files (they must be listed). Errors name the file.
 fn verify(dir: &Path, only: Option<&[&str]>) -> Result<bool, LearnError> {
     let mp = dir.join(MANIFEST);
-    let bytes = match fs::read(&mp) {
+    let bytes = match read_capped(&mp, TEXT_CAP) {
         Ok(b) => b,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
         Err(e) => return Err(ck(e, "read", &mp)),
@@ -165,19 +176,29 @@ fn verify(dir: &Path, only: Option<&[&str]>) -> Result<bool, LearnError> {
     Ok(true)
 }
 
-/// Which directory holds the checkpoint of `dir`: `<dir>`, else `<dir>.old` (a crash between
-/// the two renames of a save), else `<dir>.tmp` when its manifest verifies (complete, but a
-/// crash came before it was renamed into place). None when there is no usable checkpoint.
+/// Which directory holds the checkpoint of `dir`: `<dir>` when its files match its manifest,
+/// else an intact `<dir>.old` (a crash between the two renames of a save, or `<dir>` corrupted
+/// since), else `<dir>.tmp` when its manifest verifies (complete, but a crash came before it was
+/// renamed into place), else whichever of `<dir>` and `<dir>.old` has a `state.json` (its load
+/// then names what is wrong). None when there is no usable checkpoint.
 pub fn locate(dir: impl AsRef<Path>) -> Option<PathBuf> {
     let dir = dir.as_ref();
     let old = sibling(dir, ".old");
     let tmp = sibling(dir, ".tmp");
-    if dir.join("state.json").is_file() {
+    let present = |d: &Path| d.join("state.json").is_file();
+    // A checkpoint whose files fail its manifest gives way to an intact `.old`; with none, it is
+    // still the one picked, so the load names its corrupt file.
+    let intact = |d: &Path| present(d) && verify(d, None).is_ok();
+    if intact(dir) {
         Some(dir.to_path_buf())
-    } else if old.join("state.json").is_file() {
+    } else if intact(&old) {
         Some(old)
-    } else if tmp.join("state.json").is_file() && matches!(verify(&tmp, None), Ok(true)) {
+    } else if present(&tmp) && matches!(verify(&tmp, None), Ok(true)) {
         Some(tmp)
+    } else if present(dir) {
+        Some(dir.to_path_buf())
+    } else if present(&old) {
+        Some(old)
     } else {
         None
     }
@@ -265,10 +286,13 @@ pub mod fault {
 /// Remove a checkpoint directory so that a removal cut short never leaves one that looks
 /// complete: its manifest and `state.json` go first (and that is made durable).
 fn remove_checkpoint_dir(p: &Path, step: &'static str) -> Result<(), LearnError> {
-    if !p.is_dir() {
-        // A file in the way (or a symlink) is not ours to keep: remove_dir_all refuses a file,
-        // with an error naming it.
-        return fs::remove_dir_all(p).map_err(|e| ck(e, "remove", p));
+    // symlink_metadata: a symlink in the way is removed itself, never entered (is_dir would
+    // follow it and the removals below would delete files wherever it points).
+    if !fs::symlink_metadata(p).is_ok_and(|m| m.is_dir()) {
+        return match fs::remove_file(p) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(ck(e, "remove", p)),
+            _ => Ok(()),
+        };
     }
     for f in [MANIFEST, "state.json"] {
         match fs::remove_file(p.join(f)) {
@@ -293,7 +317,7 @@ fn fsync_parent(dir: &Path) -> Result<(), LearnError> {
 /// [`Learner::load_checkpoint`]). Errors name the file and the field.
 pub fn peek_checkpoint(dir: impl AsRef<Path>) -> Result<CheckpointInfo, LearnError> {
     let (dir, st) = read_state(dir.as_ref())?;
-    Ok(CheckpointInfo { dir, dims: st.dims.to_dims(), counters: st.counters, has_buffer: st.has_buffer })
+    Ok(CheckpointInfo { dir, dims: st.dims.to_dims(), counters: st.counters, has_buffer: st.has_buffer, run_config: st.run_config })
 }
 
 impl DimsJson {
@@ -311,10 +335,13 @@ fn read_state(dir: &Path) -> Result<(PathBuf, StateJson), LearnError> {
             sibling(dir, ".tmp").display()
         )));
     };
-    verify(&dir, Some(&["state.json"][..]))?;
+    let has_manifest = verify(&dir, Some(&["state.json"][..]))?;
     let p = dir.join("state.json");
-    let bytes = fs::read(&p).map_err(|e| ck(e, "read", &p))?;
+    let bytes = read_capped(&p, TEXT_CAP).map_err(|e| ck(e, "read", &p))?;
     let st: StateJson = serde_json::from_slice(&bytes).map_err(|e| ck(e, "parse", &p))?;
+    if st.manifested && !has_manifest {
+        return Err(ck(format!("was saved with a {MANIFEST}, which is missing: its files cannot be checked"), "load", &p));
+    }
     if st.format_version != FORMAT_VERSION {
         return Err(ck(format!("format_version {} (expected {FORMAT_VERSION})", st.format_version), "load", &p));
     }
@@ -404,6 +431,8 @@ impl Learner {
             rng: self.rng.clone(),
             epsilon: self.epsilon(),
             has_buffer: with_buffer,
+            run_config: self.run_config.clone(),
+            manifested: true,
         };
         let p = tmp.join("state.json");
         fs::write(&p, serde_json::to_vec_pretty(&state).expect("state serializes")).map_err(|e| ck(e, "write", &p))?;
@@ -453,7 +482,7 @@ impl Learner {
                                                   // Whole files into memory: burn's file loader maps tensors to the file lazily, and the
                                                   // next save renames or removes this directory (a resume from `.old` or `.tmp` first
                                                   // renames it into place), after which a lazy read would fail.
-        let resident = |p: &Path| fs::read(p).map(burn::tensor::Bytes::from_bytes_vec).map_err(|e| ck(e, "read", p));
+        let resident = |p: &Path| read_capped(p, DATA_CAP).map(burn::tensor::Bytes::from_bytes_vec).map_err(|e| ck(e, "read", p));
         let record = |p: &Path| resident(p).and_then(|b| burn::store::ModuleRecord::from_bytes(b).map_err(|e| ck(e, "load", p)));
         let p = dir.join("net.bpk");
         l.net = guarded(&p, || {
@@ -468,6 +497,7 @@ impl Learner {
         l.optim = guarded(&p, || make_optimizer(&l.cfg).from_bytes(resident(&p)?).map_err(|e| ck(e, "load", &p)))?;
         l.counters = st.counters;
         l.rng = st.rng;
+        l.run_config = st.run_config;
         if st.has_buffer {
             let p = dir.join("buffer.bin");
             l.buffer = read_buffer(&p, &l.dims, l.cfg.buffer_size).map_err(|e| ck(e, "read", &p))?;
@@ -511,7 +541,7 @@ fn invalid(msg: String) -> std::io::Error {
 /// allocating, so a truncated or corrupt file is an error naming the field, never a huge
 /// allocation or a panic. Reads format 2 (with truncated episodes' next steps) and format 1.
 fn read_buffer(path: &Path, d: &EpisodeDims, capacity: usize) -> std::io::Result<ReplayBuffer> {
-    let file = File::open(path)?;
+    let file = open_regular(path)?;
     // Bytes of the file not read yet (a Cell: the reading closure and the checks share it).
     let left = std::cell::Cell::new(file.metadata()?.len());
     let mut r = BufReader::new(file);

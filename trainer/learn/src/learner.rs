@@ -135,6 +135,9 @@ pub struct Learner {
     pub(crate) buffer: ReplayBuffer,
     pub(crate) rng: LearnRng,
     pub(crate) counters: Counters,
+    /// The whole configuration of the run this learner trains, as its caller wrote it (lmac's
+    /// `config.toml`); kept in every checkpoint so a resume can tell what was changed since.
+    pub(crate) run_config: Option<String>,
 }
 
 pub(crate) fn make_optimizer(cfg: &LearnConfig) -> ModuleOptimizer {
@@ -185,7 +188,13 @@ impl Learner {
             device,
             net,
             target,
+            run_config: None,
         })
+    }
+
+    /// Record the run's whole configuration in the checkpoints this learner saves.
+    pub fn set_run_config(&mut self, text: String) {
+        self.run_config = Some(text);
     }
 
     pub fn config(&self) -> &LearnConfig {

@@ -282,7 +282,7 @@ fn step(learner: &mut Learner, rng: &mut LearnRng) -> u64 {
     learner.counters().t_env
 }
 
-/// Issue 30, item 3: the save is stopped (as a crash would stop it: nothing after the step is
+/// The save is stopped (as a crash would stop it: nothing after the step is
 /// done, nothing cleaned up) at every step, then the run resumes from what it finds and its next
 /// save is stopped at every step again: all combinations. After both crashes a complete
 /// checkpoint loads, never older than the one the second segment resumed from, and a resume
@@ -382,7 +382,7 @@ fn a_complete_tmp_is_used_and_a_corrupt_file_is_named() {
     std::fs::remove_dir_all(&parent).unwrap();
 }
 
-/// Issue 30: a checkpoint's `state.json` is bytes from outside. A checkpoint without a manifest
+/// A checkpoint's `state.json` is bytes from outside. A checkpoint without a manifest
 /// (written before manifests, so nothing checks its sums) whose counters say t_env = 2^64-1
 /// would mark the run finished, and a 60000-wide GRU in its config would abort the process
 /// building it: both are refused, naming the file and the field.
@@ -397,7 +397,10 @@ fn state_json_out_of_range_is_refused_naming_the_field() {
     learner.save_checkpoint(&dir, false).unwrap();
     std::fs::remove_file(dir.join("manifest.json")).unwrap();
     let state = dir.join("state.json");
-    let original: serde_json::Value = serde_json::from_slice(&std::fs::read(&state).unwrap()).unwrap();
+    let mut original: serde_json::Value = serde_json::from_slice(&std::fs::read(&state).unwrap()).unwrap();
+    // As a checkpoint of a build before manifests records it (today's, saved with one, is
+    // refused without it).
+    original["manifested"] = serde_json::json!(false);
     for (section, field, value) in
         [("counters", "t_env", serde_json::json!(u64::MAX)), ("config", "rnn_hidden_dim", serde_json::json!(60000))]
     {
@@ -410,4 +413,85 @@ fn state_json_out_of_range_is_refused_naming_the_field() {
     std::fs::write(&state, serde_json::to_vec(&original).unwrap()).unwrap();
     assert!(Learner::load_checkpoint(&dir, Device::default()).is_ok(), "the untouched state loads");
     std::fs::remove_dir_all(&parent).unwrap();
+}
+
+/// A run directory one did not make (copied, untarred, shared) may hold planted links. A save
+/// that finds `checkpoint.old` (or `.tmp`) as a symlink to someone's directory removes the link,
+/// never the files it points to; a checkpoint without a manifest whose `net.bpk` links to
+/// `/dev/zero` is refused at once instead of read until memory runs out.
+#[test]
+fn planted_links_in_a_checkpoint_are_neither_followed_nor_read_forever() {
+    let parent = std::env::temp_dir().join(format!("lmac-ckpt-links-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&parent);
+    let victim = parent.join("victim");
+    std::fs::create_dir_all(&victim).unwrap();
+    for f in ["manifest.json", "state.json", "keep.txt"] {
+        std::fs::write(victim.join(f), b"not lmac's").unwrap();
+    }
+    let dir = parent.join("checkpoint");
+    let (mut learner, mut rng) = small_learner();
+    step(&mut learner, &mut rng);
+    learner.save_checkpoint(&dir, false).unwrap();
+    for planted in ["checkpoint.old", "checkpoint.tmp"] {
+        std::os::unix::fs::symlink(&victim, parent.join(planted)).unwrap();
+        step(&mut learner, &mut rng);
+        learner.save_checkpoint(&dir, false).unwrap();
+        for f in ["manifest.json", "state.json", "keep.txt"] {
+            assert_eq!(std::fs::read(victim.join(f)).unwrap(), b"not lmac's", "{planted}: {f} was touched");
+        }
+    }
+    // No manifest (a checkpoint of a build before manifests), net.bpk a link to a device:
+    // refused naming the file.
+    std::fs::remove_file(dir.join("manifest.json")).unwrap();
+    let state = std::fs::read_to_string(dir.join("state.json")).unwrap();
+    assert!(state.contains("\"manifested\": true"), "{state}");
+    std::fs::write(dir.join("state.json"), state.replace("\"manifested\": true", "\"manifested\": false")).unwrap();
+    std::fs::remove_file(dir.join("net.bpk")).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", dir.join("net.bpk")).unwrap();
+    let e = Learner::load_checkpoint(&dir, Device::default()).err().expect("a device is refused").to_string();
+    assert!(e.contains("net.bpk") && e.contains("not a regular file"), "{e}");
+    std::fs::remove_dir_all(&parent).unwrap();
+}
+
+/// A checkpoint corrupted beside an intact `checkpoint.old` gives way to it; one whose manifest
+/// was deleted (so its sums cannot be checked) is refused, not loaded with whatever bytes it has.
+#[test]
+fn a_corrupt_checkpoint_falls_back_to_old_and_a_missing_manifest_is_refused() {
+    use lmac_learn::checkpoint::locate;
+    let parent = std::env::temp_dir().join(format!("lmac-ckpt-fallback-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&parent);
+    std::fs::create_dir_all(&parent).unwrap();
+    let dir = parent.join("checkpoint");
+    let old = parent.join("checkpoint.old");
+    let (mut learner, mut rng) = small_learner();
+    let t_old = step(&mut learner, &mut rng);
+    learner.save_checkpoint(&dir, false).unwrap();
+    copy_dir(&dir, &parent.join("first"));
+    step(&mut learner, &mut rng);
+    learner.save_checkpoint(&dir, false).unwrap();
+    copy_dir(&dir, &old.with_extension("keep"));
+    // A save removes `.old` once the new checkpoint is in place: put the first one back there.
+    std::fs::rename(parent.join("first"), &old).unwrap();
+    let net = dir.join("net.bpk");
+    let mut bytes = std::fs::read(&net).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0xff;
+    std::fs::write(&net, &bytes).unwrap();
+    assert_eq!(locate(&dir), Some(old.clone()));
+    assert_eq!(Learner::load_checkpoint(&dir, Device::default()).unwrap().counters().t_env, t_old);
+    // The intact newer checkpoint without its manifest: refused, naming the missing file.
+    std::fs::remove_dir_all(&dir).unwrap();
+    std::fs::remove_dir_all(&old).unwrap();
+    std::fs::rename(old.with_extension("keep"), &dir).unwrap();
+    std::fs::remove_file(dir.join("manifest.json")).unwrap();
+    let e = Learner::load_checkpoint(&dir, Device::default()).err().expect("refused").to_string();
+    assert!(e.contains("manifest.json") && e.contains("missing"), "{e}");
+    std::fs::remove_dir_all(&parent).unwrap();
+}
+
+fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+    }
 }

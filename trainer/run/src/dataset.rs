@@ -182,7 +182,7 @@ impl Dataset {
     /// Read a dataset written by [`Dataset::save`]; errors name the file and the problem.
     pub fn load(dir: &Path) -> Result<Self> {
         let hp = dir.join("header.json");
-        let text = std::fs::read_to_string(&hp).with_context(|| format!("{}: cannot read", hp.display()))?;
+        let text = crate::safe_fs::read_text_capped(&hp, crate::safe_fs::TEXT_CAP).context("cannot read the dataset's header")?;
         let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", hp.display()))?;
         if v["format"] != FORMAT {
             bail!("{}: not an lmac trajectory dataset (format {:?})", hp.display(), v["format"]);
@@ -209,7 +209,9 @@ impl Dataset {
             }
         }
         let mut data = Vec::new();
-        std::fs::File::open(&bp).and_then(|mut f| f.read_to_end(&mut data)).with_context(|| format!("{}: cannot read", bp.display()))?;
+        crate::safe_fs::open_regular(&bp)
+            .and_then(|f| f.take(crate::safe_fs::DATA_CAP).read_to_end(&mut data))
+            .context("cannot read the dataset's episodes")?;
         if let Some(want) = v.get("episodes_crc32c").filter(|x| !x.is_null()) {
             let got = format!("{:08x}", crc32c::crc32c(&data));
             if want.as_str() != Some(got.as_str()) {

@@ -444,7 +444,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         let dir = match &seed_dir {
             Some(d) => d.clone(),
             None => {
-                let group = std::fs::read_dir(o.out.join(o.env.replace(':', "_")).join("qmix"))?
+                let group = std::fs::read_dir(o.out.join(crate::run_dir::env_dir_name(&o.env)).join("qmix"))?
                     .flatten()
                     .map(|e| e.path())
                     .next()
@@ -730,7 +730,7 @@ pub fn soak(
             bail!("lmac train exited ({st}) during the soak:\n{}", run.text());
         }
         if dir.is_none() {
-            dir = std::fs::read_dir(out.join(env.replace(':', "_")).join("qmix"))
+            dir = std::fs::read_dir(out.join(crate::run_dir::env_dir_name(env)).join("qmix"))
                 .ok()
                 .and_then(|mut d| d.next())
                 .and_then(|e| e.ok())

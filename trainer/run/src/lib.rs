@@ -9,7 +9,7 @@ pub mod dataset;
 pub mod faults;
 pub mod pipeline;
 pub mod run_dir;
-pub mod safe_fs;
+pub use lmac_shm_schema::safe_fs;
 pub mod supervisor;
 pub mod tensorboard;
 pub mod train;

@@ -27,6 +27,14 @@ pub fn create_unique_dir(parent: &std::path::Path, name: &str) -> anyhow::Result
     anyhow::bail!("creating a directory in {}: {name} and 9999 suffixed names are taken", parent.display())
 }
 
+/// The folder name of an environment's runs and designs: its name with ':' and any character
+/// other than letters, digits, '.', '_' and '-' as '_' (`pz:mpe2.simple_spread_v3,N=4` ->
+/// `pz_mpe2.simple_spread_v3_N_4`), so a name's commas and '=' never reach a path that
+/// `--variant` or `--protocol` must parse.
+pub fn env_dir_name(env: &str) -> String {
+    env.chars().map(|c| if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') { c } else { '_' }).collect()
+}
+
 /// 12 hex digits, unique among the live runs of one machine: the process id (live processes
 /// have distinct ones) and 20 random bits (a pid reused after a crash, or two runs of one
 /// process). Short, because it is part of shared-memory and iceoryx2 names.
@@ -45,13 +53,8 @@ pub fn lock(dir: &std::path::Path) -> anyhow::Result<RunLock> {
     use std::io::{Read, Seek, Write};
     use std::os::unix::io::AsRawFd;
     let path = dir.join("lock");
-    let mut f = std::fs::OpenOptions::new()
-        .read(true)
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .open(&path)
-        .map_err(|e| anyhow::anyhow!("opening {}: {e}", path.display()))?;
+    // Never through a symlink planted in a run directory someone else made (copied, untarred).
+    let mut f = crate::safe_fs::open_lock(&path).map_err(|e| anyhow::anyhow!("opening the run's lock: {e}"))?;
     if crate::safe_fs::lock_exclusive(&f, false).is_err() {
         let mut holder = String::new();
         let _ = f.read_to_string(&mut holder);
@@ -68,6 +71,14 @@ pub fn lock(dir: &std::path::Path) -> anyhow::Result<RunLock> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn an_env_names_folder_has_no_commas_or_equals() {
+        use super::env_dir_name;
+        assert_eq!(env_dir_name("smaclite:1o_10b_vs_1r"), "smaclite_1o_10b_vs_1r");
+        assert_eq!(env_dir_name("pz:mpe2.simple_spread_v3,N=4,team_reward=mean"), "pz_mpe2.simple_spread_v3_N_4_team_reward_mean");
+        assert_eq!(env_dir_name("lbf:8x8-2p-2f-s1-coop"), "lbf_8x8-2p-2f-s1-coop");
+    }
+
     #[test]
     fn a_stamp_is_a_sortable_utc_time() {
         let s = super::stamp();

@@ -82,7 +82,7 @@ pub struct TrainerJobFile {
 impl TrainerJobFile {
     /// Read the job file, naming it in any error.
     pub fn load(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).with_context(|| format!("reading the trainer job {}", path.display()))?;
+        let bytes = crate::safe_fs::read_capped(path, crate::safe_fs::TEXT_CAP).context("reading the trainer job")?;
         serde_json::from_slice(&bytes).with_context(|| format!("the trainer job {} is not a job file", path.display()))
     }
 }

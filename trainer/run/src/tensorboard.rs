@@ -48,7 +48,7 @@ impl EventWriter {
     pub fn create(dir: &Path) -> std::io::Result<EventWriter> {
         let host = std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_string()).unwrap_or_else(|_| "localhost".into());
         let path = dir.join(format!("events.out.tfevents.{}.{}.{}", now() as u64, host, std::process::id()));
-        let file = std::fs::OpenOptions::new().create(true).append(true).open(&path)?;
+        let file = crate::safe_fs::open_append(&path)?;
         let mut w = EventWriter { file, path };
         let mut ev = Vec::new();
         key(&mut ev, 1, 1);

@@ -125,12 +125,18 @@ pub fn seed_dirs(r: &Path) -> Result<(PathBuf, Vec<PathBuf>)> {
 /// its step target, then evaluate it once ([`final_evaluation`]). A finished run is skipped; an
 /// unfinished one resumes from its checkpoint.
 pub fn train_dirs(dirs: &[PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
-    train_dirs_holding(dirs, Vec::new(), interrupted)
+    train_dirs_holding(dirs, Vec::new(), false, interrupted)
 }
 
 /// [`train_dirs`] with the locks of some directories already taken (`held[i]` is that of
-/// `dirs[i]`; missing or None: taken here).
-pub fn train_dirs_holding(dirs: &[PathBuf], mut held: Vec<Option<crate::run_dir::RunLock>>, interrupted: Arc<AtomicBool>) -> Result<()> {
+/// `dirs[i]`; missing or None: taken here). A run whose `config.toml` differs from the one its
+/// checkpoint was trained with is refused with the differences, unless `allow_changed`.
+pub fn train_dirs_holding(
+    dirs: &[PathBuf],
+    mut held: Vec<Option<crate::run_dir::RunLock>>,
+    allow_changed: bool,
+    interrupted: Arc<AtomicBool>,
+) -> Result<()> {
     use crate::learn::checkpoint::{checkpoint_exists, peek_checkpoint};
     for (i, d) in dirs.iter().enumerate() {
         // One lmac at a time per run directory: a second one would interleave checkpoints and
@@ -144,7 +150,32 @@ pub fn train_dirs_holding(dirs: &[PathBuf], mut held: Vec<Option<crate::run_dir:
         // Where the run stands: a checkpoint's step, or 0 for a fresh start.
         let ck = crate::train::checkpoint_dir(d);
         let done_t_env = if checkpoint_exists(&ck) {
-            peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("{}: {e}", d.display()))?.counters.t_env
+            let info = peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("{}: {e}", d.display()))?;
+            let mut changes = info.run_config.as_deref().map(|r| crate::train::resume_check::config_changes(r, &cfg)).unwrap_or_default();
+            if let Some(recorded) = &cfg.run.protocol_sha256 {
+                let now = cfg.protocol_digest().with_context(|| format!("{}: reading its protocol", d.display()))?;
+                if now.as_ref() != Some(recorded) {
+                    changes.push(format!(
+                        "run.protocol's files now read differently (sha256 {recorded} -> {}; the run's copy is in {})",
+                        now.as_deref().unwrap_or("none"),
+                        d.join("protocol").display()
+                    ));
+                }
+            }
+            if !changes.is_empty() && !allow_changed {
+                bail!(
+                    "{}: config.toml differs from the configuration its checkpoint (t_env {}) was trained with:\n  {}\n\
+                     Resuming would train one network under two settings. Undo the edits, train a new run, or resume with \
+                     --allow-changed to continue under the new settings.",
+                    d.display(),
+                    info.counters.t_env,
+                    changes.join("\n  ")
+                );
+            }
+            for c in &changes {
+                eprintln!("lmac: {}: warning: resuming with a changed setting (--allow-changed): {c}", d.display());
+            }
+            info.counters.t_env
         } else {
             // Said here, before any process starts (the trainer checks it again).
             crate::train::refuse_restart_over_metrics(d)?;
@@ -225,7 +256,7 @@ pub fn evaluate_run(
     let job = TrainerJob { warmup: 1, work, ..Default::default() };
     pipeline_report(&p, job, vec![], interrupted).with_context(|| format!("evaluating {}", d.display()))?;
     let out = EvalSpec::result_path(&spec_path);
-    Ok(serde_json::from_slice(&std::fs::read(&out).with_context(|| format!("reading {}", out.display()))?)?)
+    Ok(serde_json::from_slice(&crate::safe_fs::read_capped(&out, crate::safe_fs::TEXT_CAP).context("reading the evaluation's result")?)?)
 }
 
 /// Draw a run's or a design's figures with one of the reporting package's matplotlib modules

@@ -150,3 +150,74 @@ fn config_override_values_cannot_smuggle_in_other_keys() {
         assert!(TrainConfig::resolve(None, &[bad.to_string()]).is_err(), "{bad}");
     }
 }
+
+fn mkfifo(p: &Path) {
+    let c = std::ffi::CString::new(p.as_os_str().as_encoded_bytes()).unwrap();
+    // SAFETY: mkfifo with a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+}
+
+/// `f` on another thread, which must return within 10 s (a read blocked on a FIFO never would).
+fn within_10s<T: Send + 'static>(what: &str, f: impl FnOnce() -> T + Send + 'static) -> T {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(f());
+    });
+    rx.recv_timeout(std::time::Duration::from_secs(10)).unwrap_or_else(|_| panic!("{what}: still blocked after 10 s"))
+}
+
+/// Every file lmac reads from outside is a regular file read with a cap: a config, a run's
+/// `config.toml` or a dataset header that is `/dev/zero` (linked in) or a FIFO is refused at once,
+/// naming the file and what it is, never read until memory runs out or waited on forever.
+#[test]
+fn devices_and_fifos_in_place_of_files_are_refused_without_reading_or_blocking() {
+    use lmac_run::train::TrainConfig;
+    let dir = tmp_dir("devices");
+    let zero = dir.join("zero.toml");
+    std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+    let fifo = dir.join("fifo.toml");
+    mkfifo(&fifo);
+    for (p, kind) in [(zero.clone(), "a device"), (fifo.clone(), "a FIFO")] {
+        let q = p.clone();
+        let e = within_10s("--config", move || format!("{:#}", TrainConfig::resolve(Some(&q), &[]).unwrap_err()));
+        assert!(e.contains(&p.display().to_string()) && e.contains(kind), "{e}");
+    }
+    // A run directory's config.toml, and a dataset's header.json.
+    let run = dir.join("run");
+    std::fs::create_dir(&run).unwrap();
+    mkfifo(&run.join("config.toml"));
+    let r = run.clone();
+    let e = within_10s("config.toml", move || format!("{:#}", TrainConfig::load(&r).unwrap_err()));
+    assert!(e.contains("config.toml") && e.contains("a FIFO"), "{e}");
+    let data = dir.join("data");
+    std::fs::create_dir(&data).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", data.join("header.json")).unwrap();
+    let e = format!("{:#}", Dataset::load(&data).unwrap_err());
+    assert!(e.contains("header.json") && e.contains("a device"), "{e}");
+    // A file over its cap is refused naming the cap (a sparse 65 MiB config).
+    let big = dir.join("big.toml");
+    std::fs::File::create(&big).unwrap().set_len(65 << 20).unwrap();
+    let e = format!("{:#}", TrainConfig::resolve(Some(&big), &[]).unwrap_err());
+    assert!(e.contains("more than the 64 MiB"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Writes inside a run directory never go through a link planted there: the lock and the
+/// metrics are refused, leaving the link's target as it was.
+#[test]
+fn planted_links_in_a_run_directory_are_not_written_through() {
+    let dir = tmp_dir("run-links");
+    let victim = dir.join("victim");
+    std::fs::write(&victim, b"keep\n").unwrap();
+    let run = dir.join("run");
+    std::fs::create_dir(&run).unwrap();
+    std::os::unix::fs::symlink(&victim, run.join("lock")).unwrap();
+    let e = format!("{:#}", lmac_run::run_dir::lock(&run).err().expect("a linked lock is refused"));
+    assert!(e.contains("lock") && e.contains("symlink"), "{e}");
+    std::fs::remove_file(run.join("lock")).unwrap();
+    std::os::unix::fs::symlink(&victim, run.join("metrics.csv")).unwrap();
+    let e = format!("{:#}", lmac_run::train::Metrics::open(&run, 0, &[]).err().expect("linked metrics are refused"));
+    assert!(e.contains("metrics.csv") && e.contains("symlink"), "{e}");
+    assert_eq!(std::fs::read(&victim).unwrap(), b"keep\n");
+    let _ = std::fs::remove_dir_all(&dir);
+}

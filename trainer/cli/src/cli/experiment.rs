@@ -8,6 +8,7 @@ use super::design::{design_dir, DesignArgs, DEFAULT_PRETRAIN_STEPS};
 use super::parse_steps;
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use lmac_run::safe_fs;
 use lmac_run::stats::{mean, variance};
 use lmac_run::train::{read_metrics, TrainConfig};
 use lmac_run::workflow::{interrupt_flag, plot, train_dirs};
@@ -69,7 +70,8 @@ pub(crate) struct ExperimentArgs {
     #[arg(long)]
     preset: Option<String>,
     /// Test return a run must reach for the "steps to threshold" columns (default: 80% of the
-    /// best final test return in the table).
+    /// way from the runs' first test return, the untrained policy's, to the best row's
+    /// last-5-tests return; so also for negative returns).
     #[arg(long)]
     threshold: Option<f64>,
     /// The experiment's directory (default: experiments/<env>).
@@ -96,6 +98,10 @@ pub(crate) struct Row {
     pub final_return_std: f64,
     pub final_win_rate_mean: Option<f64>,
     pub final_win_rate_std: Option<f64>,
+    /// The best checkpoint's greedy evaluation (`evaluations/final.result.json`, what `lmac
+    /// report` scores), mean and std over the seeds; None unless every seed has one.
+    pub best_eval_return_mean: Option<f64>,
+    pub best_eval_return_std: Option<f64>,
     /// Seeds that reached the threshold, and their mean env steps and wall seconds to it.
     pub reached: usize,
     pub steps_to_threshold: Option<f64>,
@@ -107,6 +113,24 @@ pub(crate) struct Row {
 }
 
 /// The rows to train: (label, algo, extra overrides).
+/// `a,b="x,y",c` -> [`a`, `b="x,y"`, `c`]: commas inside double quotes (an env name with its
+/// options, say) do not split.
+fn split_outside_quotes(s: &str) -> Vec<String> {
+    let (mut out, mut cur, mut quoted) = (Vec::new(), String::new(), false);
+    for c in s.chars() {
+        match c {
+            '"' => {
+                quoted = !quoted;
+                cur.push(c);
+            }
+            ',' if !quoted => out.push(std::mem::take(&mut cur)),
+            _ => cur.push(c),
+        }
+    }
+    out.push(cur);
+    out
+}
+
 fn variants(a: &ExperimentArgs) -> Result<Vec<(String, String, Vec<String>)>> {
     let mut v: Vec<(String, String, Vec<String>)> =
         a.algos.iter().filter(|al| !al.is_empty()).map(|al| (al.clone(), al.clone(), Vec::new())).collect();
@@ -122,12 +146,12 @@ fn variants(a: &ExperimentArgs) -> Result<Vec<(String, String, Vec<String>)>> {
     }
     for spec in &a.variants {
         let (label, rest) = spec.split_once('=').with_context(|| format!("--variant {spec:?}: use LABEL=ALGO[,KEY=VALUE...]"))?;
-        let mut parts = rest.split(',');
+        let mut parts = split_outside_quotes(rest).into_iter();
         let algo = parts.next().unwrap_or_default();
         if label.is_empty() || label.contains(['/', '.']) || algo.is_empty() {
             bail!("--variant {spec:?}: use LABEL=ALGO[,KEY=VALUE...] with a label that is a plain name");
         }
-        v.push((label.into(), algo.into(), parts.map(str::to_string).collect()));
+        v.push((label.into(), algo, parts.collect()));
     }
     if v.is_empty() {
         bail!("nothing to train: --algos is empty and there are no --ablations or --variant rows");
@@ -143,14 +167,14 @@ fn variants(a: &ExperimentArgs) -> Result<Vec<(String, String, Vec<String>)>> {
 pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     let rows_to_train = variants(&a)?;
     let interrupted = interrupt_flag();
-    let dir = a.out.clone().unwrap_or_else(|| PathBuf::from("experiments").join(a.env.replace(':', "_")));
+    let dir = a.out.clone().unwrap_or_else(|| PathBuf::from("experiments").join(lmac_run::run_dir::env_dir_name(&a.env)));
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let _lock = lmac_run::run_dir::lock(&dir)?;
     let spec = ExperimentSpec { env: a.env.clone(), steps: a.steps, set: a.set.clone(), preset: a.preset.clone() };
     let spec_path = dir.join("experiment.json");
     if spec_path.exists() {
-        let old: ExperimentSpec =
-            serde_json::from_slice(&std::fs::read(&spec_path)?).with_context(|| format!("reading {}", spec_path.display()))?;
+        let old: ExperimentSpec = serde_json::from_slice(&safe_fs::read_capped(&spec_path, safe_fs::TEXT_CAP)?)
+            .with_context(|| format!("reading {}", spec_path.display()))?;
         if old != spec {
             bail!("{} was made for {old:?}; this command asks for {spec:?}: give another --out", dir.display());
         }
@@ -189,7 +213,12 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
                 o.extend(extra.iter().cloned());
                 let cfg = TrainConfig::resolve(None, &o).with_context(|| format!("the {label} runs"))?;
                 std::fs::create_dir_all(&d)?;
-                std::fs::write(d.join("config.toml"), toml::to_string_pretty(&cfg)?)?;
+                // Protocol copies left by a creation interrupted before its config.toml.
+                let copies = d.join("protocol");
+                if copies.symlink_metadata().is_ok_and(|m| m.is_dir()) {
+                    std::fs::remove_dir_all(&copies).with_context(|| format!("clearing {}", copies.display()))?;
+                }
+                cfg.save_new_run(&d)?;
             }
             dirs.push(d);
         }
@@ -205,10 +234,12 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     for (label, algo, dirs) in &groups {
         rows.push(summarize(label, algo, dirs)?);
     }
-    // A threshold of 0 or less would be "reached" at the first test: then there is none.
+    // 80% of the way from where the runs start to the best row: a threshold at or below the
+    // start would be "reached" at the first test, so then there is none.
     let best = rows.iter().map(|r| r.final_return_mean).fold(f64::MIN, f64::max);
-    let threshold = a.threshold.unwrap_or(0.8 * best);
-    if threshold > 0.0 {
+    let start = first_test_return(&groups.iter().flat_map(|g| g.2.iter().cloned()).collect::<Vec<_>>())?;
+    let threshold = a.threshold.unwrap_or(start + 0.8 * (best - start));
+    if threshold > start {
         for (row, (_, _, dirs)) in rows.iter_mut().zip(&groups) {
             reach(row, dirs, threshold)?;
         }
@@ -221,11 +252,11 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
             &serde_json::json!({"env": a.env, "steps": a.steps, "threshold": threshold, "design": design, "rows": rows}),
         )?,
     )?;
-    let mut csv = String::from("label,algo,seeds,final_return_mean,final_return_std,final_win_rate_mean,final_win_rate_std,reached,steps_to_threshold,wall_s_to_threshold,wall_s_total,schedule\n");
+    let mut csv = String::from("label,algo,seeds,final_return_mean,final_return_std,final_win_rate_mean,final_win_rate_std,best_eval_return_mean,best_eval_return_std,reached,steps_to_threshold,wall_s_to_threshold,wall_s_total,schedule\n");
     let o = |v: Option<f64>| v.map(|x| format!("{x:.4}")).unwrap_or_default();
     for r in &rows {
         csv.push_str(&format!(
-            "{},{},{},{:.4},{:.4},{},{},{},{},{},{:.1},\"{}\"\n",
+            "{},{},{},{:.4},{:.4},{},{},{},{},{},{},{},{:.1},\"{}\"\n",
             r.label,
             r.algo,
             r.seeds,
@@ -233,6 +264,8 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
             r.final_return_std,
             o(r.final_win_rate_mean),
             o(r.final_win_rate_std),
+            o(r.best_eval_return_mean),
+            o(r.best_eval_return_std),
             r.reached,
             o(r.steps_to_threshold),
             o(r.wall_s_to_threshold),
@@ -302,6 +335,9 @@ fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
     let (rm, rs) = mean_std(&ret);
     let (wm, ws) = mean_std(&win);
     let has_wins = win.iter().any(|&w| w > 0.0);
+    let evals: Vec<f64> = dirs.iter().filter_map(|d| best_eval_return(d)).collect();
+    let (em, es) =
+        if evals.len() == dirs.len() && !evals.is_empty() { (Some(mean(&evals)), Some(variance(&evals).sqrt())) } else { (None, None) };
     Ok(Row {
         label: label.into(),
         algo: algo.into(),
@@ -310,6 +346,8 @@ fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
         final_return_std: rs,
         final_win_rate_mean: has_wins.then_some(wm),
         final_win_rate_std: has_wins.then_some(ws),
+        best_eval_return_mean: em,
+        best_eval_return_std: es,
         reached: 0,
         steps_to_threshold: None,
         wall_s_to_threshold: None,
@@ -329,6 +367,23 @@ fn schedule(cfg: &TrainConfig) -> String {
     )
 }
 
+/// The best checkpoint's greedy evaluation return of a run, when it has one.
+fn best_eval_return(d: &Path) -> Option<f64> {
+    let bytes = safe_fs::read_capped(&d.join("evaluations").join("final.result.json"), safe_fs::TEXT_CAP).ok()?;
+    serde_json::from_slice::<serde_json::Value>(&bytes).ok()?.get("mean_return")?.as_f64()
+}
+
+/// The mean over runs of their first test return (the untrained policy's).
+fn first_test_return(dirs: &[PathBuf]) -> Result<f64> {
+    let mut first = Vec::new();
+    for d in dirs {
+        if let Some(v) = read_metrics(d)?.into_iter().find_map(|r| r.test_return_mean) {
+            first.push(v);
+        }
+    }
+    Ok(if first.is_empty() { 0.0 } else { mean(&first) })
+}
+
 fn reach(row: &mut Row, dirs: &[PathBuf], threshold: f64) -> Result<()> {
     let (mut steps, mut wall) = (Vec::new(), Vec::new());
     for d in dirs {
@@ -345,17 +400,21 @@ fn reach(row: &mut Row, dirs: &[PathBuf], threshold: f64) -> Result<()> {
 
 fn render(env: &str, rows: &[Row], threshold: f64) -> String {
     let mut s = format!(
-        "{env}: final test return (mean +- std over seeds, last {FINAL_TESTS} test phases each); steps and wall time to a test return of {threshold:.3} (mean over the seeds that reached it)\n\n"
+        "{env}: last-5-tests return and win rate (mean +- std over seeds of each run's last {FINAL_TESTS} test phases); best-checkpoint eval return (the greedy evaluation of each run's best checkpoint, what `lmac report` scores); steps and wall time to a test return of {threshold:.3} (mean over the seeds that reached it)\n\n"
     );
-    s.push_str("| algorithm | seeds | final test return | final win rate | reached | env steps to threshold | wall s to threshold | wall s total | schedule |\n");
-    s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
+    s.push_str("| algorithm | seeds | last-5-tests return | last-5-tests win rate | best-checkpoint eval return | reached | env steps to threshold | wall s to threshold | wall s total | schedule |\n");
+    s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
     for r in rows {
         let win = match (r.final_win_rate_mean, r.final_win_rate_std) {
             (Some(m), Some(sd)) => format!("{m:.3} +- {sd:.3}"),
             _ => "-".into(),
         };
+        let eval = match (r.best_eval_return_mean, r.best_eval_return_std) {
+            (Some(m), Some(sd)) => format!("{m:.3} +- {sd:.3}"),
+            _ => "-".into(),
+        };
         s.push_str(&format!(
-            "| {} | {} | {:.3} +- {:.3} | {win} | {}/{} | {} | {} | {:.0} | {} |\n",
+            "| {} | {} | {:.3} +- {:.3} | {win} | {eval} | {}/{} | {} | {} | {:.0} | {} |\n",
             r.label,
             r.seeds,
             r.final_return_mean,
@@ -369,4 +428,18 @@ fn render(env: &str, rows: &[Row], threshold: f64) -> String {
         ));
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::split_outside_quotes;
+
+    #[test]
+    fn a_variants_quoted_value_keeps_its_commas() {
+        assert_eq!(
+            split_outside_quotes(r#"lmac,run.protocol="designs/pz_x,N=4",method.window=5"#),
+            vec!["lmac", r#"run.protocol="designs/pz_x,N=4""#, "method.window=5"]
+        );
+        assert_eq!(split_outside_quotes("qmix"), vec!["qmix"]);
+    }
 }

@@ -110,7 +110,7 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
             let files = expand_specs(&files, env.as_deref())?;
             let mut ps = Vec::new();
             for f in &files {
-                let text = std::fs::read_to_string(f).with_context(|| format!("reading {f}"))?;
+                let text = protocol::read_protocol_file(std::path::Path::new(f)).map_err(anyhow::Error::msg)?;
                 ps.push(protocol::parse_str(&text).map_err(|e| anyhow::anyhow!("{f}:\n{}", protocol::errors_to_text(&e)))?);
             }
             let penv = match &env {

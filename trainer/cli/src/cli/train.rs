@@ -68,6 +68,12 @@ pub(crate) struct TrainArgs {
     /// Continue the runs in this directory (a seed's directory or a group of seeds).
     #[arg(long, conflicts_with_all = ["env", "algo", "protocol", "config", "set", "steps", "preset"])]
     resume: Option<std::path::PathBuf>,
+    /// With --resume: continue a run whose config.toml was edited since its last checkpoint,
+    /// under the new settings (each change is printed). Without it such a resume is refused with
+    /// the list of changes; the step target and the test, log and checkpoint cadence may always
+    /// change.
+    #[arg(long, requires = "resume")]
+    allow_changed: bool,
 }
 
 pub(crate) fn train(a: TrainArgs) -> Result<i32> {
@@ -114,7 +120,7 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
         // A group directory of this command's own (two launches in the same second get two),
         // and each seed's lock taken before its config is written: no other lmac ever trains a
         // directory with a config it did not write.
-        let parent = a.out.join(cfg.run.env.replace(':', "_")).join(&cfg.run.algo);
+        let parent = a.out.join(lmac_run::run_dir::env_dir_name(&cfg.run.env)).join(&cfg.run.algo);
         let group = lmac_run::run_dir::create_unique_dir(&parent, &lmac_run::run_dir::stamp())?;
         let mut dirs = Vec::new();
         for &seed in &a.seeds {
@@ -123,14 +129,13 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
             let d = group.join(format!("seed{seed}"));
             std::fs::create_dir(&d).with_context(|| format!("creating {}", d.display()))?;
             held.push(Some(lmac_run::run_dir::lock(&d)?));
-            let p = d.join("config.toml");
-            std::fs::write(&p, toml::to_string_pretty(&c)?).with_context(|| format!("writing {}", p.display()))?;
+            c.save_new_run(&d)?;
             dirs.push(d);
         }
         (group, dirs)
     };
     eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
-    train_dirs_holding(&dirs, held, interrupted)?;
+    train_dirs_holding(&dirs, held, a.allow_changed, interrupted)?;
     plot("plot_runs", &group);
     Ok(0)
 }

@@ -85,7 +85,7 @@ impl Recorder {
     /// The recording of this request, if any.
     pub fn load(&self, key: &str) -> Result<Option<Recording>, LlmError> {
         let path = self.path(key);
-        let text = match std::fs::read_to_string(&path) {
+        let text = match lmac_shm_schema::safe_fs::read_text_capped(&path, lmac_shm_schema::safe_fs::TEXT_CAP) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(LlmError::Recording { path, problem: format!("cannot read: {e}") }),

@@ -19,7 +19,7 @@ pub struct BestTest {
 /// reported and treated as none (the next best test phase rewrites it).
 pub fn read_best_test(run_dir: &Path) -> Option<BestTest> {
     let path = run_dir.join("best_test.json");
-    let bytes = std::fs::read(&path).ok()?;
+    let bytes = crate::safe_fs::read_capped(&path, crate::safe_fs::TEXT_CAP).ok()?;
     match serde_json::from_slice(&bytes) {
         Ok(b) => Some(b),
         Err(e) => {
@@ -33,10 +33,7 @@ pub fn read_best_test(run_dir: &Path) -> Option<BestTest> {
 /// and renamed over the old record). The error names the file.
 pub(super) fn write_best_test(run_dir: &Path, best: &BestTest) -> std::result::Result<(), String> {
     let path = run_dir.join("best_test.json");
-    let tmp = path.with_extension("json.tmp");
-    std::fs::write(&tmp, serde_json::to_vec_pretty(best).expect("a plain struct"))
-        .and_then(|()| std::fs::rename(&tmp, &path))
-        .map_err(|e| format!("{}: {e}", path.display()))
+    crate::safe_fs::write_replace(&path, &serde_json::to_vec_pretty(best).expect("a plain struct")).map_err(|e| e.to_string())
 }
 
 /// Where the learner keeps its latest checkpoint inside a run directory.

@@ -5,6 +5,7 @@
 
 use crate::learn::methods::{self, AgentConfig, Messages, MethodContext};
 use crate::learn::LearnConfig;
+use crate::safe_fs::{read_capped, read_text_capped, TEXT_CAP};
 use anyhow::{bail, Context, Result};
 use lmac_protocol_runner::ProtocolSpec;
 use serde::{Deserialize, Serialize};
@@ -63,6 +64,11 @@ pub struct RunSection {
     /// Use the design's phases 0..=k only (the paper's k: 0, 1 or 2); absent = all of them.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub design_k: Option<usize>,
+    /// Set by lmac when the run is made: the SHA-256 (first 16 hex digits) of the protocol
+    /// files' contents, in order. A resume whose files now read differently is refused (or, with
+    /// `--allow-changed`, says so); the run directory keeps a copy of the files in `protocol/`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub protocol_sha256: Option<String>,
     /// After `steps`, keep acting epsilon-greedy without learning for this many episodes and
     /// store them as the trajectory dataset B in `<run dir>/dataset` (protocol design).
     pub dataset_episodes: usize,
@@ -89,6 +95,7 @@ impl Default for RunSection {
             save_buffer: false,
             protocol: String::new(),
             design_k: None,
+            protocol_sha256: None,
             dataset_episodes: 0,
             dataset_epsilon: None,
         }
@@ -188,9 +195,19 @@ pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
 /// The environment a design directory was made for (its `summary.json` or `options.json`).
 fn design_env(dir: &Path) -> Option<String> {
     ["summary.json", "options.json"].iter().find_map(|f| {
-        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join(f)).ok()?).ok()?;
+        let v: serde_json::Value = serde_json::from_slice(&read_capped(&dir.join(f), TEXT_CAP).ok()?).ok()?;
         v.get("env")?.as_str().map(str::to_string)
     })
+}
+
+/// Whether two environments' agents observe the same values with the same meanings (a design
+/// made for one then reads the same dims on the other).
+fn same_observations(a: &str, b: &str) -> bool {
+    let load = |e: &str| lmac_shm_schema::schema::load_env(e).ok();
+    match (load(a), load(b)) {
+        (Some(x), Some(y)) => x.n_agents == y.n_agents && x.obs_dim == y.obs_dim && x.obs_meanings() == y.obs_meanings(),
+        _ => false,
+    }
 }
 
 /// Where the authors' own designs ship: `protocols/paper/<env with ':' as '_'>/`, each a design
@@ -210,7 +227,7 @@ fn paper_designs() -> Result<Vec<(std::path::PathBuf, String, String)>> {
         if !file.is_file() {
             continue;
         }
-        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?)
+        let v: serde_json::Value = serde_json::from_slice(&read_capped(&file, TEXT_CAP).context("reading a paper design")?)
             .with_context(|| format!("{}: not JSON", file.display()))?;
         let text = |k: &str| v.get(k).and_then(|x| x.as_str()).map(str::to_string);
         let (Some(env), Some(task)) = (text("env"), text("task")) else {
@@ -278,7 +295,7 @@ pub fn protocol_files(spec: &str, k: Option<usize>) -> Result<Vec<String>> {
 /// design phase i); none when it has no summary (a directory of hand-written phases).
 fn dropped_phases(dir: &Path) -> Result<Vec<usize>> {
     let file = dir.join("summary.json");
-    let Ok(text) = std::fs::read_to_string(&file) else { return Ok(Vec::new()) };
+    let Ok(text) = read_text_capped(&file, TEXT_CAP) else { return Ok(Vec::new()) };
     let doc: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("run.protocol: {} is not valid JSON", file.display()))?;
     let Some(evals) = doc.get("evaluations") else { return Ok(Vec::new()) };
@@ -300,7 +317,7 @@ impl TrainConfig {
     /// A run directory's resolved `config.toml`; errors name the file.
     pub fn load(run_dir: &Path) -> Result<TrainConfig> {
         let path = run_dir.join("config.toml");
-        let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        let text = read_text_capped(&path, TEXT_CAP).context("reading the run's configuration")?;
         toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))
     }
 
@@ -308,7 +325,7 @@ impl TrainConfig {
     /// `learn.lr=0.001`, `run.envs=8`), then check it. Errors name the field.
     pub fn resolve(file: Option<&Path>, overrides: &[String]) -> Result<TrainConfig> {
         let mut v: toml::Value = match file {
-            Some(p) => toml::from_str(&std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?)
+            Some(p) => toml::from_str(&read_text_capped(p, TEXT_CAP).context("reading the configuration")?)
                 .with_context(|| format!("{}: not valid TOML", p.display()))?,
             None => toml::Value::Table(Default::default()),
         };
@@ -346,7 +363,39 @@ impl TrainConfig {
         cfg.check().map_err(|e| anyhow::anyhow!("{origin}: {e:#}"))?;
         cfg.write_method_defaults()?;
         cfg.build = Some(super::build::BuildInfo::current());
+        cfg.run.protocol_sha256 = cfg.protocol_digest()?;
         Ok(cfg)
+    }
+
+    /// The SHA-256 (first 16 hex digits) of the run's protocol files' contents in order, or None
+    /// when the run reads no protocol files (no messages, FullComm).
+    pub fn protocol_digest(&self) -> Result<Option<String>> {
+        use sha2::{Digest, Sha256};
+        let ProtocolSpec::Files(files) = self.protocol()? else { return Ok(None) };
+        let mut h = Sha256::new();
+        for f in &files {
+            let bytes = read_capped(Path::new(f), lmac_protocol_runner::protocol::MAX_FILE_BYTES).context("run.protocol")?;
+            h.update((bytes.len() as u64).to_le_bytes());
+            h.update(&bytes);
+        }
+        Ok(Some(h.finalize().iter().take(8).map(|b| format!("{b:02x}")).collect()))
+    }
+
+    /// Write the run's `config.toml` into `dir` (a new run directory), with a copy of its
+    /// protocol files in `dir/protocol/` (`phase0.json`, ...), so the run keeps what it trained
+    /// with wherever the originals go.
+    pub fn save_new_run(&self, dir: &Path) -> Result<()> {
+        if let ProtocolSpec::Files(files) = self.protocol()? {
+            let copies = dir.join("protocol");
+            std::fs::create_dir(&copies).with_context(|| format!("creating {}", copies.display()))?;
+            for (k, f) in files.iter().enumerate() {
+                let bytes = read_capped(Path::new(f), lmac_protocol_runner::protocol::MAX_FILE_BYTES).context("run.protocol")?;
+                let copy = copies.join(format!("phase{k}.json"));
+                std::fs::write(&copy, &bytes).with_context(|| format!("writing {}", copy.display()))?;
+            }
+        }
+        let path = dir.join("config.toml");
+        std::fs::write(&path, toml::to_string_pretty(self)?).with_context(|| format!("writing {}", path.display()))
     }
 
     /// Fill `[method]` with every setting of `run.algo`'s method that the run left at its
@@ -457,7 +506,11 @@ impl TrainConfig {
                 let spec = resolve_paper_spec(&self.run.protocol, &self.run.env)?;
                 let dir = Path::new(&spec);
                 if let Some(env) = design_env(dir).filter(|e| *e != self.run.env) {
-                    bail!("run.protocol: the design in {} was made for {env}, this run is on {}", dir.display(), self.run.env);
+                    // A variant of the same environment (smaclite's `-liberty` unit data, say)
+                    // reads the same observations: its protocol files then only warn.
+                    if !same_observations(&env, &self.run.env) {
+                        bail!("run.protocol: the design in {} was made for {env}, this run is on {}, whose observations differ", dir.display(), self.run.env);
+                    }
                 }
                 Ok(ProtocolSpec::Files(protocol_files(&spec, self.run.design_k)?))
             }
@@ -583,6 +636,36 @@ mod tests {
         assert_eq!(back, c);
         let qmix = TrainConfig::resolve(None, &[]).unwrap();
         assert!(qmix.method.is_empty(), "a method without settings has no [method]");
+    }
+
+    /// A run records its protocol files' content hash and keeps a copy of them: the authors'
+    /// 1o_10b design pins three phases; other bytes give another hash.
+    #[test]
+    fn a_new_run_pins_its_protocol_by_content_and_keeps_a_copy() {
+        let o: Vec<String> =
+            ["run.env=\"smaclite:1o_10b_vs_1r\"", "run.algo=\"lmac\"", "run.protocol=\"paper\""].iter().map(|s| s.to_string()).collect();
+        let c = TrainConfig::resolve(None, &o).unwrap();
+        let pinned = c.run.protocol_sha256.clone().expect("a protocol run is pinned");
+        assert_eq!(pinned.len(), 16);
+        let dir = std::env::temp_dir().join(format!("lmac-config-pin-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        c.save_new_run(&dir).unwrap();
+        let ProtocolSpec::Files(files) = c.protocol().unwrap() else { panic!("files") };
+        for (k, f) in files.iter().enumerate() {
+            assert_eq!(std::fs::read(dir.join(format!("protocol/phase{k}.json"))).unwrap(), std::fs::read(f).unwrap());
+        }
+        let back = TrainConfig::load(&dir).unwrap();
+        assert_eq!(back.run.protocol_sha256.as_deref(), Some(pinned.as_str()));
+        // The copies as the run's protocol read the same bytes: the same hash.
+        let mut copy = back.clone();
+        copy.run.protocol =
+            (0..files.len()).map(|k| dir.join(format!("protocol/phase{k}.json")).display().to_string()).collect::<Vec<_>>().join("+");
+        assert_eq!(copy.protocol_digest().unwrap().as_deref(), Some(pinned.as_str()));
+        copy.run.design_k = Some(0);
+        assert_ne!(copy.protocol_digest().unwrap().as_deref(), Some(pinned.as_str()));
+        assert_eq!(TrainConfig::resolve(None, &[]).unwrap().run.protocol_sha256, None, "no protocol, no pin");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A resume by another build, or of a run started from a modified tree, says so.

@@ -98,8 +98,9 @@ impl Actor for EvalActor {
 /// Run the evaluation `spec_path` describes on `run_dir`'s last checkpoint; the result is
 /// written next to the spec (see [`EvalSpec::result_path`]) and returned.
 pub fn evaluate_in_child(run_dir: &Path, spec_path: &Path, args: &TrainerArgs) -> Result<EvalResult> {
-    let spec: EvalSpec = serde_json::from_slice(&std::fs::read(spec_path).with_context(|| format!("reading {}", spec_path.display()))?)
-        .with_context(|| format!("{}", spec_path.display()))?;
+    let spec: EvalSpec =
+        serde_json::from_slice(&crate::safe_fs::read_capped(spec_path, crate::safe_fs::TEXT_CAP).context("reading the evaluation")?)
+            .with_context(|| format!("{}", spec_path.display()))?;
     if spec.episodes == 0 {
         bail!("evaluate: 0 episodes asked for");
     }
@@ -157,8 +158,6 @@ pub fn evaluate_in_child(run_dir: &Path, spec_path: &Path, args: &TrainerArgs) -
         returns,
     };
     let out = EvalSpec::result_path(spec_path);
-    let tmp = out.with_extension("tmp");
-    std::fs::write(&tmp, serde_json::to_vec_pretty(&result)?).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, &out).with_context(|| format!("writing {}", out.display()))?;
+    crate::safe_fs::write_replace(&out, &serde_json::to_vec_pretty(&result)?).context("writing the evaluation's result")?;
     Ok(result)
 }

@@ -45,9 +45,7 @@ pub fn marl_eval_json(run_dir: &Path, cfg: &TrainConfig, final_eval: Option<&Eva
 pub fn write_marl_eval(run_dir: &Path, cfg: &TrainConfig, final_eval: Option<&EvalResult>) -> Result<()> {
     let doc = marl_eval_json(run_dir, cfg, final_eval)?;
     let path = run_dir.join("marl_eval.json");
-    let tmp = path.with_extension("json.tmp");
-    std::fs::write(&tmp, serde_json::to_vec_pretty(&doc)?).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))
+    crate::safe_fs::write_replace(&path, &serde_json::to_vec_pretty(&doc)?).context("writing the marl-eval record")
 }
 
 #[cfg(test)]

@@ -2,6 +2,7 @@
 //! directory, trimmed on resume so no curve steps backwards.
 
 use anyhow::{Context, Result};
+use lmac_shm_schema::safe_fs::{open_append, read_capped, read_text_capped, write_replace, TEXT_CAP};
 use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -46,7 +47,7 @@ fn opt<T: std::fmt::Display>(v: &Option<T>) -> String {
 /// The metrics rows of a run directory, from `metrics.jsonl` (checkpoint lines skipped).
 pub fn read_metrics(dir: &Path) -> Result<Vec<MetricsRow>> {
     let path = dir.join("metrics.jsonl");
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let text = read_text_capped(&path, TEXT_CAP).with_context(|| format!("reading {}", path.display()))?;
     let mut rows = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let v: serde_json::Value = serde_json::from_str(line).with_context(|| format!("{} line {}", path.display(), i + 1))?;
@@ -62,12 +63,8 @@ pub fn read_metrics(dir: &Path) -> Result<Vec<MetricsRow>> {
 pub fn logged_t_env(dir: &Path) -> u64 {
     let read = |name: &str| {
         let p = dir.join(name);
-        // Only regular files (a device would never end).
-        if std::fs::metadata(&p).is_ok_and(|m| m.is_file()) {
-            String::from_utf8_lossy(&std::fs::read(&p).unwrap_or_default()).into_owned()
-        } else {
-            String::new()
-        }
+        // Only regular files, bounded (a device would never end).
+        String::from_utf8_lossy(&read_capped(&p, TEXT_CAP).unwrap_or_default()).into_owned()
     };
     let csv = read("metrics.csv");
     let from_csv = csv.lines().skip(1).filter_map(|l| l.split(',').next()?.parse::<u64>().ok());
@@ -89,14 +86,14 @@ pub struct MetricsResume {
 /// Keep the lines of `path` that `keep` accepts (the first `header` lines always), rewriting
 /// the file atomically when any is dropped; returns (dropped, kept lines).
 fn keep_lines(path: &Path, header: usize, keep: impl Fn(&str) -> bool) -> Result<(usize, Vec<String>)> {
-    // Only regular files are read (a device such as /dev/full would never end).
+    // Only regular files are read, bounded (a device such as /dev/full would never end).
     if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
         return Ok((0, Vec::new()));
     }
-    let text = match std::fs::read(path) {
+    let text = match read_capped(path, TEXT_CAP) {
         Ok(b) => String::from_utf8_lossy(&b).into_owned(),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok((0, Vec::new())),
-        Err(e) => return Err(anyhow::anyhow!("reading {}: {e}", path.display())),
+        Err(e) => return Err(anyhow::anyhow!("reading {e}")),
     };
     // A last line without its newline was cut off by the crash: never kept.
     let complete = if text.ends_with('\n') { &text[..] } else { &text[..text.rfind('\n').map_or(0, |i| i + 1)] };
@@ -110,13 +107,11 @@ fn keep_lines(path: &Path, header: usize, keep: impl Fn(&str) -> bool) -> Result
         }
     }
     if dropped > 0 {
-        let tmp = path.with_extension("tmp");
         let mut body = kept.join("\n");
         if !body.is_empty() {
             body.push('\n');
         }
-        std::fs::write(&tmp, body).with_context(|| format!("writing {}", tmp.display()))?;
-        std::fs::rename(&tmp, path).with_context(|| format!("replacing {}", path.display()))?;
+        write_replace(path, body.as_bytes()).with_context(|| format!("replacing {}", path.display()))?;
     }
     Ok((dropped, kept))
 }
@@ -130,7 +125,7 @@ impl Metrics {
         let csv_path = dir.join("metrics.csv");
         let jsonl_path = dir.join("metrics.jsonl");
         // A run resumed by a build whose method logs other terms keeps the columns its file has.
-        let existing = std::fs::read_to_string(&csv_path).ok().and_then(|t| t.lines().next().map(str::to_string));
+        let existing = read_text_capped(&csv_path, TEXT_CAP).ok().and_then(|t| t.lines().next().map(str::to_string));
         let header: String = match existing.filter(|h| h.starts_with(CSV_HEADER)) {
             Some(h) => h,
             None => std::iter::once(CSV_HEADER).chain(method_columns.iter().copied()).collect::<Vec<_>>().join(","),
@@ -145,8 +140,7 @@ impl Metrics {
             serde_json::from_str::<serde_json::Value>(line).ok().and_then(|v| v["t_env"].as_u64()).is_some_and(|t| t <= resume_t_env)
         };
         let (dropped_json, _) = keep_lines(&jsonl_path, 0, ok_json)?;
-        let open =
-            |p: &Path| std::fs::OpenOptions::new().create(true).append(true).open(p).with_context(|| format!("opening {}", p.display()));
+        let open = |p: &Path| open_append(p).context("opening the run's metrics");
         let new = kept.is_empty();
         let mut csv = open(&csv_path)?;
         if new {
@@ -269,14 +263,13 @@ mod tests {
     }
 
     #[test]
-    fn a_metrics_write_that_fails_names_the_file() {
+    fn metrics_that_cannot_be_written_name_the_file() {
         let dir = std::env::temp_dir().join(format!("lmac-metrics-full-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        // Every write to /dev/full fails with "no space left on device".
+        // A link to /dev/full (where every write fails) is refused at the open, naming the file.
         std::os::unix::fs::symlink("/dev/full", dir.join("metrics.jsonl")).unwrap();
-        let (mut m, _) = Metrics::open(&dir, 0, &[]).unwrap();
-        let err = m.write(&MetricsRow::default()).unwrap_err().to_string();
-        assert!(err.contains("metrics.jsonl") && err.contains("No space left"), "{err}");
+        let err = format!("{:#}", Metrics::open(&dir, 0, &[]).err().expect("refused"));
+        assert!(err.contains("metrics.jsonl") && err.contains("symlink"), "{err}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

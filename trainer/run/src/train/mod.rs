@@ -18,6 +18,7 @@ mod learner_thread;
 pub mod marl_eval;
 pub mod metrics;
 pub mod reference;
+pub mod resume_check;
 mod run;
 mod schedule;
 

@@ -34,7 +34,7 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     let device = crate::learn::Device::default();
     let ck = checkpoint_dir(run_dir);
     let agent_cfg = cfg.agent_config(schema, args.msg_used)?;
-    let learner = if crate::learn::checkpoint::checkpoint_exists(&ck) {
+    let mut learner = if crate::learn::checkpoint::checkpoint_exists(&ck) {
         let info = crate::learn::checkpoint::peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("resuming: {e}"))?;
         if info.dims != dims {
             bail!("checkpoint {} was made for {:?}, this run has {:?}", info.dir.display(), info.dims, dims);
@@ -58,6 +58,8 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         refuse_restart_over_metrics(run_dir)?;
         Learner::with_agent(dims, learn.clone(), agent_cfg, device)?
     };
+    // Every checkpoint keeps the configuration it was trained with (a resume compares it).
+    learner.set_run_config(toml::to_string_pretty(&cfg)?);
     let counters = learner.counters();
     let (metrics, earlier) = Metrics::open(run_dir, counters.t_env, learner.agent_config().stat_names())?;
     if earlier.dropped_rows > 0 {
