@@ -136,8 +136,8 @@ class Report:
                "steps": min(max(r.curve(self.a.metric)[0] or [0]) for g in groups for r in g)}
         row["unfinished"] = sum(r.unfinished() for g in groups for r in g)
         sources = {self.final[id(r)][1] for g in groups for r in g}
-        row["final_score"] = ("absolute_metrics" if sources == {"absolute"} else
-                              f"last {FINAL_TESTS} tests" if sources == {"last5"} else "mixed")
+        row["final_score"] = ("best-checkpoint eval" if sources == {"absolute"} else
+                              f"last-{FINAL_TESTS}-tests" if sources == {"last5"} else "mixed")
         for name, func in stats.AGGREGATES.items():
             point, lo, hi = stats.interval(scores, func, self.a.reps, rng)
             row[name], row[name + "_lo"], row[name + "_hi"] = float(point), float(lo), float(hi)
@@ -237,16 +237,18 @@ COLUMNS = ["env", "label", "tasks", "runs", "seeds", "steps", "unfinished", "fin
 
 def markdown(rows: list[dict], a, n_envs: int) -> str:
     ci = lambda r, k: f"{fmt(r[k])} [{fmt(r[k + '_lo'])}, {fmt(r[k + '_hi'])}]"
-    what = ("min-max normalised " if a.normalise == "min-max" else "") + f"final test {a.metric}"
+    what = ("min-max normalised " if a.normalise == "min-max" else "") + f"final {a.metric}"
     lines = [f"{what}: IQM, median and mean with 95% stratified-bootstrap CIs ({a.reps} replicates, seed {a.seed})", "",
-             "| env | label | runs | steps | final score | IQM [95% CI] | median [95% CI] | mean [95% CI] |",
+             "| env | label | runs | steps | scored by | IQM [95% CI] | median [95% CI] | mean [95% CI] |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         steps = fmt_steps(r["steps"]) + ("*" if r["unfinished"] else "")
         lines.append(f"| {r['env']} | {r['label']} | {r['runs']} | {steps} | {r['final_score']} | "
                      f"{ci(r, 'iqm')} | {ci(r, 'median')} | {ci(r, 'mean')} |")
-    lines += ["", f"final score: absolute_metrics = mean of marl_eval.json's final evaluation of the best checkpoint; "
-                  f"last {FINAL_TESTS} tests = mean of the run's last {FINAL_TESTS} test phases. "
+    lines += ["", f"scored by: best-checkpoint eval = the mean return of marl_eval.json's absolute_metrics, the greedy "
+                  f"evaluation of the run's best checkpoint (`lmac experiment`'s best-checkpoint eval column); "
+                  f"last-{FINAL_TESTS}-tests = the mean of the run's last {FINAL_TESTS} test phases (`lmac experiment`'s "
+                  f"last-{FINAL_TESTS}-tests column). "
                   "median and mean are over per-env means (rliable); the IQM pools all runs."]
     unfinished = [f"{r['label']} ({r['unfinished']} of {r['runs']})" for r in rows if r["unfinished"] and not r["env"].startswith("all (")]
     if unfinished:

@@ -32,7 +32,7 @@ def main(exp: pathlib.Path) -> None:
         ax.errorbar(ks, [r["final_return_mean"] for _, r in phases], yerr=[r["final_return_std"] for _, r in phases],
                     marker="o", capsize=4)
         ax.set_xticks(ks, [f"k={k}" for k in ks])
-        ax.set_ylabel("final test return")
+        ax.set_ylabel("test return, mean of the last 5 test phases")
         ax.set_title(f"{env}: design phases used")
         fig.tight_layout()
         fig.savefig(exp / "phases.png", dpi=120)

@@ -119,7 +119,7 @@ def main(group: pathlib.Path) -> None:
         f.write("t_env,test_return_mean,test_return_std,test_win_rate_mean,test_win_rate_std\n")
         for i, t in enumerate(grid):
             f.write(f"{int(t)},{ys[:, i].mean():.4f},{ys[:, i].std():.4f},{wins[:, i].mean():.4f},{wins[:, i].std():.4f}\n")
-    print(f"{group}: final test return {summary['final_test_return_mean']:.3f} "
+    print(f"{group}: last-5-tests return {summary['final_test_return_mean']:.3f} "
           f"± {summary['final_test_return_std']:.3f}, win rate {summary['final_test_win_rate_mean']:.3f} "
           f"over {len(curves)} seed(s); plots: {group / 'summary.png'}")
 

@@ -190,7 +190,7 @@ def test_report_writes_table_json_and_plots(tmp_path, capsys):
     seed_dir(runs / "ndq/t/seed0", algo="ndq", tests=[0.1, 0.2], steps=7000)  # unfinished
     assert main([str(runs)] + FAST) == 0
     out = capsys.readouterr().out
-    assert "| lbf:8x8-2p-2f-s1-coop | qmix | 3 | 7k | last 5 tests |" in out
+    assert "| lbf:8x8-2p-2f-s1-coop | qmix | 3 | 7k | last-5-tests |" in out
     assert "| ndq | 1 | 1k* |" in out and "ndq (1 of 1)" in out
     rep = runs / "report"  # the default: report/ inside the first RUNS directory
     j = json.loads((rep / "report.json").read_text())
