@@ -59,9 +59,8 @@ fn a_trained_run_is_evaluated_at_each_message_cut_and_a_shape_change_is_refused(
     assert_eq!(std::fs::read(&ck).unwrap(), before);
 
     // A finished run whose config now describes another network (a protocol or setting changed
-    // since it trained): rerunning it reports that its final evaluation failed and exits 0 (the
-    // seeds after it go on), leaves marl_eval.json unwritten for a later rerun, and touches
-    // nothing else.
+    // since it trained): rerunning it is refused before anything starts, naming the change, and
+    // touches nothing (marl_eval.json stays unwritten for a rerun with the run's own settings).
     let seed_dir = group.join("seed0");
     let config = seed_dir.join("config.toml");
     // The saved config states every method setting (msg_dim = 3 among them): edit it in place.
@@ -74,8 +73,8 @@ fn a_trained_run_is_evaluated_at_each_message_cut_and_a_shape_change_is_refused(
     let metrics_before = std::fs::read(seed_dir.join("metrics.csv")).unwrap();
     let rerun = lmac().args(["train", "--resume"]).arg(&seed_dir).output().unwrap();
     let err = String::from_utf8_lossy(&rerun.stderr);
-    assert!(rerun.status.success(), "{err}");
-    assert!(err.contains("already finished") && err.contains("the final evaluation failed") && err.contains("msg_dim: 3 -> 2"), "{err}");
+    assert!(!rerun.status.success(), "{err}");
+    assert!(err.contains("differs from the configuration its checkpoint") && err.contains("method.msg_dim: 3 -> 2"), "{err}");
     assert!(!seed_dir.join("marl_eval.json").exists());
     assert_eq!(std::fs::read(&ck).unwrap(), before);
     assert_eq!(std::fs::read(seed_dir.join("metrics.csv")).unwrap(), metrics_before);

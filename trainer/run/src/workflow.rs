@@ -248,9 +248,17 @@ pub fn evaluate_run(
     seed_offset: u64,
     interrupted: Arc<AtomicBool>,
 ) -> Result<EvalResult> {
-    let spec_path = d.join("evaluations").join(format!("{name}.json"));
-    std::fs::create_dir_all(d.join("evaluations"))?;
-    std::fs::write(&spec_path, serde_json::to_vec(spec)?)?;
+    let evals = d.join("evaluations");
+    // A folder of the run's own: a symlink planted in its place is refused, never written through.
+    match std::fs::symlink_metadata(&evals) {
+        Ok(m) if !m.is_dir() => {
+            bail!("{}: not a directory (a symlink?); lmac writes evaluations only into a folder of the run's own", evals.display())
+        }
+        Ok(_) => {}
+        Err(_) => std::fs::create_dir(&evals).with_context(|| format!("creating {}", evals.display()))?,
+    }
+    let spec_path = evals.join(format!("{name}.json"));
+    crate::safe_fs::write_replace(&spec_path, &serde_json::to_vec(spec)?).context("writing the evaluation")?;
     let p = Pipeline::for_run(cfg, cfg.learn.seed + seed_offset)?;
     let work = TrainerWork::Evaluate { dir: std::fs::canonicalize(d)?, spec: std::fs::canonicalize(&spec_path)? };
     let job = TrainerJob { warmup: 1, work, ..Default::default() };

@@ -54,8 +54,15 @@ pub fn refuse_restart_over_metrics(run_dir: &Path) -> Result<()> {
     let logged = metrics::logged_t_env(run_dir);
     if logged > 0 {
         let ck = checkpoint_dir(run_dir);
+        // Why a checkpoint that is there is not usable: its state.json is not a regular file.
+        let why = ["", ".old", ".tmp"]
+            .iter()
+            .map(|s| PathBuf::from(format!("{}{s}", ck.display())).join("state.json"))
+            .find(|p| std::fs::symlink_metadata(p).is_ok() && !p.is_file())
+            .map(|p| format!(" ({} is not a regular file)", p.display()))
+            .unwrap_or_default();
         bail!(
-            "{}: no usable checkpoint ({}, {}.old or a complete {}.tmp), but its metrics go up to t_env {logged}: \
+            "{}: no usable checkpoint ({}, {}.old or a complete {}.tmp){why}, but its metrics go up to t_env {logged}: \
              refusing to train it again from t_env 0 over them. Restore the checkpoint, or move metrics.csv and \
              metrics.jsonl away to start this run afresh",
             run_dir.display(),
