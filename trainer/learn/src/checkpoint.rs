@@ -286,13 +286,14 @@ pub mod fault {
 /// Remove a checkpoint directory so that a removal cut short never leaves one that looks
 /// complete: its manifest and `state.json` go first (and that is made durable).
 fn remove_checkpoint_dir(p: &Path, step: &'static str) -> Result<(), LearnError> {
-    // symlink_metadata: a symlink in the way is removed itself, never entered (is_dir would
-    // follow it and the removals below would delete files wherever it points).
-    if !fs::symlink_metadata(p).is_ok_and(|m| m.is_dir()) {
-        return match fs::remove_file(p) {
-            Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(ck(e, "remove", p)),
-            _ => Ok(()),
-        };
+    // symlink_metadata, not is_dir: a symlink in the way is removed itself, never entered (is_dir
+    // would follow it and the removals below would delete files wherever it points). A file in
+    // the way is not lmac's: remove_dir_all refuses it, with an error naming it.
+    match fs::symlink_metadata(p) {
+        Ok(m) if m.file_type().is_symlink() => return fs::remove_file(p).map_err(|e| ck(e, "remove", p)),
+        Ok(m) if !m.is_dir() => return fs::remove_dir_all(p).map_err(|e| ck(e, "remove", p)),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        _ => {}
     }
     for f in [MANIFEST, "state.json"] {
         match fs::remove_file(p.join(f)) {
