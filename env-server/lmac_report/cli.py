@@ -13,6 +13,7 @@ import numpy as np
 
 from . import stats
 from .runs import FINAL_TESTS, ReportError, Run, load_all, merged
+from .titles import fit
 
 DESCRIPTION = """\
 Merge training runs and report the final performance as the field does (rliable, Agarwal et
@@ -223,7 +224,7 @@ class Report:
                                  ("sample_efficiency.png", self.curves, "sample efficiency")):
             fig, ax = plt.subplots(figsize=(8.4, 4.4))
             draw(ax)
-            ax.set_title(f"{title}: {what} (95% stratified-bootstrap CIs)", fontsize=10)
+            ax.set_title(fit(f"{title}: {what} (95% stratified-bootstrap CIs)", 70), fontsize=10)
             fig.tight_layout()
             fig.savefig(out / name, dpi=120, bbox_inches="tight")
             plt.close(fig)

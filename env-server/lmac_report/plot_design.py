@@ -18,6 +18,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from .titles import fit  # noqa: E402
+
 SIDES = [("with_messages", "with messages", "#4C72B0"),
          ("without_retrained", "without (retrained)", "#999999"),
          ("without_zeroed", "without (zeroed, the paper's)", "#DD8452")]
@@ -46,10 +48,10 @@ def main(design: pathlib.Path) -> None:
                 ax.axhline(rows[0][key]["constant_guess_rate"], color="black", lw=0.8, ls="--",
                            label="constant guess")
             ax.set_xticks([row["phase"] for row in rows], [f"k = {row['phase']}" for row in rows])
-            ax.set_title(f"{label}: {title}", fontsize=8)
+            ax.set_title(fit(f"{label}: {title}", 50), fontsize=8)
             ax.tick_params(labelsize=7)
     axes[0][0].legend(fontsize=6)
-    fig.suptitle(f"{s['env']}: protocol design with the {s['designer']} designer (alpha {s['alpha']})", fontsize=10)
+    fig.suptitle(fit(f"{s['env']}: protocol design with the {s['designer']} designer (alpha {s['alpha']})", 90), fontsize=10)
     fig.tight_layout()
     out = design / "recovery.png"
     fig.savefig(out, dpi=120)

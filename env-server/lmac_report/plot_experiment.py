@@ -17,6 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from .plot_runs import plot_curves  # noqa: E402
+from .titles import fit  # noqa: E402
 
 
 def main(exp: pathlib.Path) -> None:
@@ -33,7 +34,7 @@ def main(exp: pathlib.Path) -> None:
                     marker="o", capsize=4)
         ax.set_xticks(ks, [f"k={k}" for k in ks])
         ax.set_ylabel("test return, mean of the last 5 test phases")
-        ax.set_title(f"{env}: design phases used")
+        ax.set_title(fit(f"{env}: design phases used"))
         fig.tight_layout()
         fig.savefig(exp / "phases.png", dpi=120)
         plt.close(fig)

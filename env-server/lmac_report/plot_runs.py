@@ -21,6 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .final import FINAL_TEST_PHASES, final_of  # noqa: E402
+from .titles import fit  # noqa: E402
 
 
 def read(run: pathlib.Path):
@@ -36,7 +37,7 @@ def plot_seed(run: pathlib.Path, test: np.ndarray) -> None:
     ax.plot(test[:, 0], test[:, 2], label="test win rate", alpha=0.7)
     ax.set_xlabel("env steps")
     env, algo = run.parents[2].name, run.parents[1].name
-    ax.set_title(f"{env} {algo} {run.name}")
+    ax.set_title(fit(f"{env} {algo} {run.name}"))
     ax.legend()
     fig.tight_layout()
     fig.savefig(run / "test_return.png", dpi=120)
@@ -68,7 +69,7 @@ def plot_curves(out: pathlib.Path, env: str, labelled: list[tuple[str, pathlib.P
         ax.fill_between(grid, m - s, m + s, alpha=0.2)
     ax.set_xlabel("env steps")
     ax.set_ylabel("test return")
-    ax.set_title(f"{env}: mean and std over seeds")
+    ax.set_title(fit(f"{env}: mean and std over seeds"))
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out, dpi=120)
@@ -99,7 +100,7 @@ def main(group: pathlib.Path) -> None:
     ax.plot(grid, m, label=f"test return (mean of {len(curves)} seeds)")
     ax.fill_between(grid, m - s, m + s, alpha=0.25)
     ax.set_xlabel("env steps")
-    ax.set_title(f"{group.parents[1].name} {group.parent.name}")
+    ax.set_title(fit(f"{group.parents[1].name} {group.parent.name}"))
     ax.legend()
     fig.tight_layout()
     fig.savefig(group / "summary.png", dpi=120)

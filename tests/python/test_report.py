@@ -283,3 +283,12 @@ def test_lmac_report_passes_arguments_output_and_exit_code(tmp_path):
     assert "| qmix | 1 |" in ok.stdout and (tmp_path / "o/sample_efficiency.png").is_file()
     bad = subprocess.run([lmac, "report", str(tmp_path / "absent")], capture_output=True, text=True, env=env, timeout=60)
     assert bad.returncode == 2 and "absent: no such file or directory" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_long_plot_titles_wrap_instead_of_running_off_the_figure():
+    from lmac_report.titles import fit
+    t = fit("pz:mpe2.simple_spread_v3,N=4,team_reward=mean qmix 20261207-003231: mean and std over seeds", 40)
+    lines = t.split("\n")
+    assert len(lines) > 1 and lines[0] == "pz:mpe2.simple_spread_v3,N=4,team_reward=mean"
+    assert all(len(line) <= 40 for line in lines[1:])
+    assert fit("short") == "short"
