@@ -56,8 +56,23 @@ static STOP: AtomicBool = AtomicBool::new(false);
 pub fn request_stop() {
     STOP.store(true, Ordering::SeqCst);
 }
+/// Whether this process's waits should stop: asked by a signal handler, or the `lmac` parent
+/// that started this pipeline process is gone. The second does not rely on its death signal
+/// reaching a handler: a Python env server runs its SIGTERM handler only between bytecodes, so
+/// one inside a long wait of this crate would otherwise wait out its start-up timeout.
 pub fn stop_requested() -> bool {
-    STOP.load(Ordering::SeqCst)
+    STOP.load(Ordering::SeqCst) || parent_gone()
+}
+
+/// The variable through which the supervisor tells each pipeline process its parent's pid.
+pub const PARENT_PID_VAR: &str = "LMAC_PARENT_PID";
+
+/// Whether the process named by `LMAC_PARENT_PID` is no longer this process's parent (it died;
+/// the kernel re-parented this one). False when the variable is absent (not started by lmac).
+fn parent_gone() -> bool {
+    static PARENT: std::sync::OnceLock<Option<libc::pid_t>> = std::sync::OnceLock::new();
+    // SAFETY: getppid has no preconditions and cannot fail.
+    PARENT.get_or_init(|| std::env::var(PARENT_PID_VAR).ok().and_then(|v| v.parse().ok())).is_some_and(|p| unsafe { libc::getppid() } != p)
 }
 
 #[derive(Debug, thiserror::Error)]

@@ -200,6 +200,9 @@ fn report_path(scratch: &crate::safe_fs::PrivateDir) -> PathBuf {
 fn stop_with_parent(c: &mut Command) {
     use std::os::unix::process::CommandExt;
     let parent = std::process::id() as libc::pid_t;
+    // Also told by pid, so the child's own waits notice a dead parent without the signal
+    // (`ring::stop_requested`).
+    c.env(lmac_shm_schema::ring::PARENT_PID_VAR, parent.to_string());
     // SAFETY: only async-signal-safe calls (signal, prctl, getppid, raise) between fork and exec.
     unsafe {
         c.pre_exec(move || {
