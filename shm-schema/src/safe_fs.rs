@@ -107,20 +107,20 @@ pub fn open_append(path: &Path) -> std::io::Result<std::fs::File> {
         .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_CLOEXEC)
         .open(path)
         .map_err(|e| named(path, e))?;
-    regular(path, f)
+    regular(path, f).map(|(f, _)| f)
 }
 
-/// `f` if it is a regular file (opened non-blocking, a FIFO or device in its place did not
-/// block the open; writing to one is refused here).
-fn regular(path: &Path, f: std::fs::File) -> std::io::Result<std::fs::File> {
-    let meta = f.metadata().map_err(|e| named(path, e))?;
+/// `f` and its metadata if it is a regular file (opened non-blocking, a FIFO or device in its
+/// place did not block the open; reading or writing one is refused here).
+fn regular(path: &Path, f: std::fs::File) -> std::io::Result<(std::fs::File, std::fs::Metadata)> {
+    let meta = f.metadata().map_err(|e| at(path, e))?;
     if !meta.is_file() {
         return Err(std::io::Error::new(
             std::io::ErrorKind::InvalidInput,
-            format!("{}: is {}, not a regular file", path.display(), describe(&meta.file_type())),
+            format!("{}: is {}, not a regular file; lmac reads and writes only regular files", path.display(), describe(&meta.file_type())),
         ));
     }
-    Ok(f)
+    Ok((f, meta))
 }
 
 /// Open `path` read-write for a lock file (created when missing, never truncated by the
@@ -134,9 +134,15 @@ pub fn open_lock(path: &Path) -> std::io::Result<std::fs::File> {
         .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_CLOEXEC)
         .open(path)
         .map_err(|e| named(path, e))?;
-    regular(path, f)
+    regular(path, f).map(|(f, _)| f)
 }
 
+/// `e` with the path it happened at.
+fn at(path: &Path, e: std::io::Error) -> std::io::Error {
+    std::io::Error::new(e.kind(), format!("{}: {e}", path.display()))
+}
+
+/// [`at`], saying plainly when the open refused a symlink (`O_NOFOLLOW`).
 fn named(path: &Path, e: std::io::Error) -> std::io::Error {
     let why =
         if e.raw_os_error() == Some(libc::ELOOP) { "is a symlink, which lmac does not write through".to_string() } else { e.to_string() };
@@ -152,19 +158,12 @@ pub const DATA_CAP: u64 = 16 << 30;
 
 /// Open `path` for reading, refusing anything but a regular file (see [`read_capped`]).
 pub fn open_regular(path: &Path) -> std::io::Result<std::fs::File> {
-    let f = std::fs::OpenOptions::new()
-        .read(true)
-        .custom_flags(libc::O_NONBLOCK | libc::O_CLOEXEC)
-        .open(path)
-        .map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", path.display())))?;
-    let meta = f.metadata().map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", path.display())))?;
-    if !meta.is_file() {
-        return Err(std::io::Error::new(
-            std::io::ErrorKind::InvalidInput,
-            format!("{}: is {}, not a regular file; lmac reads only regular files", path.display(), describe(&meta.file_type())),
-        ));
-    }
-    Ok(f)
+    open_regular_meta(path).map(|(f, _)| f)
+}
+
+fn open_regular_meta(path: &Path) -> std::io::Result<(std::fs::File, std::fs::Metadata)> {
+    let f = std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NONBLOCK | libc::O_CLOEXEC).open(path).map_err(|e| at(path, e))?;
+    regular(path, f)
 }
 
 /// Read the whole of `path`, which must be a regular file of at most `cap` bytes. It is opened
@@ -174,13 +173,12 @@ pub fn open_regular(path: &Path) -> std::io::Result<std::fs::File> {
 pub fn read_capped(path: &Path, cap: u64) -> std::io::Result<Vec<u8>> {
     use std::io::Read;
     let invalid = |why: String| std::io::Error::new(std::io::ErrorKind::InvalidInput, format!("{}: {why}", path.display()));
-    let f = open_regular(path)?;
-    let meta = f.metadata().map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", path.display())))?;
+    let (f, meta) = open_regular_meta(path)?;
     if meta.len() > cap {
         return Err(invalid(format!("is {} bytes, more than the {} lmac reads from such a file", meta.len(), bytes_text(cap))));
     }
     let mut out = Vec::with_capacity(meta.len() as usize);
-    f.take(cap + 1).read_to_end(&mut out).map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", path.display())))?;
+    f.take(cap + 1).read_to_end(&mut out).map_err(|e| at(path, e))?;
     if out.len() as u64 > cap {
         return Err(invalid(format!("grew past the {} lmac reads from such a file while it was read", bytes_text(cap))));
     }

@@ -187,9 +187,11 @@ pub fn locate(dir: impl AsRef<Path>) -> Option<PathBuf> {
     let tmp = sibling(dir, ".tmp");
     let present = |d: &Path| d.join("state.json").is_file();
     // A checkpoint whose files fail its manifest gives way to an intact `.old`; with none, it is
-    // still the one picked, so the load names its corrupt file.
+    // still the one picked, so the load names its corrupt file. Only then are its files summed:
+    // `.old` exists only between the two renames of a save, so a resume normally reads no
+    // weights or buffer here.
     let intact = |d: &Path| present(d) && verify(d, None).is_ok();
-    if intact(dir) {
+    if present(dir) && (!present(&old) || intact(dir)) {
         Some(dir.to_path_buf())
     } else if intact(&old) {
         Some(old)

@@ -4,6 +4,7 @@
 //! may change; any other difference refuses the resume with the list, unless the user allows it.
 
 use super::config::TrainConfig;
+use std::collections::BTreeMap;
 
 /// Settings a resume may change without changing what is trained: the step target and the
 /// cadence (and size) of tests, logs, checkpoints and the final evaluation. `[build]` is
@@ -24,21 +25,21 @@ pub fn config_changes(recorded: &str, now: &TrainConfig) -> Vec<String> {
         Err(_) => toml::Value::Table(raw),
     };
     let new = toml::Value::try_from(now).expect("a TrainConfig serializes");
-    let (mut a, mut b) = (Vec::new(), Vec::new());
+    let (mut a, mut b) = (BTreeMap::new(), BTreeMap::new());
     flatten("", &old, &mut a);
     flatten("", &new, &mut b);
-    let keys: std::collections::BTreeSet<&String> = a.iter().chain(&b).map(|(k, _)| k).collect();
-    let value = |v: &[(String, String)], k: &str| v.iter().find(|(x, _)| x == k).map(|(_, s)| s.clone());
+    let keys: std::collections::BTreeSet<&String> = a.keys().chain(b.keys()).collect();
     keys.into_iter()
         .filter(|k| !FREE_TO_CHANGE.contains(&k.as_str()) && !k.starts_with("build."))
         .filter_map(|k| {
-            let (x, y) = (value(&a, k), value(&b, k));
-            (x != y).then(|| format!("{k}: {} -> {}", x.as_deref().unwrap_or("(not set)"), y.as_deref().unwrap_or("(not set)")))
+            let (x, y) = (a.get(k), b.get(k));
+            (x != y).then(|| format!("{k}: {} -> {}", x.map_or("(not set)", String::as_str), y.map_or("(not set)", String::as_str)))
         })
         .collect()
 }
 
-fn flatten(prefix: &str, v: &toml::Value, out: &mut Vec<(String, String)>) {
+/// Every leaf setting of `v` by its dotted path.
+fn flatten(prefix: &str, v: &toml::Value, out: &mut BTreeMap<String, String>) {
     match v {
         toml::Value::Table(t) => {
             for (k, x) in t {
@@ -46,7 +47,9 @@ fn flatten(prefix: &str, v: &toml::Value, out: &mut Vec<(String, String)>) {
                 flatten(&key, x, out);
             }
         }
-        other => out.push((prefix.to_string(), other.to_string())),
+        other => {
+            out.insert(prefix.to_string(), other.to_string());
+        }
     }
 }
 
