@@ -15,6 +15,7 @@ from lmac_env.core import Batch, Schema, schema_path  # noqa: E402
 from lmac_env.registry import make as registry_make  # noqa: E402
 from lmac_env.smaclite import MAPS, SmacliteVecEnv  # noqa: E402
 from lmac_env.smaclite import policies  # noqa: E402
+from lmac_env.smaclite.maps import split_variant, variants  # noqa: E402
 from lmac_env.smaclite.schemas import render  # noqa: E402
 
 # map: (obs, state, actions, agents, episode limit) -- SMAC-Comm (paper Table C.1; 2o_20b_vs_2r
@@ -246,11 +247,45 @@ def test_liberty_variant_eight_banelings_kill_and_the_roach_reaches_less():
         assert (env.hp[0, 0] < 30) == hit, (data, dist)
     for m in ("1o_10b_vs_1r", "2o_20b_vs_2r"):
         path = schema_path(f"smaclite:{m}-liberty")
-        assert path.read_text() == render(MAPS[m], "smaclite", "liberty"), \
+        assert path.read_text() == render(MAPS[m], "smaclite", split_variant(f"{m}-liberty")), \
             "run python -m lmac_env.smaclite.schemas --write"
         assert "Liberty.SC2Mod" in tomllib.loads(path.read_text())["task"]
     with pytest.raises(ValueError, match="unit-data variants"):
         SmacliteVecEnv("5z_vs_1ul-liberty", 1)
+
+
+@pytest.mark.parametrize("variant", ["1o_10b_vs_1r", "1o_10b_vs_1r-liberty", "5z_vs_1ul"])
+def test_no_last_action_state_is_the_full_state_without_its_last_actions(variant):
+    """`-no-last-action` is SMAC's state_last_action=False: the same episode (same seed and
+    actions) writes the same observations and the full state's values up to where the last
+    actions begin, and nothing after; its schema says so and describes the shorter state."""
+    full, a = new(variant, 2, seed=5)
+    short, b = new(f"{variant}-no-last-action", 2, seed=5)
+    k = full.state_last_action_offset
+    assert short.schema.state_dim == k < full.schema.state_dim
+    assert short.schema.obs_dim == full.schema.obs_dim
+    rng = np.random.default_rng(0)
+    for _ in range(12):
+        np.testing.assert_array_equal(a.obs, b.obs)
+        np.testing.assert_array_equal(a.state[:, :k], b.state)
+        acts = np.array([[rng.choice(np.flatnonzero(m)) for m in env_avail] for env_avail in a.avail])
+        full.step(acts, a)
+        short.step(acts, b)
+    assert a.state[:, k:].any(), "the full state carries last actions after a step"
+    raw = tomllib.loads(schema_path(f"smaclite:{variant}-no-last-action").read_text())
+    assert "state_last_action = False" in raw["task"]
+    assert not any("last action" in g["meaning"] for g in raw["state_dims"])
+
+
+def test_every_smaclite_variant_has_its_schema_file():
+    """Each variant the schemas script renders is on disk as rendered, and its name parses back."""
+    for v in variants():
+        name = f"{v.map_name}{v.suffix}"
+        assert split_variant(name) == v
+        assert schema_path(f"smaclite:{name}").read_text() == render(MAPS[v.map_name], "smaclite", v), \
+            "run python -m lmac_env.smaclite.schemas --write"
+    with pytest.raises(ValueError, match="no-last-action"):
+        split_variant("5z_vs_1ul-liberty-no-last-action")
 
 
 def test_roach_cannot_hit_the_flying_overseer():

@@ -35,13 +35,14 @@ _DIRS = np.array([[0, 0], [0, 0], [0, 1], [0, -1], [1, 0], [-1, 0]], dtype=np.fl
 
 class SmacliteVecEnv(VecEnv):
     def __init__(self, variant: str, num_envs: int, seed: int = 0):
-        map_name, data = split_variant(variant)
-        spec = self.spec = MAPS[map_name]
-        self.unit_data = data
-        units = U.unit_data(data)
-        self.bane_damage, self.bane_bonus_light = U.BANE_BURST[data]
+        v = split_variant(variant)
+        spec = self.spec = MAPS[v.map_name]
+        self.unit_data = v.unit_data
+        self.state_last_action = v.state_last_action
+        units = U.unit_data(v.unit_data)
+        self.bane_damage, self.bane_bonus_light = U.BANE_BURST[v.unit_data]
         self.schema = Schema.load(schema_path(f"smaclite:{variant}"))
-        lay = self.layout = obs_layout(spec)
+        lay = self.layout = obs_layout(spec, v.state_last_action)
         for k in ("obs_dim", "state_dim", "n_actions"):
             if getattr(self.schema, k) != lay[k]:
                 raise SizeMismatch(f"{self.schema.path}: {k} = {getattr(self.schema, k)} but the "
@@ -89,7 +90,7 @@ class SmacliteVecEnv(VecEnv):
                                 dtype=np.int64).reshape(N, N - 1)
         self._st_last_off = N * lay["st_al"] + E * lay["st_en"]
         # Where the state's one-hot last actions start (SMAC's state_last_action; the PettingZoo
-        # adapter can drop them, as the LMAC authors' runs do).
+        # adapter can drop them, as the LMAC authors' runs do); the state's end without them.
         self.state_last_action_offset = self._st_last_off
         # static parts of the observation/state
         tb = spec.unit_type_bits
@@ -513,7 +514,7 @@ class SmacliteVecEnv(VecEnv):
             se[..., 3:] = self._enemy_type
         se *= al[:, N:, None]
         s[:, N * lay["st_al"]:self._st_last_off] = se.reshape(b, -1)
-        if not zero_last:
+        if self.state_last_action and not zero_last:
             la = np.zeros((b, N, A), np.float32)
             np.put_along_axis(la, self.last_action[sl][..., None], 1.0, axis=-1)
             s[:, self._st_last_off:] = la.reshape(b, -1)

@@ -127,18 +127,47 @@ MAPS = {
         description="5 Zealots vs 1 Ultralisk in a horizontal band"),
 }
 
-def split_variant(variant: str) -> tuple[str, str]:
-    """`1o_10b_vs_1r` -> (map, "liquipedia"); `1o_10b_vs_1r-liberty` -> (map, "liberty"): the
-    same map with the game's Liberty.SC2Mod unit data (units.py)."""
-    name, sep, data = variant.partition("-")
+NO_LAST_ACTION = "-no-last-action"
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """What a smaclite variant name selects: the map, its unit data and whether the state
+    carries the agents' one-hot last actions (SMAC's ``state_last_action``)."""
+    map_name: str
+    unit_data: str = "liquipedia"
+    state_last_action: bool = True
+
+    @property
+    def suffix(self) -> str:
+        return (("" if self.unit_data == "liquipedia" else f"-{self.unit_data}")
+                + ("" if self.state_last_action else NO_LAST_ACTION))
+
+
+def split_variant(variant: str) -> Variant:
+    """`1o_10b_vs_1r` -> the map with the Liquipedia unit data and SMAC's default state;
+    `-liberty` takes the game's Liberty.SC2Mod unit data (units.py); `-no-last-action` drops
+    the last actions from the state, as SMAC's ``state_last_action=False`` (the LMAC authors'
+    setting). Both: `1o_10b_vs_1r-liberty-no-last-action`."""
+    rest, last_action = variant, True
+    if rest.endswith(NO_LAST_ACTION):
+        rest, last_action = rest[:-len(NO_LAST_ACTION)], False
+    name, sep, data = rest.partition("-")
     if name not in MAPS:
         raise ValueError(f"unknown smaclite map {name!r}; known: {', '.join(MAPS)}")
     if not sep:
-        return name, "liquipedia"
+        return Variant(name, "liquipedia", last_action)
     if data != "liberty" or name not in LIBERTY_MAPS:
         known = ", ".join(f"{m}-liberty" for m in LIBERTY_MAPS)
-        raise ValueError(f"unknown smaclite variant {variant!r}; the unit-data variants are {known}")
-    return name, data
+        raise ValueError(f"unknown smaclite variant {variant!r}; the unit-data variants are {known}"
+                         f" (each may end in {NO_LAST_ACTION}, as may every map)")
+    return Variant(name, data, last_action)
+
+
+def variants() -> list[Variant]:
+    """Every variant the schemas describe: each map, the Liberty maps, each without last actions."""
+    base = [Variant(m) for m in MAPS] + [Variant(m, "liberty") for m in LIBERTY_MAPS]
+    return base + [dataclasses.replace(v, state_last_action=False) for v in base]
 
 
 # Spawn data (MAP: Regions / Objects), rectangles as (x0, y0, x1, y1)
@@ -152,7 +181,7 @@ Z5_REGION = (0.993, 7.653, 30.939, 24.2827)
 Z5_ATTACK_POINT = (9.0, 16.0)   # MAP:5z_vs_1ul gf_EnemyAttack: attack-move to point "Team 1"
 
 
-def obs_layout(spec: MapSpec) -> dict:
+def obs_layout(spec: MapSpec, state_last_action: bool = True) -> dict:
     """Feature counts exactly as SMAC's get_obs_size / get_state_size compute them."""
     n, e = len(spec.agents), len(spec.enemies)
     nf_al = 4 + spec.unit_type_bits
@@ -167,6 +196,6 @@ def obs_layout(spec: MapSpec) -> dict:
     st_al = 4 + spec.shield_bits_ally + spec.unit_type_bits
     st_en = 3 + spec.unit_type_bits
     n_actions = 6 + e
-    state_dim = n * st_al + e * st_en + n * n_actions
+    state_dim = n * st_al + e * st_en + (n * n_actions if state_last_action else 0)
     return dict(nf_al=nf_al, nf_en=nf_en, nf_own=nf_own, obs_dim=obs_dim, st_al=st_al,
                 st_en=st_en, state_dim=state_dim, n_actions=n_actions)

@@ -11,8 +11,7 @@ import json
 import sys
 
 from ..core import SCHEMA_DIR
-from .maps import MAPS, MapSpec, obs_layout
-from .units import LIBERTY_MAPS
+from .maps import MAPS, MapSpec, Variant, obs_layout, variants
 
 # Message columns per receiver of the LMAC authors' design for a map (protocols/paper/), where it
 # is wider than FullComm's: the smaclite schema's budget is raised to fit it.
@@ -147,15 +146,20 @@ def actions_of(spec: MapSpec) -> list[str]:
 UNSPLIT = {"bane_vs_hM", "1o_10b_vs_1r", "5z_vs_1ul"}
 
 
-def render(spec: MapSpec, family: str, data: str = "liquipedia") -> str:
-    lay = obs_layout(spec)
+def render(spec: MapSpec, family: str, variant: Variant | None = None) -> str:
+    variant = variant or Variant(spec.name)
+    data = variant.unit_data
+    lay = obs_layout(spec, variant.state_last_action)
     n, e = len(spec.agents), len(spec.enemies)
     sr = spec.sight_range
     ally_types, enemy_types = TYPE_NAMES[spec.name]
     task = task_text(spec.name, data)
+    if not variant.state_last_action:
+        task += (" The state leaves out the agents' last actions (SMAC's state_last_action = "
+                 "False, as the LMAC authors' runs set it).")
     if family == "smaclite":
         task = ("Lightweight re-implementation (numpy, not StarCraft II) of " + task)
-        name = f"smaclite:{spec.name}" + ("" if data == "liquipedia" else f"-{data}")
+        name = f"smaclite:{spec.name}{variant.suffix}"
     else:
         task = ("Runs the real StarCraft II game through the SMAC API (needs StarCraft II, "
                 "pysc2 and smac installed, and the SMAC-Comm map files). " + task)
@@ -274,11 +278,12 @@ def render(spec: MapSpec, family: str, data: str = "liquipedia") -> str:
     for j, k in enumerate(spec.enemies):
         _group(L, "state_dims", lay["st_en"], f"enemy {j} ({UNIT_NAMES[k]}): {{label}}",
                labels=se)
-    acts = ["no-op", "stop", "move north", "move south", "move east", "move west"] + [
-        f"attack enemy {j}" for j in range(e)]
-    _group(L, "state_dims", n * lay["n_actions"],
-           "last action of agent {i0}: 1 if it was '{label}', else 0 (all 0 at the first step)",
-           labels=acts * n, shape=[n, lay["n_actions"]])
+    if variant.state_last_action:
+        acts = ["no-op", "stop", "move north", "move south", "move east", "move west"] + [
+            f"attack enemy {j}" for j in range(e)]
+        _group(L, "state_dims", n * lay["n_actions"],
+               "last action of agent {i0}: 1 if it was '{label}', else 0 (all 0 at the first step)",
+               labels=acts * n, shape=[n, lay["n_actions"]])
     return "\n".join(L) + "\n"
 
 
@@ -287,12 +292,10 @@ def main() -> int:
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     stale = []
-    files = [(family, spec, "liquipedia", spec.name) for family in ("smaclite", "smac")
-             for spec in MAPS.values()]
-    files += [("smaclite", MAPS[m], "liberty", f"{m}-liberty") for m in LIBERTY_MAPS]
-    for family, spec, data, variant in files:
-        path = SCHEMA_DIR / family / f"{variant}.toml"
-        text = render(spec, family, data)
+    files = [("smac", Variant(m)) for m in MAPS] + [("smaclite", v) for v in variants()]
+    for family, variant in files:
+        path = SCHEMA_DIR / family / f"{variant.map_name}{variant.suffix}.toml"
+        text = render(MAPS[variant.map_name], family, variant)
         if args.write:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text)

@@ -279,6 +279,13 @@ fn paper_specs_find_the_shipped_design_or_name_the_env() {
     // The same map with other unit data observes the same values: its design runs there.
     let liberty = config("smaclite:1o_10b_vs_1r-liberty", "paper:1o_10b_vs_1r").unwrap();
     assert_eq!(liberty.protocol().unwrap().to_string(), want.join("+"));
+    // Without the state's last actions (the authors' 71-value state) the design's critical dims
+    // (62, 63, 67, 68) still mean the same, so it runs there too, and the run checks out.
+    for env in ["smaclite:1o_10b_vs_1r-no-last-action", "smaclite:1o_10b_vs_1r-liberty-no-last-action"] {
+        let short = config(env, "paper:1o_10b_vs_1r").unwrap_or_else(|e| panic!("{env}: {e:#}"));
+        assert_eq!(short.protocol().unwrap().to_string(), want.join("+"));
+        short.check().unwrap_or_else(|e| panic!("{env}: {e:#}"));
+    }
     // Not a paper spec: unchanged (a directory or files).
     assert_eq!(lmac_run::train::resolve_paper_spec("a.json+b.json", "x:y").unwrap(), "a.json+b.json");
     assert_eq!(lmac_run::train::resolve_paper_spec("papers/x", "x:y").unwrap(), "papers/x");

@@ -200,12 +200,18 @@ fn design_env(dir: &Path) -> Option<String> {
     })
 }
 
-/// Whether two environments' agents observe the same values with the same meanings (a design
-/// made for one then reads the same dims on the other).
-fn same_observations(a: &str, b: &str) -> bool {
+/// Whether a design made for one environment reads the same on another: the agents observe the
+/// same values with the same meanings, and one state is the start of the other (a variant may
+/// leave out the state's last actions), so every critical dim the compiler accepts as in range
+/// means the same.
+fn same_meanings(a: &str, b: &str) -> bool {
     let load = |e: &str| lmac_shm_schema::schema::load_env(e).ok();
     match (load(a), load(b)) {
-        (Some(x), Some(y)) => x.n_agents == y.n_agents && x.obs_dim == y.obs_dim && x.obs_meanings() == y.obs_meanings(),
+        (Some(x), Some(y)) => {
+            let (s, t) = (x.state_meanings(), y.state_meanings());
+            let n = s.len().min(t.len());
+            x.n_agents == y.n_agents && x.obs_dim == y.obs_dim && x.obs_meanings() == y.obs_meanings() && s[..n] == t[..n]
+        }
         _ => false,
     }
 }
@@ -506,9 +512,10 @@ impl TrainConfig {
                 let spec = resolve_paper_spec(&self.run.protocol, &self.run.env)?;
                 let dir = Path::new(&spec);
                 if let Some(env) = design_env(dir).filter(|e| *e != self.run.env) {
-                    // A variant of the same environment (smaclite's `-liberty` unit data, say)
-                    // reads the same observations: its protocol files then only warn.
-                    if !same_observations(&env, &self.run.env) {
+                    // A variant of the same environment (smaclite's `-liberty` unit data or
+                    // `-no-last-action` state, say) reads the same values: its protocol files
+                    // then only warn.
+                    if !same_meanings(&env, &self.run.env) {
                         bail!("run.protocol: the design in {} was made for {env}, this run is on {}, whose observations differ", dir.display(), self.run.env);
                     }
                 }
