@@ -1,7 +1,9 @@
 //! Protocol assembly: picked candidates become protocol fields with their prose.
 
-#[allow(unused_imports)]
-use super::*;
+use super::candidates::{Candidate, Kind};
+use super::select::Pick;
+use lmac_protocol_runner::protocol::{Field, PeerLink, ProtocolEnv, Receivers, Senders};
+use std::collections::BTreeMap;
 
 pub(super) fn short(s: &str) -> String {
     let s = s.trim();

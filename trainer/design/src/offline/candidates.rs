@@ -1,8 +1,11 @@
 //! Candidate features: what a sender could send (observation dims, history aggregates, action
 //! histograms), computed on the dataset by a probe protocol through the runner's own plan.
 
-#[allow(unused_imports)]
-use super::*;
+use anyhow::{anyhow, Result};
+use lmac_protocol_runner::protocol::{
+    self, ActionEncoding, DimSpec, Expr, Field, HistoryPadding, MessageLayout, Protocol, ProtocolEnv, Receivers, Senders,
+    ValidatedProtocol, Window, WindowOp,
+};
 
 /// What a candidate computes from one sender's observation history.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]

@@ -14,9 +14,14 @@
 //! [`FrameFitConfig::given_own_view`] leaves out everything it could compute linearly, but LMAC
 //! trained far worse without it (`docs/results/design.md`), so the default sends it.
 
-#[allow(unused_imports)]
-use super::*;
+use super::assemble::short;
+use super::candidates::{Candidate, Kind};
+use super::observation_relevance::varies_for;
+use super::select::{self, to_everyone_from, Pick};
+use super::{DesignContext, OfflineDesigner};
+use anyhow::{Context, Result};
 use lmac_run::dataset::Dataset;
+use std::collections::BTreeMap;
 
 /// Fewest steps a receiver must share with the sender (both seeing the entity) to be fitted.
 const MIN_ROWS: usize = 20;

@@ -1,7 +1,8 @@
 //! Reading the meta-information the design loop measured: per target dim, per-agent rates.
 
-#[allow(unused_imports)]
-use super::*;
+use crate::meta;
+use crate::meta_info::MetaInfo;
+use anyhow::{bail, Result};
 
 /// Per target dim of the meta-information: (state dim, per-agent rates, variance across agents,
 /// the largest per-third variance with its third), with communication.

@@ -14,10 +14,12 @@
 //! is always skipped), and every sum runs over the rows in the same order as before, so the
 //! picks are those of the dense computation (`dense` in the tests checks it).
 
-#[allow(unused_imports)]
-use super::*;
+use super::candidates::Candidate;
+use super::{DesignContext, OfflineConfig};
+use anyhow::{anyhow, Result};
 use lmac_learn::stats::ColumnSums;
 use lmac_protocol_runner::plan::MessagePlan;
+use lmac_protocol_runner::protocol::{self, ProtocolEnv, ValidatedProtocol};
 use lmac_run::dataset::Dataset;
 
 /// Sweep pivot `k` out of the symmetric matrix `c` (size p): the rest becomes the covariance
@@ -198,7 +200,26 @@ pub(super) fn prescreen(s: &mut dyn RowSource, cands: &[Candidate], w: &[Vec<f64
             }
         }
     })?;
-    let rows = s.rows().max(1) as f64;
+    Ok(keep_most_correlated(&cov, &csd, &ysd, s.rows(), cands, w, (n, width), keep))
+}
+
+/// The `keep` candidates whose other-agent values correlate most with the targets: each
+/// candidate's squared marginal correlations (from the centred cross sums `cov`, cand-column x
+/// target, over `rows` rows, and the columns' SDs) summed over its columns, senders and
+/// receivers with the receivers' weights, per column of width. Sorted by index.
+#[allow(clippy::too_many_arguments)]
+fn keep_most_correlated(
+    cov: &[f64],
+    csd: &[f64],
+    ysd: &[f64],
+    rows: usize,
+    cands: &[Candidate],
+    w: &[Vec<f64>],
+    (n, width): (usize, usize),
+    keep: usize,
+) -> Vec<usize> {
+    let t = ysd.len();
+    let rows = rows.max(1) as f64;
     let corr2 = |a: usize, d: usize| -> f64 {
         let den = csd[a] * ysd[d];
         if den <= 1e-12 {
@@ -228,7 +249,7 @@ pub(super) fn prescreen(s: &mut dyn RowSource, cands: &[Candidate], w: &[Vec<f64
     scored.sort_by(|a, b| b.0.partial_cmp(&a.0).unwrap_or(std::cmp::Ordering::Equal).then(a.1.cmp(&b.1)));
     let mut kept: Vec<usize> = scored.iter().take(keep).map(|x| x.1).collect();
     kept.sort_unstable();
-    Ok(kept)
+    kept
 }
 
 /// The selection problem, per receiver, over Q = [sender 0's kept candidate columns | sender 1's
@@ -553,6 +574,7 @@ pub(super) fn cand_label(c: &Candidate) -> String {
 #[cfg(test)]
 mod tests {
     //! The streamed, per-receiver statistics against the dense p x p computation they replace.
+    use super::super::candidates::Kind;
     use super::*;
 
     /// Sampled rows held in memory: per row n x base_w, n x width, t.
@@ -597,6 +619,8 @@ mod tests {
 
     // ---- the dense computation as it was (p x p, cloned per receiver) ----
 
+    /// The prescreen's moments and cross sums from the rows held in memory, ranked by the
+    /// production ranking: the streamed sums must give the same candidates.
     fn dense_prescreen(s: &Dense, cands: &[Candidate], w: &[Vec<f64>], keep: usize) -> Vec<usize> {
         let (n, width) = (s.n, s.width);
         let t = w[0].len();
@@ -618,37 +642,7 @@ mod tests {
                 }
             }
         }
-        let rows = s.rows.max(1) as f64;
-        let corr2 = |a: usize, d: usize| -> f64 {
-            let den = csd[a] * ysd[d];
-            if den <= 1e-12 {
-                0.0
-            } else {
-                let r = cov[a * t + d] / rows / den;
-                r * r
-            }
-        };
-        let mut scored: Vec<(f64, usize)> = cands
-            .iter()
-            .enumerate()
-            .map(|(k, c)| {
-                let mut score = 0.0;
-                for j in 0..n {
-                    for col in c.col..c.col + c.width {
-                        for i in (0..n).filter(|&i| i != j) {
-                            for d in 0..t {
-                                score += w[i][d] * corr2(j * width + col, d);
-                            }
-                        }
-                    }
-                }
-                (score / c.width as f64, k)
-            })
-            .collect();
-        scored.sort_by(|a, b| b.0.partial_cmp(&a.0).unwrap_or(std::cmp::Ordering::Equal).then(a.1.cmp(&b.1)));
-        let mut kept: Vec<usize> = scored.iter().take(keep).map(|x| x.1).collect();
-        kept.sort_unstable();
-        kept
+        keep_most_correlated(&cov, &csd, &ysd, s.rows, cands, w, (n, width), keep)
     }
 
     /// The full covariance and, per receiver, its base swept out; then the old greedy loop.
