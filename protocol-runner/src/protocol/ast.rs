@@ -310,21 +310,40 @@ impl BinOp {
     }
 }
 
+/// Every elementwise binary variant of [`Expr`] as one pattern binding its two operands, so a
+/// `match` over expressions stays exhaustive without listing the nine variants again; the
+/// operator itself comes from [`Expr::binary`].
+macro_rules! any_binary {
+    ($a:pat, $b:pat) => {
+        Expr::Add($a, $b)
+            | Expr::Sub($a, $b)
+            | Expr::Mul($a, $b)
+            | Expr::Div($a, $b)
+            | Expr::Min($a, $b)
+            | Expr::Max($a, $b)
+            | Expr::Gt($a, $b)
+            | Expr::Lt($a, $b)
+            | Expr::Eq($a, $b)
+    };
+}
+pub(crate) use any_binary;
+
 impl Expr {
     /// The operator and operands of an elementwise binary expression (None for the others).
     pub fn binary(&self) -> Option<(BinOp, &Expr, &Expr)> {
-        let (op, a, b) = match self {
-            Expr::Add(a, b) => (BinOp::Add, a, b),
-            Expr::Sub(a, b) => (BinOp::Sub, a, b),
-            Expr::Mul(a, b) => (BinOp::Mul, a, b),
-            Expr::Div(a, b) => (BinOp::Div, a, b),
-            Expr::Min(a, b) => (BinOp::Min, a, b),
-            Expr::Max(a, b) => (BinOp::Max, a, b),
-            Expr::Gt(a, b) => (BinOp::Gt, a, b),
-            Expr::Lt(a, b) => (BinOp::Lt, a, b),
-            Expr::Eq(a, b) => (BinOp::Eq, a, b),
+        let op = match self {
+            Expr::Add(..) => BinOp::Add,
+            Expr::Sub(..) => BinOp::Sub,
+            Expr::Mul(..) => BinOp::Mul,
+            Expr::Div(..) => BinOp::Div,
+            Expr::Min(..) => BinOp::Min,
+            Expr::Max(..) => BinOp::Max,
+            Expr::Gt(..) => BinOp::Gt,
+            Expr::Lt(..) => BinOp::Lt,
+            Expr::Eq(..) => BinOp::Eq,
             _ => return None,
         };
+        let any_binary!(a, b) = self else { return None };
         Some((op, a, b))
     }
 }

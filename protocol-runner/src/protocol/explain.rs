@@ -90,7 +90,7 @@ pub fn explain(p: &Protocol, env: Option<&ProtocolEnv>) -> String {
             if let Some(v) = ok {
                 let w: Vec<usize> = (0..v.env.n_agents).map(|i| v.receiver_width(i)).collect();
                 let (lo, hi) = (w.iter().min().copied().unwrap_or(0), w.iter().max().copied().unwrap_or(0));
-                let full = super::validate::message_width(p, &v.env, &v.field_widths);
+                let full = super::width::message_width(p, &v.env, &v.field_widths);
                 l.push_str(&format!(" ({lo}..{hi} columns used per receiver; the sender-blocks layout would need {full})"));
             }
             l.push('.');
@@ -203,7 +203,7 @@ pub fn explain_phases(phases: &[Protocol], env: Option<&ProtocolEnv>) -> String 
             }
         }
         if !done.is_empty() && done.len() == phases.len() {
-            let per = super::validate::combined_receiver_widths(&done);
+            let per = super::width::combined_receiver_widths(&done);
             let total = per.iter().copied().max().unwrap_or(0);
             let own: Vec<String> = done.iter().map(|v| v.width.to_string()).collect();
             writeln!(
@@ -284,15 +284,7 @@ fn max_window(p: &Protocol) -> Option<usize> {
                 *m = Some(m.unwrap_or(0).max(w.k));
                 walk(&w.of, m)
             }
-            Expr::Add(a, b)
-            | Expr::Sub(a, b)
-            | Expr::Mul(a, b)
-            | Expr::Div(a, b)
-            | Expr::Min(a, b)
-            | Expr::Max(a, b)
-            | Expr::Gt(a, b)
-            | Expr::Lt(a, b)
-            | Expr::Eq(a, b) => {
+            any_binary!(a, b) => {
                 walk(a, m);
                 walk(b, m)
             }
@@ -317,15 +309,7 @@ fn width(e: &Expr, env: Option<&ProtocolEnv>) -> Option<usize> {
         Expr::LastAction(ActionEncoding::OneHot) => env?.n_actions,
         Expr::SenderOneHot => env?.n_agents,
         Expr::Window(w) => width(&w.of, env)?,
-        Expr::Add(a, b)
-        | Expr::Sub(a, b)
-        | Expr::Mul(a, b)
-        | Expr::Div(a, b)
-        | Expr::Min(a, b)
-        | Expr::Max(a, b)
-        | Expr::Gt(a, b)
-        | Expr::Lt(a, b)
-        | Expr::Eq(a, b) => width(a, env)?.max(width(b, env)?),
+        any_binary!(a, b) => width(a, env)?.max(width(b, env)?),
         Expr::Neg(a) | Expr::Abs(a) => width(a, env)?,
         Expr::Clip(c) => width(&c.of, env)?,
         Expr::Concat(v) => v.iter().map(|x| width(x, env)).sum::<Option<usize>>()?,
@@ -383,15 +367,10 @@ pub fn explain_expr(e: &Expr, env: Option<&ProtocolEnv>) -> String {
                 ),
             }
         }
-        Expr::Add(a, b) => format!("({} + {})", x(a), x(b)),
-        Expr::Sub(a, b) => format!("({} - {})", x(a), x(b)),
-        Expr::Mul(a, b) => format!("({} * {})", x(a), x(b)),
-        Expr::Div(a, b) => format!("({} / {})", x(a), x(b)),
-        Expr::Min(a, b) => format!("min({}, {})", x(a), x(b)),
-        Expr::Max(a, b) => format!("max({}, {})", x(a), x(b)),
-        Expr::Gt(a, b) => format!("[{} > {}]", x(a), x(b)),
-        Expr::Lt(a, b) => format!("[{} < {}]", x(a), x(b)),
-        Expr::Eq(a, b) => format!("[{} = {}]", x(a), x(b)),
+        any_binary!(a, b) => {
+            let (pre, mid, post) = infix(e.binary().expect("a binary operator").0);
+            format!("{pre}{}{mid}{}{post}", x(a), x(b))
+        }
         Expr::Neg(a) => format!("-{}", x(a)),
         Expr::Abs(a) => format!("|{}|", x(a)),
         Expr::Clip(c) => format!("clip({}, {}, {})", x(&c.of), num(c.min), num(c.max)),
@@ -408,5 +387,20 @@ pub fn explain_expr(e: &Expr, env: Option<&ProtocolEnv>) -> String {
             let parts: Vec<String> = v.iter().map(x).collect();
             format!("[{}]", parts.join(" ++ "))
         }
+    }
+}
+
+/// How an elementwise operator reads between its operands: (before, between, after).
+fn infix(op: BinOp) -> (&'static str, &'static str, &'static str) {
+    match op {
+        BinOp::Add => ("(", " + ", ")"),
+        BinOp::Sub => ("(", " - ", ")"),
+        BinOp::Mul => ("(", " * ", ")"),
+        BinOp::Div => ("(", " / ", ")"),
+        BinOp::Min => ("min(", ", ", ")"),
+        BinOp::Max => ("max(", ", ", ")"),
+        BinOp::Gt => ("[", " > ", "]"),
+        BinOp::Lt => ("[", " < ", "]"),
+        BinOp::Eq => ("[", " = ", "]"),
     }
 }

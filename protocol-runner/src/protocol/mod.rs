@@ -36,20 +36,27 @@
 pub mod ast;
 pub mod compile;
 pub mod constant;
+pub mod env;
+pub mod error;
+pub mod execute;
 pub mod explain;
+pub mod parse;
 pub mod reference;
 pub mod schema;
 pub mod validate;
+pub mod width;
 
 pub use ast::*;
 pub use compile::{compile, compile_plan, Column, ProtocolPlan};
 pub use constant::{constant_fields, constant_fields_report, ConstantField};
+pub use env::ProtocolEnv;
+pub use error::{errors_to_text, ErrorKind, ValidationError};
 pub use explain::{explain, explain_expr, explain_phases};
+pub use parse::{escape_controls_in_strings, parse_llm_text, parse_str, parse_value, read_protocol_file, MAX_FILE_BYTES};
 pub use reference::language_reference;
 pub use schema::{schema_json, schema_value};
 pub use validate::{
-    check_file, check_phases, check_str, check_summary, combined_receiver_widths, combined_width, errors_to_text,
-    escape_controls_in_strings, message_width, parse_llm_text, parse_str, parse_value, read_protocol_file, receiver_widths, validate,
-    validate_phase, ErrorKind, ProtocolEnv, ValidatedProtocol, ValidationError, MAX_DEPTH, MAX_FIELDS, MAX_FILE_BYTES, MAX_NODES,
+    check_file, check_phases, check_str, check_summary, validate, validate_phase, ValidatedProtocol, MAX_DEPTH, MAX_FIELDS, MAX_NODES,
     MAX_WINDOW,
 };
+pub use width::{combined_receiver_widths, combined_width, message_width, receiver_widths};

@@ -1,9 +1,12 @@
-//! Parsing and validation. Every error carries the JSON path of the offending element and a
-//! message written to be handed back verbatim to the LLM that wrote the protocol.
+//! Validation against an environment. Every error carries the JSON path of the offending
+//! element and a message written to be handed back verbatim to the LLM that wrote the protocol.
 
 use super::ast::*;
+use super::env::ProtocolEnv;
+use super::error::{ErrorKind, ValidationError};
+use super::parse::{parse_str, read_protocol_file};
+use super::width::{block_width, combined_width, compact_widths, receiver_widths, PhaseLinks};
 use std::collections::BTreeSet;
-use std::fmt;
 
 /// Longest window (k) an aggregate may use.
 pub const MAX_WINDOW: usize = 64;
@@ -13,111 +16,6 @@ pub const MAX_DEPTH: usize = 24;
 pub const MAX_NODES: usize = 4096;
 /// Most fields in one protocol.
 pub const MAX_FIELDS: usize = 256;
-
-/// The environment facts validation needs (the lead maps the environment schema onto this).
-#[derive(Debug, Clone, PartialEq, Default)]
-pub struct ProtocolEnv {
-    pub n_agents: usize,
-    pub obs_dim: usize,
-    pub n_actions: usize,
-    pub state_dim: usize,
-    /// Most message columns one receiving agent may get (all phases together).
-    pub message_budget: usize,
-    /// Optional names of the observation dims (for error messages and `explain`); empty = unknown.
-    pub obs_names: Vec<String>,
-    /// Optional names of the state dims; empty = unknown.
-    pub state_names: Vec<String>,
-    /// Optional names of the actions; empty = unknown.
-    pub action_names: Vec<String>,
-    /// The environment's name and schema fingerprint; empty = unknown (no identity check).
-    pub env_name: String,
-    pub schema_fingerprint: String,
-}
-
-impl ProtocolEnv {
-    pub fn new(n_agents: usize, obs_dim: usize, n_actions: usize, state_dim: usize, message_budget: usize) -> Self {
-        ProtocolEnv { n_agents, obs_dim, n_actions, state_dim, message_budget, ..Default::default() }
-    }
-    pub(crate) fn obs_name(&self, d: usize) -> Option<&str> {
-        self.obs_names.get(d).map(|s| s.as_str()).filter(|s| !s.is_empty())
-    }
-    pub(crate) fn state_name(&self, d: usize) -> Option<&str> {
-        self.state_names.get(d).map(|s| s.as_str()).filter(|s| !s.is_empty())
-    }
-}
-
-/// What kind of mistake an error reports (for programs; people read the Display text).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum ErrorKind {
-    /// Could not read the file.
-    Io,
-    /// Not JSON, or JSON that does not match the schema (unknown key, wrong type, missing key).
-    Parse,
-    /// The environment itself cannot carry messages (e.g. a single agent).
-    Env,
-    /// A required text or list is empty.
-    Empty,
-    /// An identifier is malformed or repeated.
-    Name,
-    /// An agent index is out of range, repeated, or a sender/receiver rule is broken.
-    Agent,
-    /// An observation dim or slice is out of range.
-    ObsDim,
-    /// A state dim is out of range or repeated.
-    StateDim,
-    /// Operand widths do not fit together.
-    Width,
-    /// A window is malformed (k out of range, nested windows).
-    Window,
-    /// A number is not finite or a clip range is empty.
-    Number,
-    /// The protocol is too large (nesting, nodes, fields).
-    Size,
-    /// The message is wider than the budget.
-    Budget,
-    /// Phases given to the compiler do not fit together.
-    Phases,
-}
-
-/// One validation error: where (a JSON path such as `fields[2].value.add[1].obs[0]`) and what.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ValidationError {
-    pub kind: ErrorKind,
-    /// JSON path of the offending element; empty for whole-protocol errors.
-    pub path: String,
-    /// The field's name when the error is inside a field.
-    pub field: Option<String>,
-    pub message: String,
-}
-
-impl ValidationError {
-    pub fn new(kind: ErrorKind, path: impl Into<String>, message: impl Into<String>) -> Self {
-        ValidationError { kind, path: path.into(), field: None, message: message.into() }
-    }
-}
-
-impl fmt::Display for ValidationError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match (&self.path.is_empty(), &self.field) {
-            (true, _) => write!(f, "{}", self.message),
-            (false, None) => write!(f, "{}: {}", self.path, self.message),
-            (false, Some(n)) => write!(f, "{} (field \"{}\"): {}", self.path, n, self.message),
-        }
-    }
-}
-
-impl std::error::Error for ValidationError {}
-
-/// All errors as one text, one per line, ready to hand to an LLM for correction.
-pub fn errors_to_text(errors: &[ValidationError]) -> String {
-    let mut s = format!("The protocol has {} error(s):\n", errors.len());
-    for e in errors {
-        s.push_str("- ");
-        s.push_str(&e.to_string());
-        s.push('\n');
-    }
-    s
-}
 
 /// A protocol that passed validation against one environment, with its derived facts.
 #[derive(Debug, Clone, PartialEq)]
@@ -154,177 +52,6 @@ impl ValidatedProtocol {
     }
 }
 
-/// Columns each receiver needs before padding for one phase on its own: in the compact layout,
-/// per sender that reaches it, the one-hot (if on) and the fields that sender sends it; in the
-/// sender-blocks layout, the full [`message_width`] for everyone.
-pub fn receiver_widths(p: &Protocol, env: &ProtocolEnv, widths: &[usize], sends: &[Vec<Vec<bool>>]) -> Vec<usize> {
-    if p.layout == MessageLayout::SenderBlocks {
-        return vec![message_width(p, env, widths); env.n_agents];
-    }
-    compact_widths(env.n_agents, &[PhaseLinks { onehot: p.sender_one_hot, widths, sends }])
-}
-
-/// What the compact layout needs to know of one phase.
-struct PhaseLinks<'a> {
-    onehot: bool,
-    widths: &'a [usize],
-    sends: &'a [Vec<Vec<bool>>],
-}
-
-/// Per receiver, the compact layout of these phases together: for each sender that reaches it in
-/// any phase, its one-hot once (if a phase that links them has it on) and every field of every
-/// phase it sends there.
-fn compact_widths(n: usize, phases: &[PhaseLinks]) -> Vec<usize> {
-    let sent = |ph: &PhaseLinks, f: usize, j: usize, i: usize| ph.sends.get(f).and_then(|s| s.get(j)).and_then(|s| s.get(i)) == Some(&true);
-    (0..n)
-        .map(|i| {
-            (0..n).filter(|&j| j != i).fold(0usize, |acc, j| {
-                let mut linked = false;
-                let mut onehot = false;
-                let mut w = 0usize;
-                for ph in phases {
-                    for (f, &fw) in ph.widths.iter().enumerate() {
-                        if sent(ph, f, j, i) {
-                            linked = true;
-                            onehot |= ph.onehot;
-                            w = w.saturating_add(fw);
-                        }
-                    }
-                }
-                if !linked {
-                    return acc;
-                }
-                acc.saturating_add(if onehot { n } else { 0 }).saturating_add(w)
-            })
-        })
-        .collect()
-}
-
-/// Per receiver, the columns the phases compiled together need before padding (the plan's
-/// width is the largest). Compact phases share one block per sender across phases (one one-hot
-/// per sender); sender-blocks phases are concatenated after them... they cannot be mixed (see
-/// [`check_phases`]), so this is either the compact combination or the sum of the blocks.
-pub fn combined_receiver_widths(phases: &[ValidatedProtocol]) -> Vec<usize> {
-    let n = phases.first().map_or(0, |p| p.env.n_agents);
-    let compact: Vec<PhaseLinks> = phases
-        .iter()
-        .filter(|p| p.protocol.layout == MessageLayout::Compact)
-        .map(|p| PhaseLinks { onehot: p.protocol.sender_one_hot, widths: &p.field_widths, sends: &p.sends })
-        .collect();
-    let blocks: usize =
-        phases.iter().filter(|p| p.protocol.layout == MessageLayout::SenderBlocks).fold(0usize, |a, p| a.saturating_add(p.width));
-    compact_widths(n, &compact).into_iter().map(|w| w.saturating_add(blocks)).collect()
-}
-
-/// The message width of these phases compiled together (what [`check_phases`] returns and the
-/// plan's `msg_dim`): the widest receiver's. Not the sum of the phases' own widths in the compact
-/// layout, where a sender's one-hot is paid once across phases.
-pub fn combined_width(phases: &[ValidatedProtocol]) -> usize {
-    combined_receiver_widths(phases).into_iter().max().unwrap_or(0)
-}
-
-fn block_width(p: &Protocol, env: &ProtocolEnv, widths: &[usize]) -> usize {
-    let onehot = if p.sender_one_hot { env.n_agents } else { 0 };
-    widths.iter().fold(onehot, |a, &w| a.saturating_add(w))
-}
-
-/// Message columns per receiver of a protocol with these field widths in the sender-blocks
-/// layout: (n_agents - 1) x (one-hot + all fields), 0 with fewer than 2 agents. It is also the
-/// compact layout's width when every agent sends every field to every other (an upper bound).
-pub fn message_width(p: &Protocol, env: &ProtocolEnv, widths: &[usize]) -> usize {
-    env.n_agents.saturating_sub(1).saturating_mul(block_width(p, env, widths))
-}
-
-// ------------------------------------------------------------------------------------------
-// Parsing
-
-fn parse_error(e: serde_path_to_error::Error<serde_json::Error>) -> ValidationError {
-    let path = e.path().to_string();
-    let inner = e.into_inner();
-    let mut msg = inner.to_string();
-    if msg.contains("unknown variant") && msg.contains("expected one of `obs`") {
-        msg.push_str(" (an expression is an object with exactly one key naming its operator, e.g. {\"obs\": [0, 1]}, or the string \"sender_one_hot\")");
-    }
-    let path = if path == "." { String::new() } else { path };
-    ValidationError::new(ErrorKind::Parse, path, format!("invalid protocol JSON: {msg}"))
-}
-
-/// Parse protocol JSON text (no validation against an environment yet). A leading byte-order
-/// mark, which some editors write, is not part of the JSON.
-pub fn parse_str(text: &str) -> Result<Protocol, Vec<ValidationError>> {
-    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
-    let mut de = serde_json::Deserializer::from_str(text);
-    let p: Protocol = serde_path_to_error::deserialize(&mut de).map_err(|e| vec![parse_error(e)])?;
-    de.end().map_err(|e| {
-        vec![ValidationError::new(ErrorKind::Parse, "", format!("invalid protocol JSON: trailing text after the protocol object ({e})"))]
-    })?;
-    Ok(p)
-}
-
-/// Parse an already-decoded JSON value.
-pub fn parse_value(v: &serde_json::Value) -> Result<Protocol, Vec<ValidationError>> {
-    serde_path_to_error::deserialize(v).map_err(|e| vec![parse_error(e)])
-}
-
-/// Parse the protocol out of an LLM answer: the text itself if it is JSON, else the content of
-/// the first ```json fenced block, else the outermost `{ ... }`.
-pub fn parse_llm_text(text: &str) -> Result<Protocol, Vec<ValidationError>> {
-    let t = text.trim();
-    // Models often break a long string over lines: raw control characters inside strings are
-    // escaped first (valid JSON has none there, so a valid reply is unchanged).
-    let parse = |s: &str| parse_str(&escape_controls_in_strings(s));
-    if t.starts_with('{') {
-        return parse(t);
-    }
-    if let Some(start) = t.find("```") {
-        let rest = &t[start + 3..];
-        let rest = rest.strip_prefix("json").or_else(|| rest.strip_prefix("JSON")).unwrap_or(rest);
-        if let Some(end) = rest.find("```") {
-            return parse(rest[..end].trim());
-        }
-    }
-    match (t.find('{'), t.rfind('}')) {
-        (Some(a), Some(b)) if a < b => parse(&t[a..=b]),
-        _ => Err(vec![ValidationError::new(
-            ErrorKind::Parse,
-            "",
-            "no JSON object found in the answer: reply with the protocol as one JSON object",
-        )]),
-    }
-}
-
-/// `text` with every control character inside a JSON string literal written as its escape
-/// (`\n`, `\r`, `\t`, `\u00XX`); everything outside strings, and escapes already there, as
-/// they are.
-pub fn escape_controls_in_strings(text: &str) -> String {
-    let mut out = String::with_capacity(text.len());
-    let (mut in_string, mut escaped) = (false, false);
-    for c in text.chars() {
-        if in_string && !escaped && (c as u32) < 0x20 {
-            match c {
-                '\n' => out.push_str("\\n"),
-                '\r' => out.push_str("\\r"),
-                '\t' => out.push_str("\\t"),
-                _ => out.push_str(&format!("\\u{:04x}", c as u32)),
-            }
-            continue;
-        }
-        out.push(c);
-        if in_string {
-            if escaped {
-                escaped = false;
-            } else if c == '\\' {
-                escaped = true;
-            } else if c == '"' {
-                in_string = false;
-            }
-        } else if c == '"' {
-            in_string = true;
-        }
-    }
-    out
-}
-
 // ------------------------------------------------------------------------------------------
 // Validation
 
@@ -336,16 +63,6 @@ pub fn validate(p: &Protocol, env: &ProtocolEnv) -> Result<ValidatedProtocol, Ve
 /// Parse and validate JSON text.
 pub fn check_str(text: &str, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec<ValidationError>> {
     validate(&parse_str(text)?, env)
-}
-
-/// The largest protocol file read: protocols are a few KiB; the cap keeps a wrong path (a device,
-/// a huge log) from being read into memory whole.
-pub const MAX_FILE_BYTES: u64 = 16 << 20;
-
-/// A protocol file's text, at most [`MAX_FILE_BYTES`], from a regular file only (a FIFO is
-/// refused, not waited on); the error names the file.
-pub fn read_protocol_file(path: &std::path::Path) -> Result<String, String> {
-    lmac_shm_schema::safe_fs::read_text_capped(path, MAX_FILE_BYTES).map_err(|e| format!("cannot read protocol file {e}"))
 }
 
 /// Read, parse and validate a protocol file.
@@ -867,15 +584,7 @@ impl Validator<'_> {
                     None
                 }
             }
-            Expr::Add(a, b)
-            | Expr::Sub(a, b)
-            | Expr::Mul(a, b)
-            | Expr::Div(a, b)
-            | Expr::Min(a, b)
-            | Expr::Max(a, b)
-            | Expr::Gt(a, b)
-            | Expr::Lt(a, b)
-            | Expr::Eq(a, b) => {
+            any_binary!(a, b) => {
                 let op = e.binary().expect("a binary operator").0.name();
                 let wa = self.expr(a, &format!("{path}.{op}[0]"), field, depth + 1, in_window);
                 let wb = self.expr(b, &format!("{path}.{op}[1]"), field, depth + 1, in_window);
