@@ -239,13 +239,19 @@ COLUMNS = ["env", "label", "tasks", "runs", "seeds", "steps", "unfinished", "fin
 def markdown(rows: list[dict], a, n_envs: int) -> str:
     ci = lambda r, k: f"{fmt(r[k])} [{fmt(r[k + '_lo'])}, {fmt(r[k + '_hi'])}]"
     what = ("min-max normalised " if a.normalise == "min-max" else "") + f"final {a.metric}"
-    lines = [f"{what}: IQM, median and mean with 95% stratified-bootstrap CIs ({a.reps} replicates, seed {a.seed})", "",
-             "| env | label | runs | steps | scored by | IQM [95% CI] | median [95% CI] | mean [95% CI] |",
+    lines = [f"{what}: IQM, median and mean with 95% stratified-bootstrap CIs ({a.reps} replicates, seed {a.seed}); "
+             f"rows of fewer than {stats.FEW_RUNS} runs: mean ± sample SD and every run's score", "",
+             "| env | label | runs | steps | scored by | IQM [95% CI] | median [95% CI] | mean [95% CI] or ± sample SD |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         steps = fmt_steps(r["steps"]) + ("*" if r["unfinished"] else "")
-        lines.append(f"| {r['env']} | {r['label']} | {r['runs']} | {steps} | {r['final_score']} | "
-                     f"{ci(r, 'iqm')} | {ci(r, 'median')} | {ci(r, 'mean')} |")
+        if r["runs"] < stats.FEW_RUNS:
+            scores = list(r["scores"].values())
+            each = ", ".join(fmt(s) for s in scores)
+            cells = f"- | - | {fmt(float(np.mean(scores)))} ± {fmt(float(stats.sample_sd(np.array(scores))))} (runs: {each})"
+        else:
+            cells = f"{ci(r, 'iqm')} | {ci(r, 'median')} | {ci(r, 'mean')}"
+        lines.append(f"| {r['env']} | {r['label']} | {r['runs']} | {steps} | {r['final_score']} | {cells} |")
     lines += ["", f"scored by: best-checkpoint eval = the mean return of marl_eval.json's absolute_metrics, the greedy "
                   f"evaluation of the run's best checkpoint (`lmac experiment`'s best-checkpoint eval column); "
                   f"last-{FINAL_TESTS}-tests = the mean of the run's last {FINAL_TESTS} test phases (`lmac experiment`'s "

@@ -21,6 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .final import FINAL_TEST_PHASES, final_of  # noqa: E402
+from .stats import sample_sd  # noqa: E402
 from .titles import fit  # noqa: E402
 
 
@@ -57,14 +58,14 @@ def group_curves(group: pathlib.Path):
 
 
 def plot_curves(out: pathlib.Path, env: str, labelled: list[tuple[str, pathlib.Path]]) -> None:
-    """Test return of each (label, group of seeds): mean with a std band, one line each."""
+    """Test return of each (label, group of seeds): mean with a sample-SD band, one line each."""
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
     for label, g in labelled:
         gc = group_curves(g)
         if gc is None:
             continue
         grid, ys, _ = gc
-        m, s = ys.mean(0), ys.std(0)
+        m, s = ys.mean(0), sample_sd(ys)
         ax.plot(grid, m, label=f"{label} ({len(ys)} seeds)")
         ax.fill_between(grid, m - s, m + s, alpha=0.2)
     ax.set_xlabel("env steps")
@@ -93,10 +94,10 @@ def main(group: pathlib.Path) -> None:
     if not curves:
         print(f"no test results under {group} yet")
         return
-    # Mean and std across seeds on a common grid of env steps.
+    # Mean and sample SD across seeds on a common grid of env steps.
     grid, ys, wins = group_curves(group)
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    m, s = ys.mean(0), ys.std(0)
+    m, s = ys.mean(0), sample_sd(ys)
     ax.plot(grid, m, label=f"test return (mean of {len(curves)} seeds)")
     ax.fill_between(grid, m - s, m + s, alpha=0.25)
     ax.set_xlabel("env steps")
@@ -111,15 +112,15 @@ def main(group: pathlib.Path) -> None:
         "final_tests_averaged": min(FINAL_TEST_PHASES, min(len(c) for c in curves.values())),
         "final_t_env": [int(c[-1, 0]) for c in curves.values()],
         "final_test_return_mean": float(np.mean([f[0] for f in finals])),
-        "final_test_return_std": float(np.std([f[0] for f in finals])),
+        "final_test_return_std": float(sample_sd(np.array([f[0] for f in finals]))),
         "final_test_win_rate_mean": float(np.mean([f[1] for f in finals])),
-        "final_test_win_rate_std": float(np.std([f[1] for f in finals])),
+        "final_test_win_rate_std": float(sample_sd(np.array([f[1] for f in finals]))),
     }
     (group / "summary.json").write_text(json.dumps(summary, indent=2))
     with open(group / "summary.csv", "w") as f:
         f.write("t_env,test_return_mean,test_return_std,test_win_rate_mean,test_win_rate_std\n")
         for i, t in enumerate(grid):
-            f.write(f"{int(t)},{ys[:, i].mean():.4f},{ys[:, i].std():.4f},{wins[:, i].mean():.4f},{wins[:, i].std():.4f}\n")
+            f.write(f"{int(t)},{ys[:, i].mean():.4f},{sample_sd(ys[:, i]):.4f},{wins[:, i].mean():.4f},{sample_sd(wins[:, i]):.4f}\n")
     print(f"{group}: last-5-tests return {summary['final_test_return_mean']:.3f} "
           f"± {summary['final_test_return_std']:.3f}, win rate {summary['final_test_win_rate_mean']:.3f} "
           f"over {len(curves)} seed(s); plots: {group / 'summary.png'}")

@@ -63,6 +63,20 @@ def median(tasks: Tasks) -> np.ndarray:
 AGGREGATES: dict[str, Callable[[Tasks], np.ndarray]] = {"iqm": iqm, "median": median, "mean": mean}
 
 
+# Below this many runs a row reports the mean, the sample SD and every run's score, not an IQM
+# and a bootstrap CI: with 3 runs the IQM trims nothing and the CI is the runs' own range.
+FEW_RUNS = 5
+
+
+def sample_sd(x: np.ndarray) -> np.ndarray | float:
+    """Sample standard deviation over the first axis (n - 1 in the divisor; 0 for one value):
+    the spread over seeds every lmac table and plot states."""
+    x = np.asarray(x, dtype=float)
+    if x.shape[0] < 2:
+        return np.zeros(x.shape[1:]) if x.ndim > 1 else 0.0
+    return x.std(0, ddof=1)
+
+
 def rng_for(seed: int, key: str) -> np.random.Generator:
     """A generator for one group's bootstrap: the same seed and key give the same intervals
     whatever other groups are in the report."""

@@ -202,6 +202,9 @@ def test_report_writes_table_json_and_plots(tmp_path, capsys):
     # final scores: last 5 tests of 0.1*i + 0.05*s, i = 3..7: 0.5, 0.55, 0.6
     assert qmix["iqm"] == pytest.approx(0.55) and qmix["mean"] == pytest.approx(0.55)
     assert qmix["iqm_lo"] <= 0.55 <= qmix["iqm_hi"]
+    # Three runs are too few for an IQM and a bootstrap CI: the table gives the mean, the sample
+    # SD (0.05 over 0.5, 0.55, 0.6) and each run's score.
+    assert "| last-5-tests | - | - | 0.550 ± 0.050 (runs: 0.500, 0.550, 0.600) |" in out, out
     assert (rep / "report.md").read_text() in out
     assert (rep / "report.csv").read_text().splitlines()[0].startswith("env,label,tasks,runs")
     for png in ("performance_profile.png", "sample_efficiency.png"):

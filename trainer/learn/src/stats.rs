@@ -1,5 +1,5 @@
 //! The few statistics several parts of lmac need, each written once: mean, population variance,
-//! median and quantiles of a list, and per-column moments of row-major data (standardising discriminator
+//! the sample SD, median and quantiles of a list, and per-column moments of row-major data (standardising discriminator
 //! inputs and targets, correlations in the offline designer).
 
 /// Mean (0 for an empty list).
@@ -11,6 +11,15 @@ pub fn mean(v: &[f64]) -> f64 {
 pub fn variance(v: &[f64]) -> f64 {
     let m = mean(v);
     v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Sample standard deviation (n - 1 in the divisor; 0 for fewer than two values): the spread
+/// over seeds every report and table states.
+pub fn sample_sd(v: &[f64]) -> f64 {
+    if v.len() < 2 {
+        return 0.0;
+    }
+    (variance(v) * v.len() as f64 / (v.len() - 1) as f64).sqrt()
 }
 
 /// Median (the upper one of an even count; 0 for an empty list); NaNs sort last.

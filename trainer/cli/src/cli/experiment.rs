@@ -9,7 +9,7 @@ use super::parse_steps;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use lmac_run::safe_fs;
-use lmac_run::stats::{mean, variance};
+use lmac_run::stats::{mean, sample_sd};
 use lmac_run::train::{read_metrics, TrainConfig};
 use lmac_run::workflow::{interrupt_flag, plot, train_dirs};
 use serde::{Deserialize, Serialize};
@@ -309,9 +309,9 @@ fn shared_design(a: &ExperimentArgs, dir: &Path, interrupted: std::sync::Arc<std
 /// and plot uses.
 const FINAL_TESTS: usize = 5;
 
-/// Mean and population standard deviation over seeds.
+/// Mean and sample standard deviation over seeds.
 fn mean_std(v: &[f64]) -> (f64, f64) {
-    (mean(v), variance(v).sqrt())
+    (mean(v), sample_sd(v))
 }
 
 fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
@@ -337,7 +337,7 @@ fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
     let has_wins = win.iter().any(|&w| w > 0.0);
     let evals: Vec<f64> = dirs.iter().filter_map(|d| best_eval_return(d)).collect();
     let (em, es) =
-        if evals.len() == dirs.len() && !evals.is_empty() { (Some(mean(&evals)), Some(variance(&evals).sqrt())) } else { (None, None) };
+        if evals.len() == dirs.len() && !evals.is_empty() { (Some(mean(&evals)), Some(sample_sd(&evals))) } else { (None, None) };
     Ok(Row {
         label: label.into(),
         algo: algo.into(),
@@ -400,7 +400,7 @@ fn reach(row: &mut Row, dirs: &[PathBuf], threshold: f64) -> Result<()> {
 
 fn render(env: &str, rows: &[Row], threshold: f64) -> String {
     let mut s = format!(
-        "{env}: last-5-tests return and win rate (mean +- std over seeds of each run's last {FINAL_TESTS} test phases); best-checkpoint eval return (the greedy evaluation of each run's best checkpoint, what `lmac report` scores); steps and wall time to a test return of {threshold:.3} (mean over the seeds that reached it)\n\n"
+        "{env}: last-5-tests return and win rate (mean +- sample SD over seeds of each run's last {FINAL_TESTS} test phases); best-checkpoint eval return (the greedy evaluation of each run's best checkpoint, what `lmac report` scores); steps and wall time to a test return of {threshold:.3} (mean over the seeds that reached it)\n\n"
     );
     s.push_str("| algorithm | seeds | last-5-tests return | last-5-tests win rate | best-checkpoint eval return | reached | env steps to threshold | wall s to threshold | wall s total | schedule |\n");
     s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
