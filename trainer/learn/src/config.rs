@@ -111,8 +111,8 @@ pub struct LearnConfig {
     pub seed: u64,
     /// Unroll the target network on a second thread during the online forward pass. On by
     /// default: at one update per collected episode acting waits for the learner, so the
-    /// second core is free; `--preset pymarl-parallel` turns it off (the old default, where
-    /// acting on small environments kept both cores busy).
+    /// second core is free; `--preset pymarl-parallel` turns it off (at 0.125 updates per
+    /// episode acting on small environments keeps both cores busy).
     pub parallel_target: bool,
     /// Each update's batch in two halves of its episodes on two threads (online and target
     /// unroll and backward each), the gradients summed: both cores at work on one update. The

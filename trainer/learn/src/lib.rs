@@ -50,8 +50,7 @@ pub const MAX_ENV_STEPS: u64 = 1 << 48;
 ///
 /// An update allocates and frees tens of megabytes of tensors; with glibc's defaults, blocks
 /// above the mmap threshold come back as fresh pages that fault and get zeroed on first write
-/// every update. Measured on the learner bench (1o_10b_vs_1r's shape, VDN): 82 -> 71
-/// ms per update; the fused GRU's forward alone 21 -> 10 ms. Costs resident memory (up to the
+/// every update (the learner bench's gain: `docs/results/performance.md`). Costs resident memory (up to the
 /// trim threshold, 1 GiB, stays mapped). Called once at start by the `lmac` binary and the
 /// learner benches; a no-op off glibc.
 pub fn tune_allocator() {

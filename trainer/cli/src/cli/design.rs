@@ -150,8 +150,8 @@ pub(crate) struct DesignArgs {
     /// With `--phase1-by frame`: fit each receiver's view on top of the rest of its own
     /// observation too, so nothing it could compute from what it sees is sent. On SMAC-Comm this
     /// sends nothing (sight is symmetric: where the sender sees a receiver is the negative of
-    /// where the receiver sees the sender) and LMAC trained worse on 1o_10b (best-checkpoint
-    /// IQM 6.08 against 8.74); without it, that offset is sent in the sender's frame, as the
+    /// where the receiver sees the sender) and LMAC trained worse on 1o_10b
+    /// (`docs/results/design.md`); without it, that offset is sent in the sender's frame, as the
     /// authors' phase 1 sends it
     #[arg(long)]
     pub(crate) frame_given_own_view: bool,

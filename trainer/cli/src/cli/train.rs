@@ -59,7 +59,7 @@ pub(crate) struct TrainArgs {
     /// A named bundle of settings, applied before --set: paper (the default, spelled out: the
     /// LMAC paper's schedule of 1 update per collected episode, target copy every 200 updates,
     /// both cores on each update), epymarl (the same schedule on one core), pymarl-parallel
-    /// (0.125 updates per episode, one learner thread: the old default).
+    /// (0.125 updates per episode, one learner thread: pymarl's parallel-runner schedule).
     #[arg(long)]
     preset: Option<String>,
     /// Where run directories go.
