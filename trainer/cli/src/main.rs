@@ -135,7 +135,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
             Ok(0)
         }
         Cmd::Config(ConfigCmd::Show { config, preset, set }) => {
-            let overrides = lmac_run::train::preset_then(preset.as_deref(), &set)?;
+            let overrides = lmac_run::train::preset_then(preset.as_deref(), None, &set)?;
             let cfg = lmac_run::train::TrainConfig::resolve(config.as_deref(), &overrides)?;
             print!("{}", toml::to_string_pretty(&cfg)?);
             Ok(0)

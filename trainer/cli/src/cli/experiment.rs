@@ -201,7 +201,7 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
         for &seed in &a.seeds {
             let d = dir.join("runs").join(&label).join(format!("seed{seed}"));
             if !d.join("config.toml").exists() {
-                let mut o = lmac_run::train::preset_then(a.preset.as_deref(), &a.set)?;
+                let mut o = lmac_run::train::preset_then(a.preset.as_deref(), Some(algo.as_str()), &a.set)?;
                 o.push(format!("run.env={:?}", a.env));
                 o.push(format!("run.algo={algo:?}"));
                 o.push(format!("run.steps={}", a.steps));

@@ -85,7 +85,7 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
     let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
         seed_dirs(r)?
     } else {
-        let mut overrides = lmac_run::train::preset_then(a.preset.as_deref(), &a.set)?;
+        let mut overrides = lmac_run::train::preset_then(a.preset.as_deref(), a.algo.as_deref(), &a.set)?;
         if let Some(e) = &a.env {
             overrides.push(format!("run.env={e:?}"));
         }

@@ -156,21 +156,40 @@ pub const PRESETS: &[(&str, &str)] = &[
          target copy every 200 episodes = 25 updates, one learner thread: lmac's default before the \
          paper's schedule was affordable, exactly, and the schedule of every figure trained before it",
     ),
+    (
+        "released",
+        "everything as the LMAC authors' released code runs it, where lmac's defaults and `paper` differ \
+         by measured choice: `paper`'s schedule and time limit, their episode runner (one env, one \
+         server; 100 greedy test episodes every 50k steps), and for LMAC their meta-cognitive module \
+         (method.encoder = \"gru-gate\", the consistency loss averaged over padding: \
+         method.mask_consistency = false) and their rewards (standardised over the padded batch: \
+         learn.reward_standardisation = \"released\"); other methods keep raw rewards, as the \
+         authors' QMIX config does. The state without last actions is an env variant \
+         (smaclite's -no-last-action); dropout stays off when acting (not a setting)",
+    ),
 ];
 
 /// The overrides of an optional preset followed by `sets` (`--set` after `--preset`), as
-/// `lmac train`, `lmac experiment` and `lmac config show` apply them.
-pub fn preset_then(preset: Option<&str>, sets: &[String]) -> Result<Vec<String>> {
+/// `lmac train`, `lmac experiment` and `lmac config show` apply them. `algo` is the run's method
+/// where the caller knows it; else the last `run.algo` in `sets`, else the default method.
+pub fn preset_then(preset: Option<&str>, algo: Option<&str>, sets: &[String]) -> Result<Vec<String>> {
+    let from_sets = || {
+        sets.iter().rev().find_map(|s| {
+            s.trim().strip_prefix("run.algo").map(|v| v.trim_start().trim_start_matches('=').trim().trim_matches('"').to_string())
+        })
+    };
+    let algo = algo.map(str::to_string).or_else(from_sets).unwrap_or_else(|| RunSection::default().algo);
     let mut o = match preset {
-        Some(p) => preset_overrides(p)?,
+        Some(p) => preset_overrides(p, &algo)?,
         None => Vec::new(),
     };
     o.extend(sets.iter().cloned());
     Ok(o)
 }
 
-/// The `key=value` overrides of a preset.
-pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
+/// The `key=value` overrides of a preset for a run of method `algo` (only `released` sets
+/// anything per method).
+pub fn preset_overrides(name: &str, algo: &str) -> Result<Vec<String>> {
     let schedule = |updates_per_episode: &str, second_thread: bool| {
         vec![
             format!("run.updates_per_episode={updates_per_episode}"),
@@ -180,14 +199,26 @@ pub fn preset_overrides(name: &str) -> Result<Vec<String>> {
             format!("learn.data_parallel={second_thread}"),
         ]
     };
+    let paper = || {
+        let mut o = schedule("1.0", true);
+        o.push("learn.time_limit=\"terminal\"".into());
+        o
+    };
     Ok(match name {
-        "paper" => {
-            let mut o = schedule("1.0", true);
-            o.push("learn.time_limit=\"terminal\"".into());
-            o
-        }
+        "paper" => paper(),
         "epymarl" => schedule("1.0", false),
         "pymarl-parallel" => schedule("0.125", false),
+        "released" => {
+            let mut o = paper();
+            o.extend(["run.envs=1", "run.servers=1", "run.test_interval=50000", "run.test_episodes=100"].map(String::from));
+            if algo == "lmac" {
+                o.extend(
+                    ["method.encoder=\"gru-gate\"", "method.mask_consistency=false", "learn.reward_standardisation=\"released\""]
+                        .map(String::from),
+                );
+            }
+            o
+        }
         other => bail!("--preset: unknown preset {other:?}; known: {}", PRESETS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")),
     })
 }
@@ -596,14 +627,14 @@ mod tests {
 
     #[test]
     fn the_epymarl_preset_sets_one_update_per_episode_and_can_be_overridden() {
-        let mut o = preset_overrides("epymarl").unwrap();
+        let mut o = preset_overrides("epymarl", "qmix").unwrap();
         let c = TrainConfig::resolve(None, &o).unwrap();
         assert_eq!(c.run.updates_per_episode, 1.0);
         assert_eq!(c.learn.target_update_interval_episodes, 200);
         o.push("run.updates_per_episode=0.5".into());
         assert_eq!(TrainConfig::resolve(None, &o).unwrap().run.updates_per_episode, 0.5, "--set comes after the preset");
-        assert!(preset_overrides("pymarl2").unwrap_err().to_string().contains("known: paper, epymarl, pymarl-parallel"));
-        let paper = TrainConfig::resolve(None, &preset_overrides("paper").unwrap()).unwrap();
+        assert!(preset_overrides("pymarl2", "qmix").unwrap_err().to_string().contains("known: paper, epymarl, pymarl-parallel, released"));
+        let paper = TrainConfig::resolve(None, &preset_overrides("paper", "qmix").unwrap()).unwrap();
         assert_eq!((paper.run.updates_per_episode, paper.learn.target_update_interval_episodes), (1.0, 200));
         assert!(paper.learn.parallel_target, "the paper schedule unrolls the target on the second core");
         assert!(paper.learn.data_parallel, "and splits the batch over both cores where the method allows");
@@ -615,10 +646,32 @@ mod tests {
             "the paper's schedule is the default"
         );
         assert_eq!(default.learn.time_limit, crate::learn::TimeLimit::Bootstrap, "lmac bootstraps at a time limit by default");
-        let old = TrainConfig::resolve(None, &preset_overrides("pymarl-parallel").unwrap()).unwrap();
+        let old = TrainConfig::resolve(None, &preset_overrides("pymarl-parallel", "qmix").unwrap()).unwrap();
         assert_eq!(old.run.updates_per_episode, 0.125);
         assert!(!old.learn.parallel_target && !old.learn.data_parallel, "the old default's one learner thread");
         assert!(!c.learn.parallel_target && !c.learn.data_parallel, "epymarl is the schedule on one core");
+    }
+
+    /// `released` is the authors' code for the method at hand: LMAC's module and rewards as
+    /// released, other methods' raw rewards; the method comes from `--algo` or from the sets.
+    #[test]
+    fn the_released_preset_follows_the_method() {
+        let lmac = |o: Vec<String>| {
+            let mut o = o;
+            o.extend(["run.algo=\"lmac\"", "run.env=\"smaclite:1o_10b_vs_1r\"", "run.protocol=\"paper\""].map(String::from));
+            TrainConfig::resolve(None, &o).unwrap()
+        };
+        let c = lmac(preset_then(Some("released"), Some("lmac"), &[]).unwrap());
+        assert_eq!((c.run.envs, c.run.servers, c.run.test_interval, c.run.test_episodes), (1, 1, 50_000, 100));
+        assert_eq!(c.learn.time_limit, crate::learn::TimeLimit::Terminal);
+        assert_eq!(c.learn.reward_standardisation, crate::learn::RewardStandardisation::Released);
+        let method = toml::to_string(&c.method).unwrap();
+        assert!(method.contains("encoder = \"gru-gate\"") && method.contains("mask_consistency = false"), "{method}");
+        let from_sets = preset_then(Some("released"), None, &["run.algo = \"lmac\"".into()]).unwrap();
+        assert!(from_sets.iter().any(|s| s.starts_with("method.encoder")), "{from_sets:?}");
+        let q = TrainConfig::resolve(None, &preset_then(Some("released"), Some("qmix"), &["run.algo=\"qmix\"".into()]).unwrap()).unwrap();
+        assert_eq!(q.learn.reward_standardisation, crate::learn::RewardStandardisation::Method, "their QMIX config keeps raw rewards");
+        assert_eq!(q.run.envs, 1);
     }
 
     /// A saved config states every setting the run trained with: the method's defaults written

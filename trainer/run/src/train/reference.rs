@@ -26,9 +26,9 @@ pub fn markdown() -> String {
     out.push_str("```toml\n[run]\nenv = \"lbf:8x8-2p-2f-s1-coop\"\nalgo = \"qmix\"\n\n[learn]\nlr = 0.0005\n\n[method]   # the settings of run.algo's method\n```\n\n");
 
     out.push_str("## Presets\n\n`--preset NAME` applies these overrides before any `--set`.\n\n");
-    out.push_str("| preset | overrides | what it is |\n| --- | --- | --- |\n");
+    out.push_str("| preset | overrides (of an LMAC run) | what it is |\n| --- | --- | --- |\n");
     for (name, about) in PRESETS {
-        let overrides = preset_overrides(name).map(|o| o.iter().map(|s| format!("`{s}`")).collect::<Vec<_>>().join(", "));
+        let overrides = preset_overrides(name, "lmac").map(|o| o.iter().map(|s| format!("`{s}`")).collect::<Vec<_>>().join(", "));
         out.push_str(&format!("| `{name}` | {} | {} |\n", overrides.unwrap_or_default(), cell(about)));
     }
     out.push('\n');
