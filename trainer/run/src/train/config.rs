@@ -652,6 +652,24 @@ mod tests {
         assert!(!c.learn.parallel_target && !c.learn.data_parallel, "epymarl is the schedule on one core");
     }
 
+    #[test]
+    fn lmac_without_a_protocol_or_with_another_environments_design_is_a_clear_error() {
+        let e = TrainConfig::resolve(None, &["run.algo=\"lmac\"".into()]).unwrap_err().to_string();
+        assert!(e.contains("needs a designed protocol"), "{e}");
+        let design = concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/figures/design_lbf8x8");
+        let ok = TrainConfig::resolve(None, &["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}")]).unwrap();
+        assert!(ok.protocol().unwrap().to_string().contains("phase2"), "all three phases by default");
+        let k0 =
+            TrainConfig::resolve(None, &["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "run.design_k=0".into()]).unwrap();
+        assert_eq!(k0.protocol().unwrap().files().len(), 1, "k = 0: phase 0 alone");
+        let other = ["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "run.env=\"smaclite:1o_10b_vs_1r\"".into()];
+        let e = format!("{:#}", TrainConfig::resolve(None, &other).unwrap_err());
+        assert!(e.contains("lbf:8x8-2p-2f-s1-coop") && e.contains("smaclite:1o_10b_vs_1r"), "{e}");
+        let bad = ["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "method.latent_dims=3".into()];
+        let e = format!("{:#}", TrainConfig::resolve(None, &bad).unwrap_err());
+        assert!(e.contains("latent_dims"), "an unknown [method] key is named: {e}");
+    }
+
     /// `released` is the authors' code for the method at hand: LMAC's module and rewards as
     /// released, other methods' raw rewards; the method comes from `--algo` or from the sets.
     #[test]

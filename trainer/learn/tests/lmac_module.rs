@@ -1,16 +1,16 @@
 //! The LMAC module: the meta target and the reconstruction error as specified, a consistency
 //! loss of zero when the cycle encoder inverts the decoder exactly, gradients that reach
-//! exactly the parameters each option says, dropout only in training, and the run-level errors
-//! (no protocol, a design of another environment).
+//! exactly the parameters each option says, dropout only in training, the consistency loss's
+//! reduction and reward standardisation.
 
 use burn::module::{Module, Param};
 use burn::nn::Linear;
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor, TensorData};
-use lmac_run::episode::EpisodeDims;
-use lmac_run::learn::methods::lmac::{AuxLayout, LmacAgent, LmacConfig, LmacSettings};
-use lmac_run::learn::methods::{AgentConfig, AgentNet, TrainContext};
-use lmac_run::learn::{InputLayout, LearnConfig, LearnRng};
+use lmac_learn::episode::EpisodeDims;
+use lmac_learn::methods::lmac::{AuxLayout, LmacAgent, LmacConfig, LmacSettings};
+use lmac_learn::methods::{AgentConfig, AgentNet, TrainContext};
+use lmac_learn::{InputLayout, LearnConfig, LearnRng};
 
 const DIMS: EpisodeDims = EpisodeDims { n_agents: 2, obs_width: 7, state_dim: 5, n_actions: 3 };
 
@@ -53,7 +53,7 @@ fn data(t: usize, b: usize, mask: &[f32], device: &Device) -> (Vec<Tensor<2>>, T
     (inputs, ctx, state)
 }
 
-fn term(terms: &[lmac_run::learn::methods::AuxTerm], name: &str) -> f32 {
+fn term(terms: &[lmac_learn::methods::AuxTerm], name: &str) -> f32 {
     terms.iter().find(|t| t.name == name).unwrap_or_else(|| panic!("no {name}")).value
 }
 
@@ -225,27 +225,8 @@ fn dropout_acts_in_training_updates_only() {
 }
 
 #[test]
-fn lmac_without_a_protocol_or_with_another_environments_design_is_a_clear_error() {
-    use lmac_run::train::TrainConfig;
-    let e = TrainConfig::resolve(None, &["run.algo=\"lmac\"".into()]).unwrap_err().to_string();
-    assert!(e.contains("needs a designed protocol"), "{e}");
-    let design = concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/figures/design_lbf8x8");
-    let ok = TrainConfig::resolve(None, &["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}")]).unwrap();
-    assert!(ok.protocol().unwrap().to_string().contains("phase2"), "all three phases by default");
-    let k0 =
-        TrainConfig::resolve(None, &["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "run.design_k=0".into()]).unwrap();
-    assert_eq!(k0.protocol().unwrap().files().len(), 1, "k = 0: phase 0 alone");
-    let other = ["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "run.env=\"smaclite:1o_10b_vs_1r\"".into()];
-    let e = format!("{:#}", TrainConfig::resolve(None, &other).unwrap_err());
-    assert!(e.contains("lbf:8x8-2p-2f-s1-coop") && e.contains("smaclite:1o_10b_vs_1r"), "{e}");
-    let bad = ["run.algo=\"lmac\"".into(), format!("run.protocol={design:?}"), "method.latent_dims=3".into()];
-    let e = format!("{:#}", TrainConfig::resolve(None, &bad).unwrap_err());
-    assert!(e.contains("latent_dims"), "an unknown [method] key is named: {e}");
-}
-
-#[test]
 fn the_consistency_loss_averages_over_the_latent_unless_told_to_sum() {
-    use lmac_run::learn::methods::lmac::LatentReduction;
+    use lmac_learn::methods::lmac::LatentReduction;
     let device = Device::default();
     let (inputs, ctx, _) = data(3, 2, &[1., 1., 1., 1., 0., 1.], &device);
     let cons = |r: LatentReduction| {
@@ -265,9 +246,9 @@ fn the_consistency_loss_averages_over_the_latent_unless_told_to_sum() {
 /// `valid-steps` only the real steps.
 #[test]
 fn lmac_standardises_rewards_over_valid_steps_when_asked_and_qmix_does_not() {
-    use lmac_run::episode::Episode;
-    use lmac_run::learn::methods::{self, MethodContext};
-    use lmac_run::learn::{Learner, RewardStandardisation};
+    use lmac_learn::episode::Episode;
+    use lmac_learn::methods::{self, MethodContext};
+    use lmac_learn::{Learner, RewardStandardisation};
     let dims = EpisodeDims { n_agents: 2, obs_width: 6, state_dim: 4, n_actions: 3 };
     let ctx = MethodContext { msg_cols: 2, alpha: 0.1, critical_dims: vec![0, 1], state_dim: 4 };
     let count_after_one_update = |algo: &str, standardise: RewardStandardisation| {
@@ -289,7 +270,7 @@ fn lmac_standardises_rewards_over_valid_steps_when_asked_and_qmix_does_not() {
         l.train_step().unwrap();
         l.counters().reward_stats
     };
-    let prior = lmac_run::learn::RewardStats::default();
+    let prior = lmac_learn::RewardStats::default();
     assert_eq!(count_after_one_update("qmix", RewardStandardisation::Method), prior, "QMIX keeps raw rewards");
     assert_eq!(count_after_one_update("lmac", RewardStandardisation::Method), prior, "LMAC keeps raw rewards by default");
     let valid = count_after_one_update("lmac+std", RewardStandardisation::Method);
