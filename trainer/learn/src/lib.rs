@@ -26,6 +26,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod controller;
 pub mod episode;
+pub mod flops;
 pub mod gru_sequence;
 mod host_kernel;
 pub mod input_row;

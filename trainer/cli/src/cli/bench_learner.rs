@@ -5,6 +5,7 @@
 
 use anyhow::{bail, Context, Result};
 use lmac_run::episode::{Episode, EpisodeDims};
+use lmac_run::learn::flops::UpdateShape;
 use lmac_run::learn::methods::{self, MethodContext};
 use lmac_run::learn::{AgentConfig, Device, LearnConfig, LearnRng, Learner, MixerKind};
 use serde::Serialize;
@@ -39,6 +40,12 @@ impl Shape {
         })
     }
 
+    /// The shape as the learner's FLOP counts take it.
+    fn update(&self) -> UpdateShape {
+        let Shape { batch, steps, agents, input, actions, state, hidden } = *self;
+        UpdateShape { batch, steps, agents, input, actions, state, hidden }
+    }
+
     fn dims(&self) -> Result<EpisodeDims> {
         let obs = self.input.checked_sub(self.actions + self.agents).filter(|&o| o > 0).with_context(|| {
             format!(
@@ -49,211 +56,12 @@ impl Shape {
         })?;
         Ok(EpisodeDims { n_agents: self.agents, obs_width: obs, state_dim: self.state, n_actions: self.actions })
     }
-
-    /// Multiply-add FLOPs of one update (2 per multiply-add; elementwise work not counted):
-    /// online forward, its backward (weight and input gradients, no input gradient for the first
-    /// layer) and the target network's forward, agents and mixer, for lmac's default settings.
-    pub(crate) fn update_flops(&self, mixer: MixerKind, cfg: &LearnConfig) -> f64 {
-        let (h, a, n, s) = (self.hidden as f64, self.actions as f64, self.agents as f64, self.state as f64);
-        let agent_rows = (self.batch * self.steps * self.agents) as f64;
-        let mix_rows = (self.batch * self.steps) as f64;
-        let first = 2.0 * self.input as f64 * h;
-        let rest = 2.0 * h * 3.0 * h * 2.0 + 2.0 * h * a;
-        let (mixer_first, mixer_rest) = match mixer {
-            MixerKind::Vdn => (0.0, 0.0),
-            MixerKind::Qmix => {
-                let (e, he) = (cfg.mixing_embed_dim as f64, cfg.hypernet_embed as f64);
-                // first layers read the state: w1, w_final (hypernets), b1, V
-                let first = 2.0 * s * (he + he + e + e);
-                let rest = 2.0 * he * e * n + 2.0 * he * e + 2.0 * e + 2.0 * n * e + 2.0 * e;
-                (first, rest)
-            }
-            MixerKind::Qplex => {
-                let (he, k, ae) = (cfg.hypernet_embed as f64, cfg.qplex_num_kernel as f64, cfg.qplex_adv_hypernet_embed as f64);
-                let first = 2.0 * s * (he + he) + 2.0 * k * ae * (s + s + s + n * a);
-                let rest = 2.0 * he * n * 2.0 + 2.0 * k * (ae * ae + ae) + 2.0 * k * (ae * ae + ae * n) * 2.0;
-                (first, rest)
-            }
-        };
-        let fwd = agent_rows * (first + rest) + mix_rows * (mixer_first + mixer_rest);
-        let bwd_no_input_grad = agent_rows * first + mix_rows * mixer_first;
-        // forward + backward (2x forward, minus the first layers' input gradients) + target
-        fwd + (2.0 * fwd - bwd_no_input_grad) + fwd
-    }
-
-    /// [`update_flops`](Self::update_flops) of an LMAC update (`cfg`: its resolved settings): the
-    /// plain agent's count with the agent's first layer reading [own row | z] instead of the
-    /// row, plus per agent-row the module: embedding, encoder (window: q, k, v, attention over W
-    /// entries, output; gru-gate: the GRU and the gate), and in the online network only the
-    /// decoder and the cycle encoder. The window's attention (scores and weighted values) is
-    /// counted though it is not a matmul. The target network runs embedding, encoder and agent.
-    pub(crate) fn lmac_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, lmac: &lmac_run::learn::methods::lmac::LmacConfig) -> f64 {
-        use lmac_run::learn::methods::lmac::{AuxLayout, EncoderKind};
-        let s = &lmac.settings;
-        let rows = (self.batch * self.steps * self.agents) as f64;
-        let (e, l, att, hd, dc) =
-            (s.embed_dim as f64, s.latent_dim as f64, s.attention_dim as f64, s.decoder_hidden as f64, lmac.critical_dims.len() as f64);
-        let input = self.input as f64;
-        let agent_in = input - if s.raw_messages { 0.0 } else { lmac.msg_cols as f64 } + l;
-        // the plain agent's count, with its first layer's width changed
-        let plain = Shape { input: agent_in as usize, ..*self }.update_flops(mixer, cfg);
-        let embed_first = 2.0 * input * e;
-        let embed_rest = 2.0 * e * e;
-        let encoder = match s.encoder {
-            EncoderKind::Window => 3.0 * 2.0 * e * att + 2.0 * 2.0 * (s.window.min(self.steps) as f64) * att + 2.0 * att * l,
-            EncoderKind::GruGate => 2.0 * e * 3.0 * e * 2.0 + 2.0 * 2.0 * e * att + 2.0 * e * l,
-        };
-        let cycle_mid = if s.aux_layout == AuxLayout::Released { 2.0 * hd * hd } else { 0.0 };
-        let heads = 2.0 * l * hd + 2.0 * hd * hd + 2.0 * 2.0 * hd * dc + 2.0 * 2.0 * dc * hd + cycle_mid + 2.0 * hd * l;
-        let module_fwd = rows * (embed_first + embed_rest + encoder);
-        // online forward + backward (no input gradient for the embedding's first layer) + target
-        plain + module_fwd + rows * heads + (2.0 * (module_fwd + rows * heads) - rows * embed_first) + module_fwd
-    }
-
-    /// [`update_flops`](Self::update_flops) of an NDQ update (`c`: its settings): the plain
-    /// agent's count with its input widened by the n * msg_dim received message dims, plus per
-    /// agent row the message encoder (input -> encoder_hidden -> encoder_hidden -> n * msg_dim)
-    /// in the online network (forward and backward, no input gradient for its first layer) and
-    /// the target network, and the action-inference head (input + n * msg_dim -> 4 n msg_dim ->
-    /// 4 n msg_dim -> actions) in the online network only. Routing messages to receivers is a
-    /// transpose (no FLOPs).
-    pub(crate) fn ndq_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, c: &lmac_run::learn::methods::ndq::NdqConfig) -> f64 {
-        let s = &c.settings;
-        let rows = (self.batch * self.steps * self.agents) as f64;
-        let (iw, h, nd, a) = (self.input as f64, s.encoder_hidden as f64, (self.agents * s.msg_dim) as f64, self.actions as f64);
-        let plain = Shape { input: self.input + self.agents * s.msg_dim, ..*self }.update_flops(mixer, cfg);
-        let enc_first = 2.0 * iw * h;
-        let enc = enc_first + 2.0 * h * h + 2.0 * h * nd;
-        let infer = 2.0 * (iw + nd) * 4.0 * nd + 2.0 * 16.0 * nd * nd + 2.0 * 4.0 * nd * a;
-        // encoder: online forward + backward + target forward; inference head: online forward + backward
-        plain + rows * (enc + (2.0 * enc - enc_first) + enc) + rows * 3.0 * infer
-    }
-    /// [`update_flops`](Self::update_flops) of a T2MAC update (`c`: its settings): the plain
-    /// agent's count (fc1, the GRU, the Q head on the merged state) plus per agent row the heads
-    /// after the GRU, in the online network (forward and backward) and the target network: key,
-    /// query and value (GRU -> attention_dim), the attention logits over the n agents from the
-    /// query and every agent's key, the weighted values, the merge (attention + GRU -> GRU
-    /// width) and the selector (input -> selector_hidden -> n; no input gradient). The evidence
-    /// fusion runs on the host and is not counted.
-    pub(crate) fn t2mac_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, c: &lmac_run::learn::methods::t2mac::T2macConfig) -> f64 {
-        let s = &c.settings;
-        let rows = (self.batch * self.steps * self.agents) as f64;
-        let (iw, h, k, n, sh) =
-            (self.input as f64, self.hidden as f64, s.attention_dim as f64, self.agents as f64, s.selector_hidden as f64);
-        let select_first = 2.0 * iw * sh;
-        let heads = 3.0 * 2.0 * h * k + 2.0 * k * (n + 1.0) * n + 2.0 * n * k + 2.0 * (k + h) * h + select_first + 2.0 * sh * n;
-        self.update_flops(mixer, cfg) + rows * (heads + (2.0 * heads - select_first) + heads)
-    }
-    /// [`update_flops`](Self::update_flops) of a MAIC update (`c`: its settings): the plain
-    /// agent's count plus, in the online network (forward and backward) and the target network,
-    /// per agent row the teammate model (GRU -> hidden -> 2 n latent), the messages' first layer
-    /// on the GRU state (computed once per agent) and the attention query, and per agent pair
-    /// its first layer on the latent, the message head (hidden -> actions), the attention key and
-    /// score and the weighted sum; in the online network only, the MI loss's inference net (its
-    /// first layer on the GRU state per row and on the one-hot action per pair, no input
-    /// gradient for the one-hot; then hidden -> 2 latent per pair).
-    pub(crate) fn maic_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, c: &lmac_run::learn::methods::maic::MaicConfig) -> f64 {
-        let s = &c.settings;
-        let rows = (self.batch * self.steps * self.agents) as f64;
-        let pairs = rows * self.agents as f64;
-        let (h, kh, l, att, n, a) =
-            (self.hidden as f64, s.hidden as f64, s.latent_dim as f64, s.attention_dim as f64, self.agents as f64, self.actions as f64);
-        let heads = rows * (2.0 * h * kh + 2.0 * kh * 2.0 * n * l + 2.0 * h * kh + 2.0 * h * att)
-            + pairs * (2.0 * l * kh + 2.0 * kh * a + 2.0 * l * att + 2.0 * att + 2.0 * a);
-        let onehot_first = pairs * 2.0 * a * kh;
-        let mi = rows * 2.0 * h * kh + onehot_first + pairs * 2.0 * kh * 2.0 * l;
-        self.update_flops(mixer, cfg) + 3.0 * (heads + mi) - onehot_first + heads
-    }
-
-    /// [`update_flops`](Self::update_flops) of a MASIA update (`c`: its settings), the row
-    /// without its last-action block (observation o, id e; u = [o | e]). Per agent row, in the
-    /// online network (forward and backward, no input gradient for the layers reading u or o) and
-    /// the target network: the encoder (fused q, k, v; attention over the environment's n agents;
-    /// the GRU; the latent map), the gate (u -> n L), the observation embedding and the plain
-    /// agent on [W_o o | gated z | e]. In the online network only, per environment step: the
-    /// decoder (n L -> state) and, for k = 0 ..= pred_len steps ahead over the T - k steps that
-    /// have a target, projection, predictor and reward head (forward and backward) and for k >= 1
-    /// the transition model (action embedding per agent, joint action, latent embedding,
-    /// transition; no input gradient for the one-hot actions); the momentum target encoder and
-    /// projection run forward only.
-    pub(crate) fn masia_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, c: &lmac_run::learn::methods::masia::MasiaConfig) -> f64 {
-        let s = &c.settings;
-        let n = self.agents as f64;
-        let rows = (self.batch * self.steps * self.agents) as f64;
-        let own = (self.input - self.actions - self.agents) as f64;
-        let u = own + n;
-        let (d, g, l) = (s.attention_dim as f64, s.encoder_hidden as f64, s.latent_dim as f64);
-        let (nl, sd, a) = (n * l, self.state as f64, self.actions as f64);
-        let (mh, ph, pd, ae) = (s.model_hidden as f64, s.projection_hidden as f64, s.projection_dim as f64, s.action_embed as f64);
-        let qkv = 2.0 * u * (2.0 * d + g);
-        let encoder = qkv + 2.0 * n * (d + g) + 2.0 * g * 3.0 * g * 2.0 + 2.0 * g * l;
-        let (gate, embed) = (2.0 * u * nl, 2.0 * own * s.obs_embed as f64);
-        let row_fwd = encoder + gate + embed;
-        let row_first = qkv + gate + embed;
-        let agent_in = s.obs_embed + self.agents * s.latent_dim + self.agents;
-        let plain = Shape { input: agent_in, ..*self }.update_flops(mixer, cfg);
-        // the plain count's first layer has no input gradient; here its input is trained
-        let agent_input_grad = rows * 2.0 * agent_in as f64 * self.hidden as f64;
-        // per environment step
-        let groups = |k: usize| (self.batch * self.steps.saturating_sub(k)) as f64;
-        let projection = 2.0 * nl * ph + 2.0 * ph * pd;
-        let heads = projection + 2.0 * pd * ph + 2.0 * ph * pd + 2.0 * nl * mh + 2.0 * mh;
-        let action_first = n * 2.0 * a * ae;
-        let transition =
-            action_first + 2.0 * n * ae * mh + 2.0 * mh * mh + 2.0 * nl * mh + 2.0 * mh * mh + 2.0 * 2.0 * mh * mh + 2.0 * mh * nl;
-        let ahead = s.pred_len.min(self.steps.saturating_sub(1));
-        let mut trained = groups(0) * 2.0 * nl * sd;
-        let mut trained_first = 0.0;
-        for k in 0..=ahead {
-            trained += groups(k) * (heads + if k > 0 { transition } else { 0.0 });
-            trained_first += if k > 0 { groups(k) * action_first } else { 0.0 };
-        }
-        let momentum = rows * encoder + groups(0) * projection;
-        plain + agent_input_grad + rows * (row_fwd + (2.0 * row_fwd - row_first) + row_fwd) + 3.0 * trained - trained_first + momentum
-    }
-
-    /// [`update_flops`](Self::update_flops) of a COLA update (`c`: its settings): the plain
-    /// agent's count with the Q head reading [h | code] (twice its input), plus per agent row, in
-    /// the online network (forward and backward) and the target network, the student (input or
-    /// GRU state -> 2W -> W -> W -> K; no input gradient: the input, or the detached state) and
-    /// the class code (a one-hot row times the K + 1 encoded codes; the gradient reaches only the
-    /// table); in the online network only, the teacher (the student's shape, forward only) and
-    /// the cross-entropy of every teacher with every student of an environment's step (n K per
-    /// row, forward and the student side's gradient).
-    pub(crate) fn cola_update_flops(&self, mixer: MixerKind, cfg: &LearnConfig, c: &lmac_run::learn::methods::cola::ColaConfig) -> f64 {
-        use lmac_run::learn::methods::cola::ConsensusInput;
-        let s = &c.settings;
-        let rows = (self.batch * self.steps * self.agents) as f64;
-        let (h, a, w, k, n) = (self.hidden as f64, self.actions as f64, s.hidden as f64, s.classes as f64, self.agents as f64);
-        let d_in = match s.input {
-            ConsensusInput::Obs => self.input as f64,
-            ConsensusInput::Hidden => h,
-        };
-        let q_code = 2.0 * h * a;
-        let student_first = 2.0 * d_in * 2.0 * w;
-        let student = student_first + 2.0 * 2.0 * w * w + 2.0 * w * w + 2.0 * w * k;
-        let code = 2.0 * (k + 1.0) * h;
-        let fwd = q_code + student + code;
-        let bwd = 2.0 * q_code + 2.0 * student - student_first + code;
-        let consensus = student + 2.0 * 2.0 * n * k;
-        self.update_flops(mixer, cfg) + rows * (fwd + bwd + fwd + consensus)
-    }
 }
 
 /// The FLOPs one update of `method` (None: the plain agent) counts: every method has its count.
 fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Option<&MethodUnderTest>) -> f64 {
-    match method.map(|m| &m.agent) {
-        None | Some(AgentConfig::Rnn) => {
-            let state_in = if method.is_some_and(|m| m.agent_sees_state) { shape.state } else { 0 };
-            Shape { input: shape.input + state_in, ..*shape }.update_flops(mixer, cfg)
-        }
-        Some(AgentConfig::Lmac(l)) => shape.lmac_update_flops(mixer, cfg, l),
-        Some(AgentConfig::Ndq(c)) => shape.ndq_update_flops(mixer, cfg, c),
-        Some(AgentConfig::T2mac(c)) => shape.t2mac_update_flops(mixer, cfg, c),
-        Some(AgentConfig::Maic(c)) => shape.maic_update_flops(mixer, cfg, c),
-        Some(AgentConfig::Masia(c)) => shape.masia_update_flops(mixer, cfg, c),
-        Some(AgentConfig::Cola(c)) => shape.cola_update_flops(mixer, cfg, c),
-    }
+    let agent = method.map_or(&AgentConfig::Rnn, |m| &m.agent);
+    agent.update_flops(&shape.update(), mixer, cfg, method.is_some_and(|m| m.agent_sees_state))
 }
 
 /// A method's agent network in place of the plain RNN agent (`--algo`): its configured agent
@@ -456,7 +264,7 @@ struct MatmulShape {
 }
 
 /// The matmuls of a plain-agent update with the QMIX or VDN mixer, shape by shape, as
-/// [`Shape::update_flops`] counts them and the fused recurrence runs them: the agent's forward
+/// [`UpdateShape::plain`] counts them and the fused recurrence runs them: the agent's forward
 /// (fc1; the GRU's input and hidden projections once per step on one step's rows; fc2), the
 /// backward's input and
 /// weight gradients (none into the first layers' inputs), the target network's forward, and
@@ -516,7 +324,7 @@ fn update_matmuls(s: &Shape, mixer: MixerKind, cfg: &LearnConfig) -> Option<Vec<
 
 /// [`update_matmuls`] for LMAC with the window encoder (`l`: its settings): the plain agent's
 /// list with the agent's first layer reading [own row | z], plus per agent-row the module's
-/// layers as [`Shape::lmac_update_flops`] counts them: embedding, q, k, v and the encoder's
+/// layers as [`LmacConfig::update_flops`](lmac_run::learn::methods::lmac::LmacConfig::update_flops) counts them: embedding, q, k, v and the encoder's
 /// output layer in the online and the target network (each forward twice, its weight gradient,
 /// and its input gradient except the embedding's first layer, which reads the data), the
 /// decoder and the cycle encoder in the online network only (forward, input and weight

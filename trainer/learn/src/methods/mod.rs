@@ -159,6 +159,19 @@ macro_rules! method_networks {
                     $( AgentConfig::$variant(_) => $module::STAT_NAMES, )*
                 }
             }
+
+            /// Multiply-add FLOPs of one update of this agent at `shape` ([`crate::flops`]): the
+            /// plain agent's, its input widened by the state where the method reads it, or the
+            /// method's own count.
+            pub fn update_flops(&self, shape: &crate::flops::UpdateShape, mixer: MixerKind, cfg: &LearnConfig, agent_sees_state: bool) -> f64 {
+                match self {
+                    AgentConfig::Rnn => {
+                        let input = shape.input + if agent_sees_state { shape.state } else { 0 };
+                        crate::flops::UpdateShape { input, ..*shape }.plain(mixer, cfg)
+                    }
+                    $( AgentConfig::$variant(c) => c.update_flops(shape, mixer, cfg), )*
+                }
+            }
         }
 
         impl AgentNet {

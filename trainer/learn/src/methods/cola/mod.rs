@@ -289,3 +289,31 @@ mod tests {
         assert_eq!(agreement_and_entropy(&cls, 4, 3, &[0.0; 3]), (0.0, 0.0));
     }
 }
+
+impl ColaConfig {
+    /// [`UpdateShape::plain`](crate::flops::UpdateShape::plain) of a COLA update (`self`: its settings): the plain
+    /// agent's count with the Q head reading [h | code] (twice its input), plus per agent row, in
+    /// the online network (forward and backward) and the target network, the student (input or
+    /// GRU state -> 2W -> W -> W -> K; no input gradient: the input, or the detached state) and
+    /// the class code (a one-hot row times the K + 1 encoded codes; the gradient reaches only the
+    /// table); in the online network only, the teacher (the student's shape, forward only) and
+    /// the cross-entropy of every teacher with every student of an environment's step (n K per
+    /// row, forward and the student side's gradient).
+    pub fn update_flops(&self, shape: &crate::flops::UpdateShape, mixer: crate::MixerKind, cfg: &crate::LearnConfig) -> f64 {
+        let s = &self.settings;
+        let rows = (shape.batch * shape.steps * shape.agents) as f64;
+        let (h, a, w, k, n) = (shape.hidden as f64, shape.actions as f64, s.hidden as f64, s.classes as f64, shape.agents as f64);
+        let d_in = match s.input {
+            ConsensusInput::Obs => shape.input as f64,
+            ConsensusInput::Hidden => h,
+        };
+        let q_code = 2.0 * h * a;
+        let student_first = 2.0 * d_in * 2.0 * w;
+        let student = student_first + 2.0 * 2.0 * w * w + 2.0 * w * w + 2.0 * w * k;
+        let code = 2.0 * (k + 1.0) * h;
+        let fwd = q_code + student + code;
+        let bwd = 2.0 * q_code + 2.0 * student - student_first + code;
+        let consensus = student + 2.0 * 2.0 * n * k;
+        shape.plain(mixer, cfg) + rows * (fwd + bwd + fwd + consensus)
+    }
+}

@@ -226,3 +226,33 @@ fn configure(table: &toml::Table, ctx: &MethodContext) -> Result<AgentConfig, Co
     cfg.validate()?;
     Ok(AgentConfig::Lmac(cfg))
 }
+
+impl LmacConfig {
+    /// [`UpdateShape::plain`](crate::flops::UpdateShape::plain) of an LMAC update (`self`: its resolved settings): the
+    /// plain agent's count with the agent's first layer reading [own row | z] instead of the
+    /// row, plus per agent-row the module: embedding, encoder (window: q, k, v, attention over W
+    /// entries, output; gru-gate: the GRU and the gate), and in the online network only the
+    /// decoder and the cycle encoder. The window's attention (scores and weighted values) is
+    /// counted though it is not a matmul. The target network runs embedding, encoder and agent.
+    pub fn update_flops(&self, shape: &crate::flops::UpdateShape, mixer: crate::MixerKind, cfg: &crate::LearnConfig) -> f64 {
+        let s = &self.settings;
+        let rows = (shape.batch * shape.steps * shape.agents) as f64;
+        let (e, l, att, hd, dc) =
+            (s.embed_dim as f64, s.latent_dim as f64, s.attention_dim as f64, s.decoder_hidden as f64, self.critical_dims.len() as f64);
+        let input = shape.input as f64;
+        let agent_in = input - if s.raw_messages { 0.0 } else { self.msg_cols as f64 } + l;
+        // the plain agent's count, with its first layer's width changed
+        let plain = crate::flops::UpdateShape { input: agent_in as usize, ..*shape }.plain(mixer, cfg);
+        let embed_first = 2.0 * input * e;
+        let embed_rest = 2.0 * e * e;
+        let encoder = match s.encoder {
+            EncoderKind::Window => 3.0 * 2.0 * e * att + 2.0 * 2.0 * (s.window.min(shape.steps) as f64) * att + 2.0 * att * l,
+            EncoderKind::GruGate => 2.0 * e * 3.0 * e * 2.0 + 2.0 * 2.0 * e * att + 2.0 * e * l,
+        };
+        let cycle_mid = if s.aux_layout == AuxLayout::Released { 2.0 * hd * hd } else { 0.0 };
+        let heads = 2.0 * l * hd + 2.0 * hd * hd + 2.0 * 2.0 * hd * dc + 2.0 * 2.0 * dc * hd + cycle_mid + 2.0 * hd * l;
+        let module_fwd = rows * (embed_first + embed_rest + encoder);
+        // online forward + backward (no input gradient for the embedding's first layer) + target
+        plain + module_fwd + rows * heads + (2.0 * (module_fwd + rows * heads) - rows * embed_first) + module_fwd
+    }
+}

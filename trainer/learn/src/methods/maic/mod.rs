@@ -262,3 +262,26 @@ mod tests {
         assert!(e.field == "method" && e.reason.contains("eval"), "{e}");
     }
 }
+
+impl MaicConfig {
+    /// [`UpdateShape::plain`](crate::flops::UpdateShape::plain) of a MAIC update (`self`: its settings): the plain
+    /// agent's count plus, in the online network (forward and backward) and the target network,
+    /// per agent row the teammate model (GRU -> hidden -> 2 n latent), the messages' first layer
+    /// on the GRU state (computed once per agent) and the attention query, and per agent pair
+    /// its first layer on the latent, the message head (hidden -> actions), the attention key and
+    /// score and the weighted sum; in the online network only, the MI loss's inference net (its
+    /// first layer on the GRU state per row and on the one-hot action per pair, no input
+    /// gradient for the one-hot; then hidden -> 2 latent per pair).
+    pub fn update_flops(&self, shape: &crate::flops::UpdateShape, mixer: crate::MixerKind, cfg: &crate::LearnConfig) -> f64 {
+        let s = &self.settings;
+        let rows = (shape.batch * shape.steps * shape.agents) as f64;
+        let pairs = rows * shape.agents as f64;
+        let (h, kh, l, att, n, a) =
+            (shape.hidden as f64, s.hidden as f64, s.latent_dim as f64, s.attention_dim as f64, shape.agents as f64, shape.actions as f64);
+        let heads = rows * (2.0 * h * kh + 2.0 * kh * 2.0 * n * l + 2.0 * h * kh + 2.0 * h * att)
+            + pairs * (2.0 * l * kh + 2.0 * kh * a + 2.0 * l * att + 2.0 * att + 2.0 * a);
+        let onehot_first = pairs * 2.0 * a * kh;
+        let mi = rows * 2.0 * h * kh + onehot_first + pairs * 2.0 * kh * 2.0 * l;
+        shape.plain(mixer, cfg) + 3.0 * (heads + mi) - onehot_first + heads
+    }
+}

@@ -237,3 +237,52 @@ mod tests {
         assert!(e.field == "method" && e.reason.contains("spr_coef"), "{e}");
     }
 }
+
+impl MasiaConfig {
+    /// [`UpdateShape::plain`](crate::flops::UpdateShape::plain) of a MASIA update (`self`: its settings), the row
+    /// without its last-action block (observation o, id e; u = [o | e]). Per agent row, in the
+    /// online network (forward and backward, no input gradient for the layers reading u or o) and
+    /// the target network: the encoder (fused q, k, v; attention over the environment's n agents;
+    /// the GRU; the latent map), the gate (u -> n L), the observation embedding and the plain
+    /// agent on [W_o o | gated z | e]. In the online network only, per environment step: the
+    /// decoder (n L -> state) and, for k = 0 ..= pred_len steps ahead over the T - k steps that
+    /// have a target, projection, predictor and reward head (forward and backward) and for k >= 1
+    /// the transition model (action embedding per agent, joint action, latent embedding,
+    /// transition; no input gradient for the one-hot actions); the momentum target encoder and
+    /// projection run forward only.
+    pub fn update_flops(&self, shape: &crate::flops::UpdateShape, mixer: crate::MixerKind, cfg: &crate::LearnConfig) -> f64 {
+        let s = &self.settings;
+        let n = shape.agents as f64;
+        let rows = (shape.batch * shape.steps * shape.agents) as f64;
+        let own = (shape.input - shape.actions - shape.agents) as f64;
+        let u = own + n;
+        let (d, g, l) = (s.attention_dim as f64, s.encoder_hidden as f64, s.latent_dim as f64);
+        let (nl, sd, a) = (n * l, shape.state as f64, shape.actions as f64);
+        let (mh, ph, pd, ae) = (s.model_hidden as f64, s.projection_hidden as f64, s.projection_dim as f64, s.action_embed as f64);
+        let qkv = 2.0 * u * (2.0 * d + g);
+        let encoder = qkv + 2.0 * n * (d + g) + 2.0 * g * 3.0 * g * 2.0 + 2.0 * g * l;
+        let (gate, embed) = (2.0 * u * nl, 2.0 * own * s.obs_embed as f64);
+        let row_fwd = encoder + gate + embed;
+        let row_first = qkv + gate + embed;
+        let agent_in = s.obs_embed + shape.agents * s.latent_dim + shape.agents;
+        let plain = crate::flops::UpdateShape { input: agent_in, ..*shape }.plain(mixer, cfg);
+        // the plain count's first layer has no input gradient; here its input is trained
+        let agent_input_grad = rows * 2.0 * agent_in as f64 * shape.hidden as f64;
+        // per environment step
+        let groups = |k: usize| (shape.batch * shape.steps.saturating_sub(k)) as f64;
+        let projection = 2.0 * nl * ph + 2.0 * ph * pd;
+        let heads = projection + 2.0 * pd * ph + 2.0 * ph * pd + 2.0 * nl * mh + 2.0 * mh;
+        let action_first = n * 2.0 * a * ae;
+        let transition =
+            action_first + 2.0 * n * ae * mh + 2.0 * mh * mh + 2.0 * nl * mh + 2.0 * mh * mh + 2.0 * 2.0 * mh * mh + 2.0 * mh * nl;
+        let ahead = s.pred_len.min(shape.steps.saturating_sub(1));
+        let mut trained = groups(0) * 2.0 * nl * sd;
+        let mut trained_first = 0.0;
+        for k in 0..=ahead {
+            trained += groups(k) * (heads + if k > 0 { transition } else { 0.0 });
+            trained_first += if k > 0 { groups(k) * action_first } else { 0.0 };
+        }
+        let momentum = rows * encoder + groups(0) * projection;
+        plain + agent_input_grad + rows * (row_fwd + (2.0 * row_fwd - row_first) + row_fwd) + 3.0 * trained - trained_first + momentum
+    }
+}

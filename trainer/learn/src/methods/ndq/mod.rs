@@ -213,3 +213,24 @@ mod tests {
         assert!(e.field == "method" && e.reason.contains("comm_betta"), "{e}");
     }
 }
+
+impl NdqConfig {
+    /// [`UpdateShape::plain`](crate::flops::UpdateShape::plain) of an NDQ update (`self`: its settings): the plain
+    /// agent's count with its input widened by the n * msg_dim received message dims, plus per
+    /// agent row the message encoder (input -> encoder_hidden -> encoder_hidden -> n * msg_dim)
+    /// in the online network (forward and backward, no input gradient for its first layer) and
+    /// the target network, and the action-inference head (input + n * msg_dim -> 4 n msg_dim ->
+    /// 4 n msg_dim -> actions) in the online network only. Routing messages to receivers is a
+    /// transpose (no FLOPs).
+    pub fn update_flops(&self, shape: &crate::flops::UpdateShape, mixer: crate::MixerKind, cfg: &crate::LearnConfig) -> f64 {
+        let s = &self.settings;
+        let rows = (shape.batch * shape.steps * shape.agents) as f64;
+        let (iw, h, nd, a) = (shape.input as f64, s.encoder_hidden as f64, (shape.agents * s.msg_dim) as f64, shape.actions as f64);
+        let plain = crate::flops::UpdateShape { input: shape.input + shape.agents * s.msg_dim, ..*shape }.plain(mixer, cfg);
+        let enc_first = 2.0 * iw * h;
+        let enc = enc_first + 2.0 * h * h + 2.0 * h * nd;
+        let infer = 2.0 * (iw + nd) * 4.0 * nd + 2.0 * 16.0 * nd * nd + 2.0 * 4.0 * nd * a;
+        // encoder: online forward + backward + target forward; inference head: online forward + backward
+        plain + rows * (enc + (2.0 * enc - enc_first) + enc) + rows * 3.0 * infer
+    }
+}

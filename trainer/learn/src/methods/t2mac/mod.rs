@@ -213,3 +213,22 @@ mod tests {
         assert!(e.field == "method" && e.reason.contains("random"), "{e}");
     }
 }
+
+impl T2macConfig {
+    /// [`UpdateShape::plain`](crate::flops::UpdateShape::plain) of a T2MAC update (`self`: its settings): the plain
+    /// agent's count (fc1, the GRU, the Q head on the merged state) plus per agent row the heads
+    /// after the GRU, in the online network (forward and backward) and the target network: key,
+    /// query and value (GRU -> attention_dim), the attention logits over the n agents from the
+    /// query and every agent's key, the weighted values, the merge (attention + GRU -> GRU
+    /// width) and the selector (input -> selector_hidden -> n; no input gradient). The evidence
+    /// fusion runs on the host and is not counted.
+    pub fn update_flops(&self, shape: &crate::flops::UpdateShape, mixer: crate::MixerKind, cfg: &crate::LearnConfig) -> f64 {
+        let s = &self.settings;
+        let rows = (shape.batch * shape.steps * shape.agents) as f64;
+        let (iw, h, k, n, sh) =
+            (shape.input as f64, shape.hidden as f64, s.attention_dim as f64, shape.agents as f64, s.selector_hidden as f64);
+        let select_first = 2.0 * iw * sh;
+        let heads = 3.0 * 2.0 * h * k + 2.0 * k * (n + 1.0) * n + 2.0 * n * k + 2.0 * (k + h) * h + select_first + 2.0 * sh * n;
+        shape.plain(mixer, cfg) + rows * (heads + (2.0 * heads - select_first) + heads)
+    }
+}
