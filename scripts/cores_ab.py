@@ -13,7 +13,7 @@ settings measured back to back, alternating, `--rounds` times (`--settings` pick
 The rate is env steps per second between the first metrics row past `--from` steps and the
 last row (start-up, the first 32 episodes without updates and the buffer filling excluded).
 
-    python scripts/cores_ab.py target/release/lmac docs/figures/cores_ab_issue26.json --algo lmac --steps 40k --rounds 1
+    python scripts/cores_ab.py target/release/lmac docs/figures/cores_ab_lmac_1o10b.json --algo lmac --steps 40k --rounds 1
 """
 import argparse
 import csv
