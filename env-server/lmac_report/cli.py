@@ -18,7 +18,8 @@ from .titles import fit
 DESCRIPTION = """\
 Merge training runs and report the final performance as the field does (rliable, Agarwal et
 al. 2021): IQM, median and mean with 95% stratified-bootstrap confidence intervals, a
-performance profile and sample-efficiency curves (IQM over env steps with 95% CIs).
+performance profile and sample-efficiency curves (IQM over env steps with 95% CIs; a label with
+fewer than 5 runs gets its mean ± sample SD in the table and the curves instead).
 
 RUNS are seed directories (config.toml + metrics.csv or marl_eval.json), any directory above
 them (a `lmac train` group, an `lmac experiment`, a folder of both), flat copies
@@ -41,7 +42,8 @@ seed directory or a file):
   report_stats.json         the table, every run's final score and the settings
   report.json               every run's marl-eval data merged (family -> task -> label -> seed)
   performance_profile.png   fraction of runs scoring above each threshold, 95% CIs
-  sample_efficiency.png     IQM of the test score over env steps, 95% CIs
+  sample_efficiency.png     IQM of the test score over env steps, 95% CIs (mean ± sample SD
+                            for a label of fewer than 5 runs)
 
 Scores are used as they are. IQM across envs with different return scales (SMAC-like tasks)
 needs normalised scores: --normalise min-max maps each env's scores through the lowest and
@@ -199,16 +201,23 @@ class Report:
             for r, (x, y) in zip(runs, curves):
                 y = stats.normalise_min_max(y, *self.bounds[r.env]) if self.bounds else y
                 per_run[id(r)] = np.interp(grid, x, y)
-            rng = stats.rng_for(self.a.seed, "curve\0" + label)
-            mid, lo, hi = [], [], []
-            for k in range(len(grid)):
-                tasks = [np.array([per_run[id(r)][k] for r in g]) for g in groups]
-                p, l, h = stats.interval(tasks, stats.iqm, self.a.curve_reps, rng)
-                mid.append(p), lo.append(l), hi.append(h)
-            line, = ax.plot(grid, mid, label=f"{label} ({len(runs)} runs)", color=self.colour(i))
+            if len(runs) < stats.FEW_RUNS:
+                # Too few runs for an IQM and a bootstrap CI: the mean and a sample-SD band.
+                ys = np.stack([per_run[id(r)] for r in runs])
+                mid, sd = ys.mean(0), stats.sample_sd(ys)
+                lo, hi, what = mid - sd, mid + sd, "mean ± sample SD"
+            else:
+                rng = stats.rng_for(self.a.seed, "curve\0" + label)
+                mid, lo, hi = [], [], []
+                for k in range(len(grid)):
+                    tasks = [np.array([per_run[id(r)][k] for r in g]) for g in groups]
+                    p, l, h = stats.interval(tasks, stats.iqm, self.a.curve_reps, rng)
+                    mid.append(p), lo.append(l), hi.append(h)
+                what = "IQM, 95% CI"
+            line, = ax.plot(grid, mid, label=f"{label} ({len(runs)} runs, {what})", color=self.colour(i))
             ax.fill_between(grid, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
         ax.set_xlabel("env steps")
-        ax.set_ylabel(f"IQM test {self.a.metric}" + (" (normalised)" if self.bounds else ""))
+        ax.set_ylabel(f"test {self.a.metric}" + (" (normalised)" if self.bounds else ""))
         ax.grid(alpha=0.3)
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
 
@@ -224,7 +233,9 @@ class Report:
                                  ("sample_efficiency.png", self.curves, "sample efficiency")):
             fig, ax = plt.subplots(figsize=(8.4, 4.4))
             draw(ax)
-            ax.set_title(fit(f"{title}: {what} (95% stratified-bootstrap CIs)", 70), fontsize=10)
+            bands = "95% stratified-bootstrap CIs" if draw == self.profile else \
+                f"IQM with 95% stratified-bootstrap CIs; mean ± sample SD below {stats.FEW_RUNS} runs"
+            ax.set_title(fit(f"{title}: {what} ({bands})", 70), fontsize=10)
             fig.tight_layout()
             fig.savefig(out / name, dpi=120, bbox_inches="tight")
             plt.close(fig)
