@@ -43,6 +43,10 @@ fn an_experiment_designs_trains_resumes_after_an_interruption_and_writes_its_tab
     assert!(err.contains("resuming from"), "the interrupted run resumed: {err}");
     let table = std::fs::read_to_string(out.join("comparison.md")).unwrap();
     assert!(table.contains("| lmac | 1 |") && table.contains("| qmix | 1 |"), "{table}");
+    // Each row's return carries its seeds' own values beside the mean and the sample SD.
+    let row = table.lines().find(|l| l.starts_with("| qmix | 1 |")).unwrap();
+    let cell = row.split(" | ").nth(2).unwrap();
+    assert!(cell.contains(" +- 0.000 (") && cell.ends_with(')'), "one seed: SD 0 and its value: {row}");
     // Every row says the schedule it was trained with (here lmac train's default).
     assert_eq!(table.matches("| 1 update per episode, batch 32, target copy every 200 episodes |").count(), 2, "{table}");
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("comparison.json")).unwrap()).unwrap();

@@ -96,6 +96,9 @@ pub(crate) struct Row {
     pub seeds: usize,
     pub final_return_mean: f64,
     pub final_return_std: f64,
+    /// Each seed's last-5-tests return, in seed order (with fewer than 5 seeds the spread is
+    /// read from these, not from an interval).
+    pub final_returns: Vec<f64>,
     pub final_win_rate_mean: Option<f64>,
     pub final_win_rate_std: Option<f64>,
     /// The best checkpoint's greedy evaluation (`evaluations/final.result.json`, what `lmac
@@ -344,6 +347,7 @@ fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
         seeds: dirs.len(),
         final_return_mean: rm,
         final_return_std: rs,
+        final_returns: ret.clone(),
         final_win_rate_mean: has_wins.then_some(wm),
         final_win_rate_std: has_wins.then_some(ws),
         best_eval_return_mean: em,
@@ -400,7 +404,7 @@ fn reach(row: &mut Row, dirs: &[PathBuf], threshold: f64) -> Result<()> {
 
 fn render(env: &str, rows: &[Row], threshold: f64) -> String {
     let mut s = format!(
-        "{env}: last-5-tests return and win rate (mean +- sample SD over seeds of each run's last {FINAL_TESTS} test phases); best-checkpoint eval return (the greedy evaluation of each run's best checkpoint, what `lmac report` scores); steps and wall time to a test return of {threshold:.3} (mean over the seeds that reached it)\n\n"
+        "{env}: last-5-tests return and win rate (mean +- sample SD over seeds of each run's last {FINAL_TESTS} test phases; the return also per seed); best-checkpoint eval return (the greedy evaluation of each run's best checkpoint, what `lmac report` scores); steps and wall time to a test return of {threshold:.3} (mean over the seeds that reached it)\n\n"
     );
     s.push_str("| algorithm | seeds | last-5-tests return | last-5-tests win rate | best-checkpoint eval return | reached | env steps to threshold | wall s to threshold | wall s total | schedule |\n");
     s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
@@ -414,11 +418,12 @@ fn render(env: &str, rows: &[Row], threshold: f64) -> String {
             _ => "-".into(),
         };
         s.push_str(&format!(
-            "| {} | {} | {:.3} +- {:.3} | {win} | {eval} | {}/{} | {} | {} | {:.0} | {} |\n",
+            "| {} | {} | {:.3} +- {:.3} ({}) | {win} | {eval} | {}/{} | {} | {} | {:.0} | {} |\n",
             r.label,
             r.seeds,
             r.final_return_mean,
             r.final_return_std,
+            r.final_returns.iter().map(|v| format!("{v:.3}")).collect::<Vec<_>>().join(", "),
             r.reached,
             r.seeds,
             r.steps_to_threshold.map_or("-".into(), |v| format!("{v:.0}")),
