@@ -39,16 +39,26 @@ pub fn load_phases(files: &[&str], env: &ProtocolEnv) -> Result<Vec<ValidatedPro
 /// The message plan of `protocol`: a built-in, or the protocol files compiled into one plan (the
 /// final protocol concatenates the phases). Every process of a run resolves the same spec the
 /// same way; each call returns a fresh plan (its own observation history), so use one per env
-/// server.
+/// server. A plan wider than the schema's message budget is refused here, the one width check
+/// every caller shares.
 pub fn plan_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Box<dyn plan::MessagePlan>, String> {
-    match protocol {
-        ProtocolSpec::None => Ok(Box::new(builtin::NoMessages)),
-        ProtocolSpec::FullComm => Ok(Box::new(builtin::FullComm { n_agents: schema.n_agents, obs_dim: schema.obs_dim })),
+    let plan: Box<dyn plan::MessagePlan> = match protocol {
+        ProtocolSpec::None => Box::new(builtin::NoMessages),
+        ProtocolSpec::FullComm => Box::new(builtin::FullComm { n_agents: schema.n_agents, obs_dim: schema.obs_dim }),
         ProtocolSpec::Files(files) => {
             let env = protocol_env(schema);
             let files: Vec<&str> = files.iter().map(String::as_str).collect();
             let phases = load_phases(&files, &env)?;
-            protocol::compile(&phases, &env).map_err(|e| protocol::errors_to_text(&e))
+            protocol::compile(&phases, &env).map_err(|e| protocol::errors_to_text(&e))?
         }
+    };
+    if plan.msg_dim() > schema.message_columns {
+        return Err(format!(
+            "protocol {protocol} writes {} message columns but {} allows {} (its message_columns budget)",
+            plan.msg_dim(),
+            schema.name,
+            schema.message_columns
+        ));
     }
+    Ok(plan)
 }

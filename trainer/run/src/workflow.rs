@@ -69,15 +69,6 @@ pub fn interrupt_flag() -> Arc<AtomicBool> {
 pub fn pipeline_report(p: &Pipeline, job: TrainerJob, env_extra: Vec<String>, interrupted: Arc<AtomicBool>) -> Result<TrainerReport> {
     let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
     let plan = lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?;
-    if plan.msg_dim() > schema.message_columns {
-        bail!(
-            "protocol {} writes {} message columns but {} allows {} (its message_columns budget)",
-            p.protocol,
-            plan.msg_dim(),
-            p.env,
-            schema.message_columns
-        );
-    }
     if p.envs == 0 || p.servers == 0 || p.slots == 0 {
         bail!("--envs, --servers and --slots must be at least 1");
     }

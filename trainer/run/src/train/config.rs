@@ -512,9 +512,6 @@ impl TrainConfig {
         let schema = lmac_shm_schema::schema::load_env(&r.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
         let protocol = self.protocol()?;
         let plan = lmac_protocol_runner::plan_for(&protocol, &schema).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))?;
-        if plan.msg_dim() > schema.message_columns {
-            bail!("run.protocol: {protocol} writes {} message columns but {} allows {}", plan.msg_dim(), r.env, schema.message_columns);
-        }
         self.agent_config(&schema, plan.msg_dim())?;
         Ok(())
     }
