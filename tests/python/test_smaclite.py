@@ -254,6 +254,22 @@ def test_liberty_variant_eight_banelings_kill_and_the_roach_reaches_less():
         SmacliteVecEnv("5z_vs_1ul-liberty", 1)
 
 
+def test_liberty_roach_changes_the_roach_alone():
+    """`-liberty-roach` takes Liberty's Roach (reach 3 + 0.5 + 0.375) and keeps our Baneling
+    burst (15 per burst against the Roach, so 8 Banelings do not kill it)."""
+    env, _ = new("1o_10b_vs_1r-liberty-roach", 1)
+    assert (env.bane_damage, env.bane_bonus_light) == (16.0, 19.0)
+    roach = env.types[-1]
+    assert (roach.reach, roach.radius) == (3.0, 0.5)
+    env, out = new("1o_10b_vs_1r-liberty-roach", 1)
+    r = np.array([16.0, 2.0])
+    ang = np.linspace(0, np.pi, 10)
+    _place(env, out, list(r + 1.5 * np.stack([np.cos(ang), np.sin(ang)], -1)) + [r], [r])
+    env.step(np.array([[6] * 8 + [1] * 2 + [1]]), out)
+    assert env.alive[0, 11], "8 bursts of 15 leave the Roach alive"
+    assert "weapon range 3" in tomllib.loads(schema_path("smaclite:1o_10b_vs_1r-liberty-roach").read_text())["task"]
+
+
 @pytest.mark.parametrize("variant", ["1o_10b_vs_1r", "1o_10b_vs_1r-liberty", "5z_vs_1ul"])
 def test_no_last_action_state_is_the_full_state_without_its_last_actions(variant):
     """`-no-last-action` is SMAC's state_last_action=False: the same episode (same seed and

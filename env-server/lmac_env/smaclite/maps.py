@@ -148,7 +148,8 @@ def split_variant(variant: str) -> Variant:
     """`1o_10b_vs_1r` -> the map with the Liquipedia unit data and SMAC's default state;
     `-liberty` takes the game's Liberty.SC2Mod unit data (units.py); `-no-last-action` drops
     the last actions from the state, as SMAC's ``state_last_action=False`` (the LMAC authors'
-    setting). Both: `1o_10b_vs_1r-liberty-no-last-action`."""
+    setting). Both: `1o_10b_vs_1r-liberty-no-last-action`. `-liberty-roach` changes the Roach
+    alone."""
     rest, last_action = variant, True
     if rest.endswith(NO_LAST_ACTION):
         rest, last_action = rest[:-len(NO_LAST_ACTION)], False
@@ -157,8 +158,8 @@ def split_variant(variant: str) -> Variant:
         raise ValueError(f"unknown smaclite map {name!r}; known: {', '.join(MAPS)}")
     if not sep:
         return Variant(name, "liquipedia", last_action)
-    if data != "liberty" or name not in LIBERTY_MAPS:
-        known = ", ".join(f"{m}-liberty" for m in LIBERTY_MAPS)
+    if data not in ("liberty", "liberty-roach") or name not in LIBERTY_MAPS:
+        known = ", ".join(f"{m}-{d}" for m in LIBERTY_MAPS for d in ("liberty", "liberty-roach"))
         raise ValueError(f"unknown smaclite variant {variant!r}; the unit-data variants are {known}"
                          f" (each may end in {NO_LAST_ACTION}, as may every map)")
     return Variant(name, data, last_action)
@@ -166,7 +167,7 @@ def split_variant(variant: str) -> Variant:
 
 def variants() -> list[Variant]:
     """Every variant the schemas describe: each map, the Liberty maps, each without last actions."""
-    base = [Variant(m) for m in MAPS] + [Variant(m, "liberty") for m in LIBERTY_MAPS]
+    base = [Variant(m) for m in MAPS] + [Variant(m, d) for m in LIBERTY_MAPS for d in ("liberty", "liberty-roach")]
     return base + [dataclasses.replace(v, state_last_action=False) for v in base]
 
 

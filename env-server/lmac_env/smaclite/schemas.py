@@ -75,10 +75,10 @@ TASKS = {
 }
 
 # The "-liberty" variants (units.py: the game's Liberty.SC2Mod unit data) describe their numbers.
-LIBERTY_TASK = {
-    "1o_10b_vs_1r": [("deals 15 damage, so all 10 are needed", "deals 19 damage, so 8 of the 10 "
-                      "are needed"), ("within 5 of its centre", "within 3.9 of its centre")],
-    "2o_20b_vs_2r": [("deals 15 damage to every Roach within 2.2 of it, so ten Banelings per Roach",
+LIBERTY_TASK = {  # (the unit the change belongs to, the multiplayer text, Liberty's)
+    "1o_10b_vs_1r": [("baneling", "deals 15 damage, so all 10 are needed", "deals 19 damage, so 8 of the 10 "
+                      "are needed"), ("roach", "within 5 of its centre", "within 3.9 of its centre")],
+    "2o_20b_vs_2r": [("baneling", "deals 15 damage to every Roach within 2.2 of it, so ten Banelings per Roach",
                       "deals 19 damage to every Roach within 2.2 of it, so eight Banelings per "
                       "Roach")],
 }
@@ -86,13 +86,17 @@ LIBERTY_TASK = {
 
 def task_text(name: str, data: str) -> str:
     task = TASKS[name]
-    if data == "liberty":
-        for old, new in LIBERTY_TASK[name]:
+    if data in ("liberty", "liberty-roach"):
+        units = ("baneling", "roach") if data == "liberty" else ("roach",)
+        for unit, old, new in LIBERTY_TASK[name]:
             assert old in task, (name, old)
-            task = task.replace(old, new)
+            if unit in units:
+                task = task.replace(old, new)
         task += (" Unit data of the game's Liberty.SC2Mod (the Baneling burst 20, +15 against "
                  "Light; the Roach's weapon range 3 and radius 0.5) in place of the multiplayer "
-                 "values.")
+                 "values." if data == "liberty" else
+                 " The Roach of the game's Liberty.SC2Mod (weapon range 3, radius 0.5); the "
+                 "Baneling keeps the multiplayer burst (16, +19 against Light).")
     return task
 
 

@@ -129,14 +129,17 @@ MIN_DAMAGE = 0.5             # SC2: armour never reduces a hit below 0.5
 # could not be read here): the Baneling's burst, the Roach's weapon range and radius, the
 # Hydralisk's life. Not modelled: the Roach's missile (a 0.17 s wind-up, within one step) and
 # the Ultralisk's 180-degree cleave, so only the cliff maps have a "liberty" variant.
-UNIT_DATA = ("liquipedia", "liberty")
+# "liberty-roach" takes Liberty's Roach alone (the Baneling keeps its multiplayer burst), to
+# tell the two changes apart on the cliff maps.
+UNIT_DATA = ("liquipedia", "liberty", "liberty-roach")
 LIBERTY_CHANGES = {
     "roach": dict(reach=3.0, radius=0.5, source="Liberty.SC2Mod Roach: AcidSaliva range 3, "
                   "radius 0.5 (InnerRadius 0.625); MAP as above"),
     "hydralisk": dict(hp=80.0, source="Liberty.SC2Mod Hydralisk LifeMax 80; MAP as above"),
 }
 BANE_BURST = {"liquipedia": (BANE_DAMAGE, BANE_BONUS_LIGHT),  # (damage, bonus vs Light)
-              "liberty": (20.0, 15.0)}                        # Liberty.SC2Mod Volatile Burst
+              "liberty": (20.0, 15.0),                        # Liberty.SC2Mod Volatile Burst
+              "liberty-roach": (BANE_DAMAGE, BANE_BONUS_LIGHT)}
 LIBERTY_MAPS = ("1o_10b_vs_1r", "2o_20b_vs_2r")
 
 
@@ -146,4 +149,6 @@ def unit_data(name: str) -> dict[str, UnitType]:
         return UNITS
     if name == "liberty":
         return {k: dataclasses.replace(u, **LIBERTY_CHANGES.get(k, {})) for k, u in UNITS.items()}
+    if name == "liberty-roach":
+        return {k: dataclasses.replace(u, **LIBERTY_CHANGES["roach"]) if k == "roach" else u for k, u in UNITS.items()}
     raise ValueError(f"unknown unit data {name!r}; known: {', '.join(UNIT_DATA)}")
