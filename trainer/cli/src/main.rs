@@ -173,7 +173,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
             out,
             json,
         }) => (|| {
-            let mut s = cli::bench_learner::Shape::named(&shape)?;
+            let mut s = cli::bench_learner::named_shape(&shape)?;
             s.batch = batch.unwrap_or(s.batch);
             s.steps = steps.unwrap_or(s.steps);
             s.agents = agents.unwrap_or(s.agents);

@@ -5,10 +5,11 @@
 //! dispatches.
 
 use crate::{LearnConfig, MixerKind};
+use serde::Serialize;
 
 /// The update's shape: batch of episodes, steps, agents, agent input width (observation, last
 /// action and id), actions, state, the agent's hidden width.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 pub struct UpdateShape {
     pub batch: usize,
     pub steps: usize,

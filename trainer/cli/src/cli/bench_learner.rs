@@ -16,52 +16,36 @@ use std::time::Instant;
 
 use lmac_run::stats::median;
 
-/// The update's shape: batch of episodes, steps, agents, agent input width (observation, last
-/// action and id), actions, state.
-#[derive(Clone, Copy, Debug, Serialize)]
-pub(crate) struct Shape {
-    pub batch: usize,
-    pub steps: usize,
-    pub agents: usize,
-    pub input: usize,
-    pub actions: usize,
-    pub state: usize,
-    pub hidden: usize,
+/// The update's shape (batch, steps, agents, input width, actions, state, hidden width): the
+/// learner's own, which its FLOP counts take.
+pub(crate) type Shape = UpdateShape;
+
+/// Named shapes: `lbf8x8` (LBF 8x8 with the default QMIX settings) and `1o10b` (smaclite
+/// 1o_10b_vs_1r with its designed protocol's messages).
+pub(crate) fn named_shape(name: &str) -> Result<Shape> {
+    Ok(match name {
+        "lbf8x8" => Shape { batch: 32, steps: 25, agents: 2, input: 37, actions: 6, state: 300, hidden: 64 },
+        "1o10b" => Shape { batch: 32, steps: 50, agents: 11, input: 108, actions: 16, state: 148, hidden: 64 },
+        other => bail!("unknown shape {other:?} (lbf8x8, 1o10b, or give --batch/--steps/... yourself)"),
+    })
 }
 
-impl Shape {
-    /// Named shapes: `lbf8x8` (the reference: LBF 8x8 with the default QMIX settings)
-    /// and `1o10b` (smaclite 1o_10b_vs_1r with its designed protocol's messages).
-    pub(crate) fn named(name: &str) -> Result<Shape> {
-        Ok(match name {
-            "lbf8x8" => Shape { batch: 32, steps: 25, agents: 2, input: 37, actions: 6, state: 300, hidden: 64 },
-            "1o10b" => Shape { batch: 32, steps: 50, agents: 11, input: 108, actions: 16, state: 148, hidden: 64 },
-            other => bail!("unknown shape {other:?} (lbf8x8, 1o10b, or give --batch/--steps/... yourself)"),
-        })
-    }
-
-    /// The shape as the learner's FLOP counts take it.
-    fn update(&self) -> UpdateShape {
-        let Shape { batch, steps, agents, input, actions, state, hidden } = *self;
-        UpdateShape { batch, steps, agents, input, actions, state, hidden }
-    }
-
-    fn dims(&self) -> Result<EpisodeDims> {
-        let obs = self.input.checked_sub(self.actions + self.agents).filter(|&o| o > 0).with_context(|| {
-            format!(
-                "input width {} must exceed actions + agents ({}): it holds obs, last action and id",
-                self.input,
-                self.actions + self.agents
-            )
-        })?;
-        Ok(EpisodeDims { n_agents: self.agents, obs_width: obs, state_dim: self.state, n_actions: self.actions })
-    }
+/// The episode dims of `shape`: its input row holds the observation, the last action and the id.
+fn dims(shape: &Shape) -> Result<EpisodeDims> {
+    let obs = shape.input.checked_sub(shape.actions + shape.agents).filter(|&o| o > 0).with_context(|| {
+        format!(
+            "input width {} must exceed actions + agents ({}): it holds obs, last action and id",
+            shape.input,
+            shape.actions + shape.agents
+        )
+    })?;
+    Ok(EpisodeDims { n_agents: shape.agents, obs_width: obs, state_dim: shape.state, n_actions: shape.actions })
 }
 
 /// The FLOPs one update of `method` (None: the plain agent) counts: every method has its count.
 fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Option<&MethodUnderTest>) -> f64 {
     let agent = method.map_or(&AgentConfig::Rnn, |m| &m.agent);
-    agent.update_flops(&shape.update(), mixer, cfg, method.is_some_and(|m| m.agent_sees_state))
+    agent.update_flops(shape, mixer, cfg, method.is_some_and(|m| m.agent_sees_state))
 }
 
 /// A method's agent network in place of the plain RNN agent (`--algo`): its configured agent
@@ -81,7 +65,7 @@ impl MethodUnderTest {
     /// `critical` state dims (default all) are task-critical.
     pub(crate) fn new(name: &str, messages: usize, critical: Option<usize>, settings: &[String], shape: &Shape) -> Result<Self> {
         let spec = methods::method(name).map_err(|e| anyhow::anyhow!("--algo: {e}"))?;
-        let obs = shape.dims()?.obs_width;
+        let obs = dims(shape)?.obs_width;
         if messages >= obs {
             bail!("--messages {messages}: the observation has {obs} columns (--input minus actions and agents)");
         }
@@ -137,7 +121,7 @@ fn filled_learner(shape: &Shape, mixer: MixerKind, fused: bool, two_cores: bool,
         parallel_target: two_cores,
         ..LearnConfig::default()
     };
-    let dims = shape.dims()?;
+    let dims = dims(shape)?;
     let agent = match method {
         Some(m) => {
             cfg.agent_sees_state |= m.agent_sees_state;

@@ -173,9 +173,11 @@ pub const PRESETS: &[(&str, &str)] = &[
 /// `lmac train`, `lmac experiment` and `lmac config show` apply them. `algo` is the run's method
 /// where the caller knows it; else the last `run.algo` in `sets`, else the default method.
 pub fn preset_then(preset: Option<&str>, algo: Option<&str>, sets: &[String]) -> Result<Vec<String>> {
+    // The last `run.algo` override, its value read as `resolve` reads values.
     let from_sets = || {
         sets.iter().rev().find_map(|s| {
-            s.trim().strip_prefix("run.algo").map(|v| v.trim_start().trim_start_matches('=').trim().trim_matches('"').to_string())
+            let (key, val) = s.split_once('=')?;
+            (key.trim() == "run.algo").then(|| override_value(val.trim()).as_str().map(str::to_string)).flatten()
         })
     };
     let algo = algo.map(str::to_string).or_else(from_sets).unwrap_or_else(|| RunSection::default().algo);
