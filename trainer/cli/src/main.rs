@@ -38,8 +38,8 @@ enum ConfigCmd {
         /// A config file (TOML) to start from.
         #[arg(long)]
         config: Option<std::path::PathBuf>,
-        /// A preset, applied before the overrides (`lmac train --help` lists them).
-        #[arg(long)]
+        /// A preset, applied before the overrides.
+        #[arg(long, value_parser = cli::train::preset_names())]
         preset: Option<String>,
         /// Overrides: --set learn.lr=0.001 --set run.envs=8.
         #[arg(long = "set", value_name = "KEY=VALUE")]
@@ -64,6 +64,11 @@ enum Cmd {
     /// The paper's Algorithm 1 end to end: one protocol design, then LMAC and the baselines over
     /// seeds with the same settings, then a comparison table and curves (rerun to resume).
     Experiment(ExperimentArgs),
+    /// A grid of training runs (stages x tasks x methods x seeds) from one campaign file, in one
+    /// results tree: trained in order and resumably on this machine or as Ray tasks on a
+    /// cluster, with its status, time left and a results page beside published values.
+    #[command(subcommand)]
+    Campaign(cli::campaign::CampaignCmd),
     /// Merge training runs: IQM, median and mean with stratified-bootstrap CIs (rliable's
     /// method), performance profile and sample-efficiency plots, marl-eval JSON (`lmac report --help`).
     Report(cli::report::ReportArgs),
@@ -145,6 +150,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
         Cmd::Protocol(p) => cli::protocol::protocol_cmd(p),
         Cmd::Design(d) => cli::design::design(d),
         Cmd::Experiment(e) => cli::experiment::experiment(e),
+        Cmd::Campaign(c) => cli::campaign::campaign(c),
         Cmd::Report(a) => cli::report::report(a),
         Cmd::Bench(BenchCmd::Pipeline { p, repeat, json }) => cli::bench::bench_pipeline(p, repeat, json),
         Cmd::Bench(BenchCmd::Train { env, algo, protocol, envs, steps, updates, json }) => {

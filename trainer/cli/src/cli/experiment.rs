@@ -66,8 +66,8 @@ pub(crate) struct ExperimentArgs {
     /// Settings for every training run: --set learn.lr=0.001 --set run.envs=8
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
-    /// A preset for every training run (see `lmac train --preset`).
-    #[arg(long)]
+    /// A preset for every training run (as `lmac train --preset`).
+    #[arg(long, value_parser = super::train::preset_names())]
     preset: Option<String>,
     /// Test return a run must reach for the "steps to threshold" columns (default: 80% of the
     /// way from the runs' first test return, the untrained policy's, to the best row's
@@ -81,11 +81,11 @@ pub(crate) struct ExperimentArgs {
 
 /// What an experiment directory was made for: a rerun must ask for the same.
 #[derive(Serialize, Deserialize, PartialEq, Debug)]
-struct ExperimentSpec {
-    env: String,
-    steps: u64,
-    set: Vec<String>,
-    preset: Option<String>,
+pub(crate) struct ExperimentSpec {
+    pub env: String,
+    pub steps: u64,
+    pub set: Vec<String>,
+    pub preset: Option<String>,
 }
 
 /// One row of the comparison: an algorithm (or an ablation) over its seeds.
@@ -99,6 +99,8 @@ pub(crate) struct Row {
     /// Each seed's last-5-tests return, in seed order (with fewer than 5 seeds the spread is
     /// read from these, not from an interval).
     pub final_returns: Vec<f64>,
+    /// Each seed's last-5-tests win rate (0 where the env reports none), in seed order.
+    pub final_win_rates: Vec<f64>,
     pub final_win_rate_mean: Option<f64>,
     pub final_win_rate_std: Option<f64>,
     /// The best checkpoint's greedy evaluation (`evaluations/final.result.json`, what `lmac
@@ -174,59 +176,18 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let _lock = lmac_run::run_dir::lock(&dir)?;
     let spec = ExperimentSpec { env: a.env.clone(), steps: a.steps, set: a.set.clone(), preset: a.preset.clone() };
-    let spec_path = dir.join("experiment.json");
-    if spec_path.exists() {
-        let old: ExperimentSpec = serde_json::from_slice(&safe_fs::read_capped(&spec_path, safe_fs::TEXT_CAP)?)
-            .with_context(|| format!("reading {}", spec_path.display()))?;
-        if old != spec {
-            bail!("{} was made for {old:?}; this command asks for {spec:?}: give another --out", dir.display());
-        }
-    } else {
-        std::fs::write(&spec_path, serde_json::to_string_pretty(&spec)?)?;
-    }
+    claim_dir(&dir, &spec)?;
 
     // 1. The protocol design, once.
     let needs_design = rows_to_train.iter().any(|(_, algo, _)| algo == "lmac");
     let design = match (&a.design, needs_design) {
-        (Some(d), _) if d.as_os_str() == "paper" => {
-            let dir = lmac_run::train::resolve_paper_spec("paper", &a.env).context("--design paper")?;
-            Some(std::fs::canonicalize(&dir).with_context(|| format!("--design paper: {dir}"))?)
-        }
-        (Some(d), _) => Some(std::fs::canonicalize(d).with_context(|| format!("--design {}", d.display()))?),
+        (Some(d), _) => Some(design_protocol(d, &a.env)?),
         (None, false) => None,
-        (None, true) => Some(shared_design(&a, &dir, interrupted.clone())?),
+        (None, true) => Some(shared_design(&a, &dir, interrupted.clone())?.display().to_string()),
     };
 
     // 2. Every variant and seed, with the same settings.
-    let mut groups: Vec<(String, String, Vec<PathBuf>)> = Vec::new();
-    for (label, algo, extra) in rows_to_train {
-        let mut dirs = Vec::new();
-        for &seed in &a.seeds {
-            let d = dir.join("runs").join(&label).join(format!("seed{seed}"));
-            if !d.join("config.toml").exists() {
-                let mut o = lmac_run::train::preset_then(a.preset.as_deref(), Some(algo.as_str()), &a.set)?;
-                o.push(format!("run.env={:?}", a.env));
-                o.push(format!("run.algo={algo:?}"));
-                o.push(format!("run.steps={}", a.steps));
-                o.push(format!("learn.seed={seed}"));
-                if algo == "lmac" {
-                    let design = design.as_ref().expect("a design for lmac");
-                    o.push(format!("run.protocol={:?}", design.display().to_string()));
-                }
-                o.extend(extra.iter().cloned());
-                let cfg = TrainConfig::resolve(None, &o).with_context(|| format!("the {label} runs"))?;
-                std::fs::create_dir_all(&d)?;
-                // Protocol copies left by a creation interrupted before its config.toml.
-                let copies = d.join("protocol");
-                if copies.symlink_metadata().is_ok_and(|m| m.is_dir()) {
-                    std::fs::remove_dir_all(&copies).with_context(|| format!("clearing {}", copies.display()))?;
-                }
-                cfg.save_new_run(&d)?;
-            }
-            dirs.push(d);
-        }
-        groups.push((label, algo, dirs));
-    }
+    let groups = prepare_runs(&dir, &spec, design.as_deref(), &rows_to_train, &a.seeds)?;
     // Seed by seed, so an interrupted experiment has every variant of its first seeds.
     let all: Vec<PathBuf> = (0..a.seeds.len()).flat_map(|k| groups.iter().map(move |g| g.2[k].clone())).collect();
     eprintln!("lmac: experiment in {}: {} runs ({} variants x {} seeds)", dir.display(), all.len(), groups.len(), a.seeds.len());
@@ -284,6 +245,75 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     Ok(0)
 }
 
+/// Take `dir` for an experiment made for `spec`: a directory made for other settings is refused.
+pub(crate) fn claim_dir(dir: &Path, spec: &ExperimentSpec) -> Result<()> {
+    let spec_path = dir.join("experiment.json");
+    if spec_path.exists() {
+        let old: ExperimentSpec = serde_json::from_slice(&safe_fs::read_capped(&spec_path, safe_fs::TEXT_CAP)?)
+            .with_context(|| format!("reading {}", spec_path.display()))?;
+        if &old != spec {
+            bail!("{} was made for {old:?}; this command asks for {spec:?}: give another --out", dir.display());
+        }
+    } else {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        std::fs::write(&spec_path, serde_json::to_string_pretty(spec)?)?;
+    }
+    Ok(())
+}
+
+/// `run.protocol` for a design given by the user: `paper` stays named (each run finds the
+/// authors' design for its env in the repository, and its config.toml carries no machine's
+/// path), a design directory goes by its absolute path.
+pub(crate) fn design_protocol(design: &Path, env: &str) -> Result<String> {
+    if design.as_os_str() == "paper" {
+        lmac_run::train::resolve_paper_spec("paper", env).context("--design paper")?;
+        return Ok("paper".into());
+    }
+    Ok(std::fs::canonicalize(design).with_context(|| format!("--design {}", design.display()))?.display().to_string())
+}
+
+/// The seed directories of an experiment's rows under `dir/runs/<label>/seed<k>`, each with its
+/// resolved `config.toml` written when missing (an existing one is kept: that is how a rerun
+/// resumes). `protocol` is `run.protocol` for the LMAC rows.
+pub(crate) fn prepare_runs(
+    dir: &Path,
+    spec: &ExperimentSpec,
+    protocol: Option<&str>,
+    rows: &[(String, String, Vec<String>)],
+    seeds: &[u64],
+) -> Result<Vec<(String, String, Vec<PathBuf>)>> {
+    let mut groups = Vec::new();
+    for (label, algo, extra) in rows {
+        let mut dirs = Vec::new();
+        for &seed in seeds {
+            let d = dir.join("runs").join(label).join(format!("seed{seed}"));
+            if !d.join("config.toml").exists() {
+                let mut o = lmac_run::train::preset_then(spec.preset.as_deref(), Some(algo.as_str()), &spec.set)?;
+                o.push(format!("run.env={:?}", spec.env));
+                o.push(format!("run.algo={algo:?}"));
+                o.push(format!("run.steps={}", spec.steps));
+                o.push(format!("learn.seed={seed}"));
+                if algo == "lmac" {
+                    let p = protocol.with_context(|| format!("the {label} runs need a design"))?;
+                    o.push(format!("run.protocol={p:?}"));
+                }
+                o.extend(extra.iter().cloned());
+                let cfg = TrainConfig::resolve(None, &o).with_context(|| format!("the {label} runs"))?;
+                std::fs::create_dir_all(&d)?;
+                // Protocol copies left by a creation interrupted before its config.toml.
+                let copies = d.join("protocol");
+                if copies.symlink_metadata().is_ok_and(|m| m.is_dir()) {
+                    std::fs::remove_dir_all(&copies).with_context(|| format!("clearing {}", copies.display()))?;
+                }
+                cfg.save_new_run(&d)?;
+            }
+            dirs.push(d);
+        }
+        groups.push((label.clone(), algo.clone(), dirs));
+    }
+    Ok(groups)
+}
+
 /// The experiment's design: reused when it already finished, else designed into `<dir>/design`.
 fn shared_design(a: &ExperimentArgs, dir: &Path, interrupted: std::sync::Arc<std::sync::atomic::AtomicBool>) -> Result<PathBuf> {
     let note = dir.join("design.txt");
@@ -317,7 +347,7 @@ fn mean_std(v: &[f64]) -> (f64, f64) {
     (mean(v), sample_sd(v))
 }
 
-fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
+pub(crate) fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
     let (mut ret, mut win, mut wall) = (Vec::new(), Vec::new(), Vec::new());
     let mut schedules: Vec<String> = Vec::new();
     for d in dirs {
@@ -348,6 +378,7 @@ fn summarize(label: &str, algo: &str, dirs: &[PathBuf]) -> Result<Row> {
         final_return_mean: rm,
         final_return_std: rs,
         final_returns: ret.clone(),
+        final_win_rates: win.clone(),
         final_win_rate_mean: has_wins.then_some(wm),
         final_win_rate_std: has_wins.then_some(ws),
         best_eval_return_mean: em,

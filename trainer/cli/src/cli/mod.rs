@@ -4,6 +4,7 @@
 
 pub(crate) mod bench;
 pub(crate) mod bench_learner;
+pub(crate) mod campaign;
 pub(crate) mod child;
 pub(crate) mod clean;
 pub(crate) mod design;

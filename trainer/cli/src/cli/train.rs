@@ -15,8 +15,9 @@ batch's halves on two threads (learn.data_parallel) or the target network unroll
 (learn.parallel_target). --preset paper spells these defaults out; --preset epymarl is the same
 schedule on one core; --preset pymarl-parallel is pymarl's parallel runner with 8 environments,
 0.125 updates per episode (8x fewer; the target copied every 25 updates), lmac's default before
-the paper's schedule was affordable. Each environment switches to new weights when its next
-episode starts.
+the paper's schedule was affordable; --preset released is everything as the authors' released
+code runs it (its runner, and for LMAC their module and reward handling). Each environment
+switches to new weights when its next episode starts.
 
 Resuming: --resume DIR continues every unfinished seed in DIR (a group or one seed) from its
 last checkpoint (run.checkpoint_interval env steps apart, and one at the end). Without the saved
@@ -28,6 +29,13 @@ without a step backwards; each checkpoint is logged in metrics.jsonl.";
 pub(crate) fn algo_names() -> clap::builder::PossibleValuesParser {
     clap::builder::PossibleValuesParser::new(
         lmac_run::learn::methods::REGISTRY.iter().map(|m| clap::builder::PossibleValue::new(m.name).help(m.about)),
+    )
+}
+
+/// The presets with their meanings, for `--preset` (one list: `lmac_run::train::PRESETS`).
+pub(crate) fn preset_names() -> clap::builder::PossibleValuesParser {
+    clap::builder::PossibleValuesParser::new(
+        lmac_run::train::PRESETS.iter().map(|(name, about)| clap::builder::PossibleValue::new(*name).help(*about)),
     )
 }
 
@@ -56,11 +64,8 @@ pub(crate) struct TrainArgs {
     /// Override a config value: --set learn.lr=0.001 --set run.envs=8
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
-    /// A named bundle of settings, applied before --set: paper (the default, spelled out: the
-    /// LMAC paper's schedule of 1 update per collected episode, target copy every 200 updates,
-    /// both cores on each update), epymarl (the same schedule on one core), pymarl-parallel
-    /// (0.125 updates per episode, one learner thread: pymarl's parallel-runner schedule).
-    #[arg(long)]
+    /// A named bundle of settings, applied before --set.
+    #[arg(long, value_parser = preset_names())]
     preset: Option<String>,
     /// Where run directories go.
     #[arg(long, default_value = "runs")]

@@ -1,0 +1,192 @@
+//! `lmac campaign` end to end with tiny budgets on LBF: a two-stage grid created and trained in
+//! order, interrupted and resumed, its status and time left, a cell stopped at the campaign's
+//! time limit and kept as reduced, the results page beside reference values, and bad campaign
+//! files refused with the file and the field named.
+
+use lmac_e2e::harness::{lmac, wait_for};
+use std::path::Path;
+use std::process::{Output, Stdio};
+use std::time::Duration;
+
+const RUN: &str = r#"set = ["run.envs=4", "run.servers=1", "run.test_interval=1000", "run.test_episodes=2", "run.log_interval=500", "run.checkpoint_interval=500", "run.final_eval_episodes=2"]"#;
+
+fn campaign_file(dir: &Path, head_extra: &str, steps: &str) -> std::path::PathBuf {
+    let text = format!(
+        r#"[campaign]
+title = "tiny grid"
+out = "tree"
+{RUN}
+{head_extra}
+
+[[stage]]
+name = "short"
+tasks = ["lbf:8x8-2p-2f-s1-coop"]
+algos = ["qmix", "vdn"]
+seeds = [0, 1]
+steps = "{steps}"
+
+[[stage]]
+name = "longer"
+tasks = ["lbf:8x8-2p-2f-s1-coop"]
+algos = ["qmix"]
+seeds = [0]
+steps = 2500
+
+[[reference]]
+task = "lbf:8x8-2p-2f-s1-coop"
+source = "values for the test"
+metric = "return"
+scale = 100
+steps = [1500, 2500]
+values = {{ qmix = [12, 40], vdn = [30, 50] }}
+"#
+    );
+    let f = dir.join("c.toml");
+    std::fs::write(&f, text).unwrap();
+    f
+}
+
+fn campaign(dir: &Path, args: &[&str]) -> Output {
+    let mut c = lmac();
+    c.arg("campaign").args(args).current_dir(dir).stdin(Stdio::null());
+    c.output().unwrap()
+}
+
+fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+#[test]
+fn a_campaign_trains_its_grid_in_order_resumes_and_reports_beside_the_reference() {
+    let dir = std::env::temp_dir().join(format!("lmac-campaign-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = campaign_file(&dir, "", "1500");
+
+    // Status before anything exists says how to start.
+    let st = campaign(&dir, &["status", "c.toml"]);
+    assert!(!st.status.success() && text(&st).contains("no cell has been created yet"), "{}", text(&st));
+
+    // One cell only: the first in the file's order (stage, seed, task, method).
+    let first = campaign(&dir, &["run", "c.toml", "--max-cells", "1"]);
+    assert!(first.status.success(), "{}", text(&first));
+    assert!(text(&first).contains("5 cells: 0 finished"), "{}", text(&first));
+    let st = campaign(&dir, &["status", "c.toml", "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&st.stdout).unwrap();
+    let cells = v["cells"].as_array().unwrap();
+    let ids: Vec<&str> = cells.iter().map(|c| c["cell"]["id"].as_str().unwrap()).collect();
+    assert_eq!(
+        ids,
+        [
+            "short/lbf_8x8-2p-2f-s1-coop/qmix/seed0",
+            "short/lbf_8x8-2p-2f-s1-coop/vdn/seed0",
+            "short/lbf_8x8-2p-2f-s1-coop/qmix/seed1",
+            "short/lbf_8x8-2p-2f-s1-coop/vdn/seed1",
+            "longer/lbf_8x8-2p-2f-s1-coop/qmix/seed0",
+        ],
+        "every cell's first seed before any second, stage by stage"
+    );
+    assert_eq!(cells[0]["status"]["state"], "finished");
+    assert_eq!(cells[1]["status"]["state"], "pending");
+    // qmix's speed is known from its first cell: its other cells have a time estimate, vdn's none.
+    assert!(cells[2]["eta_s"].as_f64().unwrap() > 0.0 && cells[1]["eta_s"].is_null(), "{cells:?}");
+    // Every cell exists with its config before any trains; the tree is an experiment per stage and task.
+    for c in cells {
+        assert!(dir.join(c["cell"]["dir"].as_str().unwrap()).join("config.toml").exists(), "{c}");
+    }
+    assert!(dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/experiment.json").exists());
+
+    // Interrupted during the next cell, then rerun: it resumes from its checkpoint.
+    let mut child = lmac();
+    let child = child
+        .args(["campaign", "run", "c.toml"])
+        .current_dir(&dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let vdn0 = dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/runs/vdn/seed0");
+    let ck = wait_for(Duration::from_secs(240), || vdn0.join("checkpoint/state.json").exists().then_some(()));
+    assert!(ck.is_some(), "the second cell wrote a checkpoint");
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let stopped = child.wait_with_output().unwrap();
+    assert!(!stopped.status.success(), "an interrupted campaign reports failure");
+    let rest = campaign(&dir, &["run", "c.toml"]);
+    let t = text(&rest);
+    assert!(rest.status.success(), "{t}");
+    assert!(t.contains("already finished") || t.contains("resuming from"), "the interrupted cell continued: {t}");
+    assert!(t.contains("5 cells: 5 finished"), "{t}");
+
+    // The page: a row per stage, task and method, ours beside the reference at the same steps.
+    let page = campaign(&dir, &["report", "c.toml", "--export", "copy", "--page", "fig.md"]);
+    assert!(page.status.success(), "{}", text(&page));
+    let md = std::fs::read_to_string(dir.join("fig.md")).unwrap();
+    let qmix = md.lines().find(|l| l.starts_with("| lbf:8x8-2p-2f-s1-coop | qmix | 2/2")).expect("qmix's short row");
+    assert!(qmix.contains("| 0.120 |"), "the reference at 1500 steps, as a fraction: {qmix}");
+    assert!(md.contains("## Stage longer: 2500 steps") && md.contains("| 0.400 |"), "{md}");
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("fig.json")).unwrap()).unwrap();
+    assert_eq!(json["rows"].as_array().unwrap().len(), 3);
+    assert_eq!(json["rows"][0]["returns"].as_array().unwrap().len(), 2);
+    // The export holds the small files only, in the same tree.
+    let copied = dir.join("copy/short/lbf_8x8-2p-2f-s1-coop/runs/qmix/seed1");
+    assert!(copied.join("metrics.csv").exists() && copied.join("config.toml").exists() && !copied.join("checkpoint").exists());
+
+    // Settings changed under existing cells are refused, naming the stage.
+    campaign_file(&dir, "", "1600");
+    let changed = campaign(&dir, &["run", "c.toml"]);
+    assert!(!changed.status.success() && text(&changed).contains("stage short"), "{}", text(&changed));
+    drop(file);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_cell_over_the_time_limit_is_kept_as_reduced_and_said_so() {
+    let dir = std::env::temp_dir().join(format!("lmac-campaign-limit-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    // 6 seconds for a cell of 200k steps: it stops at its last checkpoint.
+    campaign_file(&dir, "max_cell_hours = 0.0017", "200k");
+    let r = campaign(&dir, &["run", "c.toml", "--max-cells", "1"]);
+    let t = text(&r);
+    assert!(r.status.success(), "{t}");
+    assert!(t.contains("reduced: still training at the campaign's limit"), "{t}");
+    let cell = dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/runs/qmix/seed0");
+    let red: serde_json::Value = serde_json::from_slice(&std::fs::read(cell.join("reduced.json")).unwrap()).unwrap();
+    let reached = red["steps"].as_u64().unwrap();
+    assert!(reached > 0 && reached < 200_000 && red["planned_steps"] == 200_000, "{red}");
+    let st = text(&campaign(&dir, &["status", "c.toml"]));
+    assert!(st.contains(&format!("REDUCED: {reached} of 200000 steps")), "{st}");
+    // Its final evaluation ran on what it reached, and the page names the reduction.
+    assert!(cell.join("marl_eval.json").exists());
+    let md = text(&campaign(&dir, &["report", "c.toml"]));
+    assert!(md.contains(&format!("seed 0 reduced to {reached} of 200000 steps")), "{md}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bad_campaign_files_are_refused_naming_the_file_and_the_field() {
+    let dir = std::env::temp_dir().join(format!("lmac-campaign-bad-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let head = "[campaign]\ntitle = \"t\"\nout = \"tree\"\n";
+    let stage = |body: &str| format!("{head}\n[[stage]]\nname = \"s\"\ntasks = [\"lbf:8x8-2p-2f-s1-coop\"]\nseeds = [0]\n{body}\n");
+    for (body, says) in [
+        (stage("algos = [\"qmix\"]\nsteps = \"1k\"\nspeed = 3"), "unknown field `speed`"),
+        (stage("algos = [\"qmixx\"]\nsteps = \"1k\""), "unknown method \"qmixx\""),
+        (stage("algos = [\"lmac\"]\nsteps = \"1k\""), "lmac needs a design"),
+        (stage("algos = [\"qmix\"]\nsteps = \"lots\""), "is not a step count"),
+        (stage("algos = []\nsteps = \"1k\""), "algos is empty"),
+        (format!("{head}max_cell_hours = -1\n{}", stage("algos = [\"qmix\"]\nsteps = \"1k\"").trim_start_matches(head)), "max_cell_hours"),
+        (format!("{head}preset = \"fast\"\n{}", stage("algos = [\"qmix\"]\nsteps = \"1k\"").trim_start_matches(head)), "not a preset"),
+        ("[campaign\n".to_string(), "c.toml"),
+    ] {
+        std::fs::write(dir.join("c.toml"), &body).unwrap();
+        let o = campaign(&dir, &["run", "c.toml"]);
+        let t = text(&o);
+        assert!(!o.status.success() && t.contains("c.toml") && t.contains(says), "{says}: {t}");
+        assert!(!t.contains("panicked"), "{t}");
+        assert!(!dir.join("tree/s").exists(), "nothing is created from a bad file");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,844 @@
+//! `lmac campaign`: a grid of training runs (stages x tasks x methods x seeds) described by one
+//! TOML file and trained into one results tree, in the file's order, resumably, on this machine
+//! or as Ray tasks on a cluster.
+//!
+//! The tree is `<out>/<stage>/<env>/` per stage and task, each an `lmac experiment` directory
+//! (`experiment.json`, `runs/<method>/seed<k>/`), so every tool that reads experiments and run
+//! directories reads a campaign too. A cell is one run directory; its id is
+//! `<stage>/<env>/<method>/seed<k>`. Cells are created (their `config.toml` written) before any
+//! trains, and trained stage by stage, seed by seed: every cell's first seed before any
+//! cell's second. A cell that would run longer than `max_cell_hours` is stopped there and kept
+//! as a reduced cell (`reduced.json`: the steps it reached, the steps planned and why), which
+//! every status and report line shows.
+
+use super::experiment::{claim_dir, design_protocol, prepare_runs, summarize, ExperimentSpec};
+use super::parse_steps;
+use anyhow::{bail, Context, Result};
+use clap::Subcommand;
+use lmac_run::learn::checkpoint::{checkpoint_exists, peek_checkpoint};
+use lmac_run::run_dir::env_dir_name;
+use lmac_run::safe_fs;
+use lmac_run::train::{checkpoint_dir, read_metrics, TrainConfig};
+use lmac_run::workflow::{interrupt_flag, train_dirs};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[derive(Subcommand)]
+pub(crate) enum CampaignCmd {
+    /// Create every cell's run directory, then train the unfinished cells in order (rerun to
+    /// resume: finished cells are skipped, unfinished ones continue from their checkpoints).
+    Run {
+        /// The campaign file (TOML: [campaign], [[stage]], optional [[reference]]).
+        file: PathBuf,
+        /// The results tree (default: the file's campaign.out).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Run the cells as Ray tasks on this cluster (`auto`, HEAD:6379, or `local` for a Ray
+        /// started on this machine) through `python -m lmac_sweep.campaign`; the results tree
+        /// must then be on storage every node sees.
+        #[arg(long)]
+        ray: Option<String>,
+        /// With --ray: CPUs a cell takes on its node.
+        #[arg(long, default_value_t = 2.0, requires = "ray")]
+        cpus_per_cell: f64,
+        /// Stop after training this many cells (the rest waits for the next run).
+        #[arg(long)]
+        max_cells: Option<usize>,
+    },
+    /// What is finished, running or left, and roughly how long the rest takes (from the speed of
+    /// the cells trained so far).
+    Status {
+        file: PathBuf,
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print the cells as JSON (what --ray schedules from).
+        #[arg(long)]
+        json: bool,
+    },
+    /// The results page: per task and method, our last-5-tests score over the seeds trained so
+    /// far, beside the [[reference]] values at the same steps, with what is missing said.
+    Report {
+        file: PathBuf,
+        /// The results tree to read (default: the file's campaign.out).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Copy each cell's config.toml, metrics.csv, marl_eval.json and reduced.json into this
+        /// directory (the same tree, small files only: what docs/figures commits), and read the
+        /// page from the copy.
+        #[arg(long)]
+        export: Option<PathBuf>,
+        /// Write the page here (Markdown; a .json with the same stem beside it) instead of
+        /// printing it.
+        #[arg(long)]
+        page: Option<PathBuf>,
+    },
+    /// Train one cell (what each Ray task runs).
+    #[command(hide = true)]
+    Cell {
+        file: PathBuf,
+        id: String,
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
+
+/// A campaign file.
+#[derive(Deserialize, Debug)]
+#[serde(deny_unknown_fields)]
+struct CampaignFile {
+    campaign: Head,
+    #[serde(rename = "stage")]
+    stages: Vec<Stage>,
+    #[serde(rename = "reference", default)]
+    references: Vec<Reference>,
+}
+
+#[derive(Deserialize, Debug)]
+#[serde(deny_unknown_fields)]
+struct Head {
+    /// The results page's title.
+    title: String,
+    /// The results tree (relative to the current directory).
+    out: PathBuf,
+    /// A preset for every run (`lmac train --preset`).
+    #[serde(default)]
+    preset: Option<String>,
+    /// Settings for every run, as `--set`.
+    #[serde(default)]
+    set: Vec<String>,
+    /// A cell still training after this many hours is stopped and kept as a reduced cell.
+    #[serde(default)]
+    max_cell_hours: Option<f64>,
+    /// Markdown the results page carries under its title (how the reference maps to ours, say).
+    #[serde(default)]
+    notes: Option<String>,
+}
+
+#[derive(Deserialize, Debug)]
+#[serde(deny_unknown_fields)]
+struct Stage {
+    name: String,
+    tasks: Vec<String>,
+    algos: Vec<String>,
+    seeds: Vec<u64>,
+    steps: StepCount,
+    /// The design LMAC trains with: `paper` (the authors' design for each task) or a design
+    /// directory.
+    #[serde(default)]
+    design: Option<String>,
+    /// Settings for this stage's runs, after the campaign's.
+    #[serde(default)]
+    set: Vec<String>,
+}
+
+#[derive(Deserialize, Debug)]
+#[serde(untagged)]
+enum StepCount {
+    Number(u64),
+    Text(String),
+}
+
+/// Published values to stand beside ours: one task, a value per method at each step count.
+#[derive(Deserialize, Serialize, Debug, Clone)]
+#[serde(deny_unknown_fields)]
+struct Reference {
+    task: String,
+    /// Where the values come from, and how they were read.
+    source: String,
+    /// What the values measure: `win_rate` (test win rate) or `return` (test return).
+    metric: Metric,
+    /// The values' unit: 100 for percent.
+    #[serde(default = "one")]
+    scale: f64,
+    /// Env steps of each value.
+    steps: Vec<u64>,
+    /// Method -> its values at `steps`.
+    values: BTreeMap<String, Vec<f64>>,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+#[derive(Deserialize, Serialize, Debug, Clone, Copy, PartialEq)]
+#[serde(rename_all = "snake_case")]
+enum Metric {
+    WinRate,
+    Return,
+}
+
+/// A campaign read and checked, with where its tree is.
+struct Campaign {
+    file: PathBuf,
+    spec: CampaignFile,
+    out: PathBuf,
+}
+
+/// One run of the grid.
+#[derive(Serialize, Clone, Debug)]
+struct Cell {
+    id: String,
+    stage: String,
+    task: String,
+    algo: String,
+    seed: u64,
+    dir: PathBuf,
+}
+
+/// Where a cell stands.
+#[derive(Serialize, Clone, Debug, PartialEq)]
+#[serde(tag = "state", rename_all = "snake_case")]
+enum CellState {
+    Pending,
+    Partial { t_env: u64, steps: u64 },
+    Finished { t_env: u64 },
+    Reduced { t_env: u64, planned_steps: u64, reason: String },
+}
+
+/// Why a cell trained fewer steps than planned (`reduced.json` in its directory).
+#[derive(Serialize, Deserialize, Debug)]
+struct Reduced {
+    planned_steps: u64,
+    steps: u64,
+    reason: String,
+}
+
+impl Campaign {
+    fn load(file: &Path, out: Option<PathBuf>) -> Result<Campaign> {
+        let text = safe_fs::read_text_capped(file, safe_fs::TEXT_CAP).with_context(|| format!("reading {}", file.display()))?;
+        let spec: CampaignFile = toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", file.display(), e))?;
+        check(&spec).map_err(|e| anyhow::anyhow!("{}: {e:#}", file.display()))?;
+        let out = out.unwrap_or_else(|| spec.campaign.out.clone());
+        Ok(Campaign { file: file.to_path_buf(), spec, out })
+    }
+
+    /// Every cell in training order: stage by stage, seed by seed, task by task, method by
+    /// method.
+    fn cells(&self) -> Vec<Cell> {
+        let mut cells = Vec::new();
+        for st in &self.spec.stages {
+            for &seed in &st.seeds {
+                for task in &st.tasks {
+                    for algo in &st.algos {
+                        let env = env_dir_name(task);
+                        cells.push(Cell {
+                            id: format!("{}/{env}/{algo}/seed{seed}", st.name),
+                            stage: st.name.clone(),
+                            task: task.clone(),
+                            algo: algo.clone(),
+                            seed,
+                            dir: self.out.join(&st.name).join(&env).join("runs").join(algo).join(format!("seed{seed}")),
+                        });
+                    }
+                }
+            }
+        }
+        cells
+    }
+
+    /// Create every cell's run directory with its config.toml (kept when it exists).
+    fn prepare(&self) -> Result<()> {
+        for st in &self.spec.stages {
+            let steps = st.steps.get()?;
+            for task in &st.tasks {
+                let spec = ExperimentSpec {
+                    env: task.clone(),
+                    steps,
+                    set: self.spec.campaign.set.iter().chain(&st.set).cloned().collect(),
+                    preset: self.spec.campaign.preset.clone(),
+                };
+                let dir = self.out.join(&st.name).join(env_dir_name(task));
+                claim_dir(&dir, &spec).with_context(|| format!("stage {}, task {task}", st.name))?;
+                let protocol = match &st.design {
+                    Some(d) => Some(design_protocol(Path::new(d), task).with_context(|| format!("stage {}, task {task}", st.name))?),
+                    None => None,
+                };
+                let rows: Vec<(String, String, Vec<String>)> = st.algos.iter().map(|a| (a.clone(), a.clone(), Vec::new())).collect();
+                prepare_runs(&dir, &spec, protocol.as_deref(), &rows, &st.seeds)
+                    .with_context(|| format!("stage {}, task {task}", st.name))?;
+            }
+        }
+        Ok(())
+    }
+
+    fn max_cell_s(&self) -> Option<f64> {
+        self.spec.campaign.max_cell_hours.map(|h| h * 3600.0)
+    }
+}
+
+impl StepCount {
+    fn get(&self) -> Result<u64> {
+        let n = match self {
+            StepCount::Number(n) => *n,
+            StepCount::Text(t) => parse_steps(t).map_err(anyhow::Error::msg)?,
+        };
+        if n == 0 {
+            bail!("steps must be at least 1");
+        }
+        Ok(n)
+    }
+}
+
+/// The file's own rules (each method's and env's settings are checked when its runs are made).
+fn check(f: &CampaignFile) -> Result<()> {
+    if f.stages.is_empty() {
+        bail!("no [[stage]]: a campaign needs at least one");
+    }
+    if let Some(h) = f.campaign.max_cell_hours {
+        if !(h > 0.0 && h.is_finite()) {
+            bail!("campaign.max_cell_hours = {h}: must be a positive number of hours");
+        }
+    }
+    if let Some(p) = &f.campaign.preset {
+        if !lmac_run::train::PRESETS.iter().any(|(name, _)| name == p) {
+            let names: Vec<&str> = lmac_run::train::PRESETS.iter().map(|(n, _)| *n).collect();
+            bail!("campaign.preset {p:?} is not a preset (one of {})", names.join(", "));
+        }
+    }
+    let mut names = Vec::new();
+    for st in &f.stages {
+        let plain = !st.name.is_empty() && st.name.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_'));
+        if !plain {
+            bail!("stage {:?}: a stage's name is a plain word (letters, digits, - and _): it names a folder", st.name);
+        }
+        if names.contains(&&st.name) {
+            bail!("two stages are called {:?}", st.name);
+        }
+        names.push(&st.name);
+        for (what, empty) in [("tasks", st.tasks.is_empty()), ("algos", st.algos.is_empty()), ("seeds", st.seeds.is_empty())] {
+            if empty {
+                bail!("stage {}: {what} is empty", st.name);
+            }
+        }
+        st.steps.get().with_context(|| format!("stage {}", st.name))?;
+        let known: Vec<&str> = lmac_run::learn::methods::REGISTRY.iter().map(|m| m.name).collect();
+        for a in &st.algos {
+            if !known.contains(&a.as_str()) {
+                bail!("stage {}: unknown method {a:?} (one of {})", st.name, known.join(", "));
+            }
+        }
+        if st.algos.iter().any(|a| a == "lmac") && st.design.is_none() {
+            bail!("stage {}: lmac needs a design: design = \"paper\" (the authors' design for each task) or a design directory", st.name);
+        }
+    }
+    for r in &f.references {
+        for (m, v) in &r.values {
+            if v.len() != r.steps.len() {
+                bail!("reference for {}: {m} has {} values for {} step counts", r.task, v.len(), r.steps.len());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Where a cell stands, read from its directory.
+fn cell_state(c: &Cell) -> Result<CellState> {
+    let cfg = TrainConfig::load(&c.dir).with_context(|| format!("cell {}", c.id))?;
+    let ck = checkpoint_dir(&c.dir);
+    // The checkpoint's step; in an exported copy (no checkpoints) the metrics' last.
+    let t_env = if checkpoint_exists(&ck) {
+        peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("cell {}: {e}", c.id))?.counters.t_env
+    } else {
+        read_metrics(&c.dir).ok().and_then(|m| m.last().map(|r| r.t_env)).unwrap_or(0)
+    };
+    if let Some(r) = read_reduced(&c.dir)? {
+        return Ok(CellState::Reduced { t_env, planned_steps: r.planned_steps, reason: r.reason });
+    }
+    Ok(if t_env >= cfg.run.steps {
+        CellState::Finished { t_env }
+    } else if t_env == 0 {
+        CellState::Pending
+    } else {
+        CellState::Partial { t_env, steps: cfg.run.steps }
+    })
+}
+
+fn read_reduced(dir: &Path) -> Result<Option<Reduced>> {
+    let p = dir.join("reduced.json");
+    if !p.exists() {
+        return Ok(None);
+    }
+    let bytes = safe_fs::read_capped(&p, safe_fs::TEXT_CAP)?;
+    Ok(Some(serde_json::from_slice(&bytes).with_context(|| format!("reading {}", p.display()))?))
+}
+
+fn done(s: &CellState) -> bool {
+    matches!(s, CellState::Finished { .. } | CellState::Reduced { .. })
+}
+
+/// Wall seconds per env step of a run, from its metrics (None before its first logged row).
+fn seconds_per_step(dir: &Path) -> Option<f64> {
+    let last = read_metrics(dir).ok()?.pop()?;
+    (last.t_env > 0).then(|| last.wall_s / last.t_env as f64)
+}
+
+/// The status of every cell, and the estimate of what is left.
+struct Status {
+    cells: Vec<(Cell, CellState, Option<f64>)>,
+}
+
+impl Status {
+    fn read(c: &Campaign) -> Result<Status> {
+        let cells = c.cells();
+        let mut states = Vec::new();
+        for cell in &cells {
+            states.push(cell_state(cell)?);
+        }
+        // Seconds per step of each (task, method): its cells trained so far, pooled.
+        let mut rates: BTreeMap<(String, String), Vec<f64>> = BTreeMap::new();
+        for (cell, st) in cells.iter().zip(&states) {
+            if !matches!(st, CellState::Pending) {
+                if let Some(r) = seconds_per_step(&cell.dir) {
+                    rates.entry((cell.task.clone(), cell.algo.clone())).or_default().push(r);
+                }
+            }
+        }
+        let mut out = Vec::new();
+        for (cell, st) in cells.into_iter().zip(states) {
+            let left_steps = match &st {
+                CellState::Pending => Some(TrainConfig::load(&cell.dir)?.run.steps),
+                CellState::Partial { t_env, steps } => Some(steps - t_env),
+                _ => None,
+            };
+            let rate = rates.get(&(cell.task.clone(), cell.algo.clone())).map(|v| lmac_run::stats::mean(v));
+            let mut eta = left_steps.and_then(|s| rate.map(|r| r * s as f64));
+            if let (Some(e), Some(limit)) = (eta, c.max_cell_s()) {
+                eta = Some(e.min(limit));
+            }
+            out.push((cell, st, eta));
+        }
+        Ok(Status { cells: out })
+    }
+
+    fn summary(&self) -> String {
+        let n = self.cells.len();
+        let finished = self.cells.iter().filter(|c| matches!(c.1, CellState::Finished { .. })).count();
+        let reduced = self.cells.iter().filter(|c| matches!(c.1, CellState::Reduced { .. })).count();
+        let partial = self.cells.iter().filter(|c| matches!(c.1, CellState::Partial { .. })).count();
+        let left: Vec<_> = self.cells.iter().filter(|c| !done(&c.1)).collect();
+        let known: f64 = left.iter().filter_map(|c| c.2).sum();
+        let unknown = left.iter().filter(|c| c.2.is_none()).count();
+        let mut s =
+            format!("{n} cells: {finished} finished, {reduced} reduced, {partial} partly trained, {} not started", left.len() - partial);
+        if left.len() > unknown {
+            s.push_str(&format!("; left: about {} for the {} cells with an estimate", duration(known), left.len() - unknown));
+        }
+        if unknown > 0 {
+            s.push_str(&format!(
+                "; {unknown} cells without an estimate yet (no cell of their task and method has trained; the first one gives the speed)"
+            ));
+        }
+        s
+    }
+}
+
+pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
+    match cmd {
+        CampaignCmd::Run { file, out, ray, cpus_per_cell, max_cells } => {
+            let c = Campaign::load(&file, out)?;
+            std::fs::create_dir_all(&c.out).with_context(|| format!("creating {}", c.out.display()))?;
+            let _lock = lmac_run::run_dir::lock(&c.out)?;
+            c.prepare()?;
+            let st = Status::read(&c)?;
+            eprintln!("lmac: campaign {} in {}: {}", c.spec.campaign.title, c.out.display(), st.summary());
+            let pending: Vec<Cell> =
+                st.cells.iter().filter(|x| !done(&x.1)).map(|x| x.0.clone()).take(max_cells.unwrap_or(usize::MAX)).collect();
+            if let Some(address) = ray {
+                return run_on_ray(&c, &pending, &address, cpus_per_cell);
+            }
+            let interrupted = interrupt_flag();
+            // A cell that fails (an env that cannot start here, say) is reported and the next
+            // one trains: one broken task does not stop the grid.
+            let mut failed = Vec::new();
+            for (k, cell) in pending.iter().enumerate() {
+                eprintln!("lmac: campaign: cell {} of {} left: {}", k + 1, pending.len(), cell.id);
+                if let Err(e) = train_cell(&c, cell, interrupted.clone()) {
+                    if interrupted.load(Ordering::SeqCst) {
+                        return Err(e);
+                    }
+                    eprintln!("lmac: campaign: cell {} failed: {e:#}", cell.id);
+                    failed.push(format!("{}: {e:#}", cell.id));
+                }
+            }
+            eprintln!("lmac: campaign: {}", Status::read(&c)?.summary());
+            if !failed.is_empty() {
+                bail!("{} cells failed (rerun to retry them):\n  {}", failed.len(), failed.join("\n  "));
+            }
+            Ok(0)
+        }
+        CampaignCmd::Status { file, out, json } => {
+            let c = Campaign::load(&file, out)?;
+            if !c.out.join(&c.spec.stages[0].name).exists() {
+                bail!("{}: no cell has been created yet: `lmac campaign run {}` creates them", c.out.display(), file.display());
+            }
+            let st = Status::read(&c)?;
+            if json {
+                let cells: Vec<_> =
+                    st.cells.iter().map(|(cell, s, eta)| serde_json::json!({"cell": cell, "status": s, "eta_s": eta})).collect();
+                println!("{}", serde_json::to_string_pretty(&serde_json::json!({"out": c.out, "cells": cells}))?);
+                return Ok(0);
+            }
+            for (cell, s, eta) in &st.cells {
+                let what = match s {
+                    CellState::Pending => "not started".to_string(),
+                    CellState::Partial { t_env, steps } => format!("{t_env} of {steps} steps"),
+                    CellState::Finished { t_env } => format!("finished ({t_env} steps)"),
+                    CellState::Reduced { t_env, planned_steps, reason } => format!("REDUCED: {t_env} of {planned_steps} steps ({reason})"),
+                };
+                let eta = eta.map(|e| format!(", about {} left", duration(e))).unwrap_or_default();
+                println!("{:<60} {what}{eta}", cell.id);
+            }
+            println!("{}", st.summary());
+            Ok(0)
+        }
+        CampaignCmd::Report { file, out, export, page } => {
+            let mut c = Campaign::load(&file, out)?;
+            if let Some(to) = export {
+                export_tree(&c, &to)?;
+                c.out = to;
+            }
+            let (md, json) = report(&c)?;
+            match page {
+                Some(p) => {
+                    std::fs::write(&p, md).with_context(|| format!("writing {}", p.display()))?;
+                    let j = p.with_extension("json");
+                    std::fs::write(&j, serde_json::to_string_pretty(&json)?)?;
+                    eprintln!("written: {} and {}", p.display(), j.display());
+                }
+                None => print!("{md}"),
+            }
+            Ok(0)
+        }
+        CampaignCmd::Cell { file, id, out } => {
+            let c = Campaign::load(&file, out)?;
+            let cell = c.cells().into_iter().find(|x| x.id == id).with_context(|| format!("{}: no cell {id:?}", file.display()))?;
+            if !cell.dir.join("config.toml").exists() {
+                bail!("cell {id}: {} has no config.toml: `lmac campaign run` creates the cells", cell.dir.display());
+            }
+            train_cell(&c, &cell, interrupt_flag())?;
+            Ok(0)
+        }
+    }
+}
+
+/// Train one cell to its steps, or to the campaign's time limit: a cell still training then is
+/// stopped, its steps lowered to those of its last checkpoint and `reduced.json` written, and
+/// its final evaluation runs on what it reached.
+fn train_cell(c: &Campaign, cell: &Cell, interrupted: Arc<AtomicBool>) -> Result<()> {
+    let Some(limit) = c.max_cell_s() else { return train_dirs(std::slice::from_ref(&cell.dir), interrupted) };
+    let spent = read_metrics(&cell.dir).ok().and_then(|m| m.last().map(|r| r.wall_s)).unwrap_or(0.0);
+    let stop = Arc::new(AtomicBool::new(false));
+    let (timed_out, finished) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)));
+    let watcher = {
+        let (stop, timed_out, finished, interrupted) = (stop.clone(), timed_out.clone(), finished.clone(), interrupted.clone());
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64((limit - spent).max(0.0));
+        std::thread::spawn(move || {
+            while !finished.load(Ordering::SeqCst) {
+                if interrupted.load(Ordering::SeqCst) {
+                    stop.store(true, Ordering::SeqCst);
+                    return;
+                }
+                if std::time::Instant::now() >= deadline {
+                    timed_out.store(true, Ordering::SeqCst);
+                    stop.store(true, Ordering::SeqCst);
+                    return;
+                }
+                std::thread::sleep(std::time::Duration::from_millis(200));
+            }
+        })
+    };
+    let result = train_dirs(std::slice::from_ref(&cell.dir), stop);
+    finished.store(true, Ordering::SeqCst);
+    let _ = watcher.join();
+    if !timed_out.load(Ordering::SeqCst) || interrupted.load(Ordering::SeqCst) {
+        return result;
+    }
+    let mut cfg = TrainConfig::load(&cell.dir)?;
+    let ck = checkpoint_dir(&cell.dir);
+    let reached =
+        if checkpoint_exists(&ck) { peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("cell {}: {e}", cell.id))?.counters.t_env } else { 0 };
+    if reached == 0 {
+        bail!(
+            "cell {}: no checkpoint within the campaign's limit of {}: lower run.checkpoint_interval or raise max_cell_hours",
+            cell.id,
+            duration(limit)
+        );
+    }
+    let r = Reduced {
+        planned_steps: cfg.run.steps,
+        steps: reached,
+        reason: format!("still training at the campaign's limit of {}; its last checkpoint was at {reached} steps", duration(limit)),
+    };
+    eprintln!("lmac: campaign: cell {} reduced: {}", cell.id, r.reason);
+    std::fs::write(cell.dir.join("reduced.json"), serde_json::to_string_pretty(&r)?)?;
+    cfg.run.steps = reached;
+    std::fs::write(cell.dir.join("config.toml"), toml::to_string_pretty(&cfg)?)?;
+    // Now finished at its new step count: the final evaluation of its best checkpoint.
+    train_dirs(std::slice::from_ref(&cell.dir), interrupted)
+}
+
+/// Hand the cells to Ray: `python -m lmac_sweep.campaign` runs `lmac campaign cell` for each as
+/// a Ray task (in this order) and waits for them.
+fn run_on_ray(c: &Campaign, cells: &[Cell], address: &str, cpus_per_cell: f64) -> Result<i32> {
+    if cells.is_empty() {
+        eprintln!("lmac: campaign: nothing left to train");
+        return Ok(0);
+    }
+    let lmac = std::env::current_exe()?;
+    let mut cmd = lmac_run::supervisor::python_command()?;
+    cmd.args(["-m", "lmac_sweep.campaign", "--address", address, "--cpus-per-cell", &cpus_per_cell.to_string()])
+        .arg("--lmac")
+        .arg(&lmac)
+        .arg("--file")
+        .arg(std::fs::canonicalize(&c.file)?)
+        .arg("--out")
+        .arg(std::fs::canonicalize(&c.out)?);
+    for cell in cells {
+        cmd.arg(&cell.id);
+    }
+    eprintln!("lmac: campaign: {} cells to Ray at {address} ({cpus_per_cell} CPUs each)", cells.len());
+    let status = cmd.status().context("starting python -m lmac_sweep.campaign")?;
+    eprintln!("lmac: campaign: {}", Status::read(c)?.summary());
+    Ok(status.code().unwrap_or(1))
+}
+
+/// The files of a run that a results page and `lmac report` read.
+const EXPORTED: [&str; 5] = ["config.toml", "metrics.csv", "metrics.jsonl", "marl_eval.json", "reduced.json"];
+
+/// Copy the small files of every cell trained so far into `to`, in the same tree.
+fn export_tree(c: &Campaign, to: &Path) -> Result<()> {
+    let mut n = 0;
+    for cell in c.cells() {
+        if !cell.dir.join("metrics.jsonl").exists() {
+            continue;
+        }
+        let rel = cell.dir.strip_prefix(&c.out).expect("cells live under the tree");
+        let dest = to.join(rel);
+        std::fs::create_dir_all(&dest)?;
+        for f in EXPORTED {
+            let src = cell.dir.join(f);
+            if src.exists() {
+                std::fs::copy(&src, dest.join(f)).with_context(|| format!("copying {}", src.display()))?;
+            }
+        }
+        let eval = cell.dir.join("evaluations").join("final.result.json");
+        if eval.exists() {
+            std::fs::create_dir_all(dest.join("evaluations"))?;
+            std::fs::copy(&eval, dest.join("evaluations").join("final.result.json"))?;
+        }
+        n += 1;
+    }
+    // experiment.json of each (stage, task), so the copy is a campaign tree too.
+    for st in &c.spec.stages {
+        for task in &st.tasks {
+            let rel = PathBuf::from(&st.name).join(env_dir_name(task)).join("experiment.json");
+            if c.out.join(&rel).exists() {
+                std::fs::create_dir_all(to.join(&rel).parent().expect("a parent"))?;
+                std::fs::copy(c.out.join(&rel), to.join(&rel))?;
+            }
+        }
+    }
+    eprintln!("lmac: campaign: copied {n} cells' files to {}", to.display());
+    Ok(())
+}
+
+/// The results page and its JSON: one table per stage, a row per task and method.
+fn report(c: &Campaign) -> Result<(String, serde_json::Value)> {
+    let mut md = format!("# {}\n\n", c.spec.campaign.title);
+    md.push_str(&format!(
+        "Generated by `lmac campaign report {}` from the runs under `{}`. Ours: each run's last 5 test phases averaged, then mean ± sample SD over the seeds trained so far, with every seed's value (a cell is one method, task and seed). Schedule, steps, seeds and design are given per stage and row.\n\n",
+        c.file.display(),
+        c.out.display()
+    ));
+    if let Some(n) = &c.spec.campaign.notes {
+        md.push_str(n.trim());
+        md.push_str("\n\n");
+    }
+    let mut json_rows = Vec::new();
+    for st in &c.spec.stages {
+        let steps = st.steps.get()?;
+        let preset = c.spec.campaign.preset.as_deref().unwrap_or("none");
+        let sets: Vec<&String> = c.spec.campaign.set.iter().chain(&st.set).collect();
+        md.push_str(&format!(
+            "## Stage {}: {} steps, seeds {:?}, preset {preset}{}{}\n\n",
+            st.name,
+            steps,
+            st.seeds,
+            if sets.is_empty() {
+                String::new()
+            } else {
+                format!(", settings {}", sets.iter().map(|s| format!("`{s}`")).collect::<Vec<_>>().join(" "))
+            },
+            st.design.as_ref().map(|d| format!(", LMAC's design: {d}")).unwrap_or_default(),
+        ));
+        md.push_str(
+            "| task | method | seeds done | ours: win rate | ours: return | reference at these steps | ours − reference | schedule |\n",
+        );
+        md.push_str("| --- | --- | --- | --- | --- | --- | --- | --- |\n");
+        // (task, method, ours, reference) on the reference's metric, for the orderings below.
+        let mut compared: Vec<(String, String, f64, f64)> = Vec::new();
+        for task in &st.tasks {
+            for algo in &st.algos {
+                let cells: Vec<Cell> = c.cells().into_iter().filter(|x| x.stage == st.name && &x.task == task && &x.algo == algo).collect();
+                let mut trained = Vec::new();
+                let mut notes = Vec::new();
+                for cell in &cells {
+                    if !cell.dir.join("metrics.jsonl").exists() {
+                        continue;
+                    }
+                    let state = cell_state(cell).unwrap_or(CellState::Pending);
+                    match &state {
+                        CellState::Finished { .. } => trained.push(cell.dir.clone()),
+                        CellState::Reduced { t_env, planned_steps, .. } => {
+                            notes.push(format!("seed {} reduced to {t_env} of {planned_steps} steps", cell.seed));
+                            trained.push(cell.dir.clone());
+                        }
+                        _ => {}
+                    }
+                }
+                let reference = reference_at(&c.spec.references, task, algo, steps);
+                let seeds_done = format!(
+                    "{}/{}{}",
+                    trained.len(),
+                    cells.len(),
+                    if notes.is_empty() { String::new() } else { format!(" ({})", notes.join("; ")) }
+                );
+                if trained.is_empty() {
+                    let r = reference.as_ref().map(|(v, _)| format!("{v:.3}")).unwrap_or("-".into());
+                    md.push_str(&format!("| {task} | {algo} | {seeds_done} | not trained yet | | {r} | | |\n"));
+                    json_rows.push(
+                        serde_json::json!({"stage": st.name, "task": task, "algo": algo, "seeds": 0, "reference": reference.map(|x| x.0)}),
+                    );
+                    continue;
+                }
+                let row = summarize(algo, algo, &trained)?;
+                let per_seed = |v: &[f64]| v.iter().map(|x| format!("{x:.3}")).collect::<Vec<_>>().join(", ");
+                let wins = &row.final_win_rates;
+                // Envs without wins (LBF) report none: "-", not a measured 0.
+                let win = if row.final_win_rate_mean.is_some() {
+                    format!("{:.3} ± {:.3} ({})", lmac_run::stats::mean(wins), lmac_run::stats::sample_sd(wins), per_seed(wins))
+                } else {
+                    "-".into()
+                };
+                let ret = format!("{:.3} ± {:.3} ({})", row.final_return_mean, row.final_return_std, per_seed(&row.final_returns));
+                let ours_on_metric = reference.as_ref().map(|(_, m)| match m {
+                    Metric::WinRate => lmac_run::stats::mean(wins),
+                    Metric::Return => row.final_return_mean,
+                });
+                let (r, d) = match (&reference, ours_on_metric) {
+                    (Some((v, _)), Some(o)) => {
+                        compared.push((task.clone(), algo.clone(), o, *v));
+                        (format!("{v:.3}"), format!("{:+.3}", o - v))
+                    }
+                    _ => ("-".into(), String::new()),
+                };
+                md.push_str(&format!("| {task} | {algo} | {seeds_done} | {win} | {ret} | {r} | {d} | {} |\n", row.schedule));
+                json_rows.push(serde_json::json!({
+                    "stage": st.name, "task": task, "algo": algo, "steps": steps, "seeds": trained.len(),
+                    "win_rates": wins, "returns": row.final_returns, "reference": reference.map(|x| x.0),
+                    "reduced": notes, "schedule": row.schedule,
+                }));
+            }
+        }
+        md.push('\n');
+        let flips = orderings_that_differ(&compared);
+        if !compared.is_empty() {
+            if flips.is_empty() {
+                md.push_str("Where both exist, our methods rank as the reference's do (pairs the reference separates by more than its 3-point reading precision).\n\n");
+            } else {
+                md.push_str(
+                    "Where our ordering differs from the reference's (pairs it separates by more than its 3-point reading precision):\n\n",
+                );
+                for f in flips {
+                    md.push_str(&format!("- {f}\n"));
+                }
+                md.push('\n');
+            }
+        }
+    }
+    if !c.spec.references.is_empty() {
+        md.push_str("## Reference values\n\n");
+        for r in &c.spec.references {
+            md.push_str(&format!("- {} ({}, at {:?} steps): {}\n", r.task, metric_name(r.metric), r.steps, r.source));
+        }
+    }
+    let status = Status::read(c).map(|s| s.summary()).unwrap_or_else(|e| format!("status unavailable: {e:#}"));
+    md.push_str(&format!("\nProgress when this page was made: {status}.\n"));
+    Ok((md, serde_json::json!({"title": c.spec.campaign.title, "rows": json_rows, "references": c.spec.references})))
+}
+
+/// Seconds as a person reads them: "2.5 h", "14 min", "40 s".
+fn duration(s: f64) -> String {
+    if s >= 5400.0 {
+        format!("{:.1} h", s / 3600.0)
+    } else if s >= 90.0 {
+        format!("{:.0} min", s / 60.0)
+    } else {
+        format!("{s:.0} s")
+    }
+}
+
+/// Pairs of methods on a task that the reference ranks one way, by more than its reading
+/// precision (3 points), and ours the other way.
+fn orderings_that_differ(rows: &[(String, String, f64, f64)]) -> Vec<String> {
+    const PRECISION: f64 = 0.03;
+    let mut out = Vec::new();
+    for (i, a) in rows.iter().enumerate() {
+        for b in &rows[i + 1..] {
+            if a.0 != b.0 {
+                continue;
+            }
+            let (hi, lo) = if a.3 >= b.3 { (a, b) } else { (b, a) };
+            if hi.3 - lo.3 > PRECISION && hi.2 < lo.2 {
+                out.push(format!(
+                    "{}: the reference has {} above {} ({:.3} vs {:.3}); ours has it below ({:.3} vs {:.3})",
+                    hi.0, hi.1, lo.1, hi.3, lo.3, hi.2, lo.2
+                ));
+            }
+        }
+    }
+    out
+}
+
+fn metric_name(m: Metric) -> &'static str {
+    match m {
+        Metric::WinRate => "test win rate",
+        Metric::Return => "test return",
+    }
+}
+
+/// The reference value of a method on a task at exactly these steps, on the reference's scale
+/// brought to ours (a fraction for win rates), with its metric.
+fn reference_at(refs: &[Reference], task: &str, algo: &str, steps: u64) -> Option<(f64, Metric)> {
+    let r = refs.iter().find(|r| r.task == task)?;
+    let k = r.steps.iter().position(|&s| s == steps)?;
+    Some((r.values.get(algo)?[k] / r.scale, r.metric))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::orderings_that_differ;
+
+    fn row(task: &str, algo: &str, ours: f64, reference: f64) -> (String, String, f64, f64) {
+        (task.into(), algo.into(), ours, reference)
+    }
+
+    #[test]
+    fn an_ordering_is_said_to_differ_only_beyond_the_references_precision() {
+        let rows =
+            [row("t", "lmac", 0.14, 0.40), row("t", "qmix", 0.01, 0.09), row("t", "fullcomm", 0.30, 0.41), row("u", "qmix", 0.50, 0.10)];
+        let flips = orderings_that_differ(&rows);
+        // lmac vs fullcomm: 1 point apart in the reference, within its precision: not a flip.
+        // fullcomm vs qmix agree; lmac vs qmix agree; tasks are never compared with each other.
+        assert!(flips.is_empty(), "{flips:?}");
+        let flips = orderings_that_differ(&[row("t", "lmac", 0.10, 0.40), row("t", "qmix", 0.20, 0.09)]);
+        assert_eq!(flips.len(), 1);
+        assert!(
+            flips[0].starts_with("t: the reference has lmac above qmix (0.400 vs 0.090); ours has it below (0.100 vs 0.200)"),
+            "{flips:?}"
+        );
+    }
+}
