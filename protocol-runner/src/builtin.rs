@@ -5,6 +5,7 @@
 use crate::plan::{MessagePlan, StepView};
 
 /// No communication: message columns stay zero.
+#[derive(Clone)]
 pub struct NoMessages;
 
 impl MessagePlan for NoMessages {
@@ -13,6 +14,9 @@ impl MessagePlan for NoMessages {
     }
     fn name(&self) -> String {
         "none".into()
+    }
+    fn fresh(&self) -> Box<dyn MessagePlan> {
+        Box::new(self.clone())
     }
     fn apply(&mut self, step: &mut StepView<'_>) {
         // Reserved but unused columns are kept at zero (the slab starts zeroed; this makes it
@@ -28,6 +32,7 @@ impl MessagePlan for NoMessages {
 }
 
 /// Every agent receives, for every other agent j in order, [obs_j, onehot(j)].
+#[derive(Clone)]
 pub struct FullComm {
     pub n_agents: usize,
     pub obs_dim: usize,
@@ -45,6 +50,9 @@ impl MessagePlan for FullComm {
     }
     fn name(&self) -> String {
         "fullcomm".into()
+    }
+    fn fresh(&self) -> Box<dyn MessagePlan> {
+        Box::new(self.clone())
     }
     fn apply(&mut self, step: &mut StepView<'_>) {
         let (n, od, rw) = (step.n_agents, step.obs_dim, step.row_width());

@@ -36,20 +36,35 @@ pub fn load_phases(files: &[&str], env: &ProtocolEnv) -> Result<Vec<ValidatedPro
     Ok(phases)
 }
 
-/// The message plan of `protocol`: a built-in, or the protocol files compiled into one plan (the
-/// final protocol concatenates the phases). Every process of a run resolves the same spec the
-/// same way; each call returns a fresh plan (its own observation history), so use one per env
-/// server. A plan wider than the schema's message budget is refused here, the one width check
-/// every caller shares.
-pub fn plan_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Box<dyn plan::MessagePlan>, String> {
-    let plan: Box<dyn plan::MessagePlan> = match protocol {
-        ProtocolSpec::None => Box::new(builtin::NoMessages),
-        ProtocolSpec::FullComm => Box::new(builtin::FullComm { n_agents: schema.n_agents, obs_dim: schema.obs_dim }),
+/// A protocol compiled for an environment: its plan, never applied (each ring member takes
+/// `plan.fresh()`), and the task-critical state dims its phases name (sorted, each once).
+pub struct CompiledProtocol {
+    pub plan: Box<dyn plan::MessagePlan>,
+    pub critical_dims: Vec<usize>,
+}
+
+impl CompiledProtocol {
+    /// Message columns the plan writes per agent.
+    pub fn msg_dim(&self) -> usize {
+        self.plan.msg_dim()
+    }
+}
+
+/// Compile `protocol` for `schema`: a built-in, or the protocol files validated as phases and
+/// compiled into one plan (the final protocol concatenates the phases). A plan wider than the
+/// schema's message budget is refused here, the one width check every caller shares. Every
+/// process of a run compiles the same spec the same way, once.
+pub fn compile_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<CompiledProtocol, String> {
+    let (plan, critical_dims): (Box<dyn plan::MessagePlan>, Vec<usize>) = match protocol {
+        ProtocolSpec::None => (Box::new(builtin::NoMessages), Vec::new()),
+        ProtocolSpec::FullComm => (Box::new(builtin::FullComm { n_agents: schema.n_agents, obs_dim: schema.obs_dim }), Vec::new()),
         ProtocolSpec::Files(files) => {
             let env = protocol_env(schema);
             let files: Vec<&str> = files.iter().map(String::as_str).collect();
             let phases = load_phases(&files, &env)?;
-            protocol::compile(&phases, &env).map_err(|e| protocol::errors_to_text(&e))?
+            let critical: std::collections::BTreeSet<usize> = phases.iter().flat_map(|p| p.critical_dims.iter().copied()).collect();
+            let plan = protocol::compile(&phases, &env).map_err(|e| protocol::errors_to_text(&e))?;
+            (plan, critical.into_iter().collect())
         }
     };
     if plan.msg_dim() > schema.message_columns {
@@ -60,5 +75,10 @@ pub fn plan_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Box<dyn p
             schema.message_columns
         ));
     }
-    Ok(plan)
+    Ok(CompiledProtocol { plan, critical_dims })
+}
+
+/// The message plan of `protocol` ([`compile_for`] without the critical dims).
+pub fn plan_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Box<dyn plan::MessagePlan>, String> {
+    compile_for(protocol, schema).map(|c| c.plan)
 }

@@ -33,4 +33,7 @@ pub trait MessagePlan: Send {
     /// Human-readable name for logs (`none`, `fullcomm`, a protocol file's name).
     fn name(&self) -> String;
     fn apply(&mut self, step: &mut StepView<'_>);
+    /// The same plan with no history: what compiling the protocol again would give. A process
+    /// compiles its protocol once and gives each ring member it serves a fresh copy.
+    fn fresh(&self) -> Box<dyn MessagePlan>;
 }

@@ -547,3 +547,36 @@ fn last_nonzero_remembers_within_the_window() {
         assert_close!(msg(&rows, 2, 2, 2, 0, 1), want[t].to_vec());
     }
 }
+
+/// A fresh copy of a plan that has run starts with no history: it writes what a newly compiled
+/// plan writes, step for step, whatever the original saw before.
+#[test]
+fn a_fresh_plan_forgets_the_history_of_the_one_it_was_copied_from() {
+    let env = ProtocolEnv::new(2, 2, 2, 1, 100);
+    let v = json!({
+        "message_design_instruction": "test", "critical_state_dims": [0],
+        "fields": [{"name": "m", "description": "mean of obs 0 over 3 steps", "senders": [0], "receivers": {"agents": [1]},
+                    "value": {"window": {"op": "mean", "k": 3, "of": {"obs": [0]}}}}]
+    });
+    let (n, od) = (2, 2);
+    let mut used = plan_for(v.clone(), &env);
+    let md = used.msg_dim();
+    let at = |x: f32| vec![vec![vec![x, 0.0], vec![0.0, 0.0]]];
+    // The original sees an episode of 10s, mid-episode.
+    for (t, x) in [10.0, 10.0, 10.0].into_iter().enumerate() {
+        step(&mut used, n, od, md, &at(x), &[t == 0], &[0, 0]);
+    }
+    let mut copy = used.fresh();
+    let mut new = plan_for(v.clone(), &env);
+    // Both see the same steps, the first one not an episode start: a plan that kept the 10s
+    // would average them in.
+    for x in [1.0, 2.0, 3.0, 4.0] {
+        let a = step(copy.as_mut(), n, od, md, &at(x), &[false], &[0, 0]);
+        let b = step(&mut new, n, od, md, &at(x), &[false], &[0, 0]);
+        assert_close!(msg(&a, n, od, md, 0, 1), msg(&b, n, od, md, 0, 1));
+    }
+    // And the original, which kept its history, differs on the same steps.
+    let a = step(&mut used, n, od, md, &at(1.0), &[false], &[0, 0]);
+    let b = step(&mut plan_for(v, &env), n, od, md, &at(1.0), &[false], &[0, 0]);
+    assert!(!close(&msg(&a, n, od, md, 0, 1), &msg(&b, n, od, md, 0, 1)), "the original still averages its 10s");
+}

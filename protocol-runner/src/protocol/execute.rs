@@ -226,6 +226,20 @@ impl MessagePlan for ProtocolPlan {
         self.name.clone()
     }
 
+    fn fresh(&self) -> Box<dyn MessagePlan> {
+        // The program and tables as compiled; the run state as before the first step (`ensure`
+        // sizes it then).
+        let mut p = self.clone();
+        p.regs = Vec::new();
+        p.count = Vec::new();
+        p.step = 0;
+        p.num_envs = 0;
+        for c in &mut p.channels {
+            c.ring = Vec::new();
+        }
+        Box::new(p)
+    }
+
     fn apply(&mut self, step: &mut StepView<'_>) {
         let n = self.n_agents;
         assert_eq!(step.n_agents, n, "protocol plan {} was compiled for {n} agents, the step has {}", self.name, step.n_agents);

@@ -65,18 +65,27 @@ pub struct TrainerArgs {
     pub schema: EnvSchema,
     pub n_members: usize,
     pub n_slots: usize,
-    /// Message columns the plan writes (the episode's obs width is obs_dim + msg_used).
-    pub msg_used: usize,
+    /// The run's protocol compiled once in this process: its width sizes the episodes (obs_dim
+    /// + its message columns), its critical dims configure the method, and
+    /// `MessageCheck::Recompute` replays a fresh copy of its plan per member.
+    pub compiled: lmac_protocol_runner::CompiledProtocol,
     /// Stop after this many env steps (counted after warm-up).
     pub env_steps: u64,
     /// Batched steps before the clock starts.
     pub warmup_slots: u64,
     pub startup_timeout: Duration,
     pub verify: Option<MessageCheck>,
-    /// The protocol the runner applies (for `MessageCheck::Recompute`).
+    /// The protocol the runner applies, as given (recorded with a dataset).
     pub protocol: lmac_protocol_runner::ProtocolSpec,
     /// Draw a progress bar on stderr.
     pub progress: bool,
+}
+
+impl TrainerArgs {
+    /// Message columns the plan writes (the episode's obs width is obs_dim + this).
+    pub fn msg_used(&self) -> usize {
+        self.compiled.msg_dim()
+    }
 }
 
 #[derive(Debug, Default, Serialize, Deserialize)]
@@ -365,8 +374,8 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
             Some(format!("layout {p:?} differs from member 0's {:?}", l0.params()))
         } else if p.n_slots != args.n_slots {
             Some(format!("{} slots, the ring has {}", p.n_slots, args.n_slots))
-        } else if p.msg_dim != args.msg_used {
-            Some(format!("{} message columns, the protocol writes {}", p.msg_dim, args.msg_used))
+        } else if p.msg_dim != args.msg_used() {
+            Some(format!("{} message columns, the protocol writes {}", p.msg_dim, args.msg_used()))
         } else {
             None
         };
@@ -376,7 +385,7 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
     }
     let dims = EpisodeDims {
         n_agents: args.schema.n_agents,
-        obs_width: args.schema.obs_dim + args.msg_used,
+        obs_width: args.schema.obs_dim + args.msg_used(),
         state_dim: args.schema.state_dim,
         n_actions: args.schema.n_actions,
     };
@@ -386,7 +395,7 @@ pub fn run(args: &TrainerArgs, actor: &mut dyn Actor) -> Result<TrainerReport, P
     let mut recheck = Vec::new();
     if args.verify == Some(MessageCheck::Recompute) {
         for _ in 0..args.n_members {
-            recheck.push(lmac_protocol_runner::plan_for(&args.protocol, &args.schema).map_err(PipelineError::Protocol)?);
+            recheck.push(args.compiled.plan.fresh());
         }
     }
     let mut asm = Assembler::new(dims, args.schema.episode_limit, args.n_members, l0.num_envs);

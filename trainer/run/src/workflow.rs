@@ -7,7 +7,7 @@
 use crate::pipeline::TrainerReport;
 use crate::supervisor::{self, RunPlan, TrainerJob, TrainerWork};
 use crate::train::evaluate::{EvalResult, EvalSpec};
-use crate::train::TrainConfig;
+use crate::train::{ResolvedRun, TrainConfig};
 use anyhow::{bail, Context, Result};
 use lmac_shm_schema::schema::load_env;
 use std::path::{Path, PathBuf};
@@ -30,6 +30,9 @@ pub struct Pipeline {
     /// Slots in each server's shared-memory slab.
     pub slots: usize,
     pub protocol: lmac_protocol_runner::ProtocolSpec,
+    /// The protocol's message columns when the run was resolved already ([`Pipeline::for_run`]);
+    /// None: [`pipeline_report`] compiles the protocol to learn them.
+    pub msg_dim: Option<usize>,
     /// Env steps the trainer takes (after warm-up).
     pub steps: u64,
     pub seed: u64,
@@ -38,21 +41,23 @@ pub struct Pipeline {
 }
 
 impl Pipeline {
-    /// The pipeline of a training run's config (its env, environments, servers and protocol),
-    /// with the env servers seeded from `seed`; it runs until the trainer child ends it.
-    pub fn for_run(cfg: &TrainConfig, seed: u64) -> Result<Self> {
-        Ok(Pipeline {
+    /// The pipeline of a training run's config (its env, environments, servers and protocol,
+    /// resolved in `run`), with the env servers seeded from `seed`; it runs until the trainer
+    /// child ends it.
+    pub fn for_run(cfg: &TrainConfig, run: &ResolvedRun, seed: u64) -> Self {
+        Pipeline {
             env: cfg.run.env.clone(),
             envs: cfg.run.envs,
             servers: cfg.run.servers,
             // 0 = the default for the environment's schema (pipeline_report applies it).
             sub_batches: (cfg.run.sub_batches != 0).then_some(cfg.run.sub_batches),
             slots: 4,
-            protocol: cfg.protocol()?,
+            protocol: run.protocol.clone(),
+            msg_dim: Some(run.msg_dim()),
             steps: u64::MAX / 4,
             seed,
             startup_timeout: 60.0,
-        })
+        }
     }
 }
 
@@ -68,7 +73,10 @@ pub fn interrupt_flag() -> Arc<AtomicBool> {
 /// trainer does, `env_extra` goes to the env servers' command line.
 pub fn pipeline_report(p: &Pipeline, job: TrainerJob, env_extra: Vec<String>, interrupted: Arc<AtomicBool>) -> Result<TrainerReport> {
     let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
-    let plan = lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?;
+    let msg_dim = match p.msg_dim {
+        Some(m) => m,
+        None => lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?.msg_dim(),
+    };
     if p.envs == 0 || p.servers == 0 || p.slots == 0 {
         bail!("--envs, --servers and --slots must be at least 1");
     }
@@ -83,7 +91,7 @@ pub fn pipeline_report(p: &Pipeline, job: TrainerJob, env_extra: Vec<String>, in
         envs_per_server: p.envs,
         sub_batches,
         slots: p.slots,
-        msg_dim: plan.msg_dim(),
+        msg_dim,
         protocol: p.protocol.clone(),
         seed: p.seed,
         startup_timeout_s: p.startup_timeout,
@@ -137,7 +145,7 @@ pub fn train_dirs_holding(
             None => crate::run_dir::lock(d)?,
         };
         let cfg = TrainConfig::load(d)?;
-        cfg.check()?;
+        let run = cfg.resolve_run()?;
         // Where the run stands: a checkpoint's step, or 0 for a fresh start.
         let ck = crate::train::checkpoint_dir(d);
         let done_t_env = if checkpoint_exists(&ck) {
@@ -175,17 +183,17 @@ pub fn train_dirs_holding(
         let dataset_done = cfg.run.dataset_episodes == 0 || crate::train::dataset_dir(d).exists();
         if done_t_env >= cfg.run.steps && dataset_done {
             eprintln!("lmac: {} seed {}: already finished (t_env {done_t_env} of {})", d.display(), cfg.learn.seed, cfg.run.steps);
-            final_evaluation(d, &cfg, interrupted.clone())?;
+            final_evaluation(d, &cfg, &run, interrupted.clone())?;
             continue;
         }
         eprintln!("lmac: {} {} seed {} -> {}", cfg.run.env, cfg.run.algo, cfg.learn.seed, d.display());
         // A resumed segment's environments start from other seeds than the first segment's (else
         // it would replay the same episodes).
-        let p = Pipeline::for_run(&cfg, cfg.learn.seed + done_t_env)?;
+        let p = Pipeline::for_run(&cfg, &run, cfg.learn.seed + done_t_env);
         let job =
             TrainerJob { warmup: 1, progress: true, work: TrainerWork::Train { dir: std::fs::canonicalize(d)? }, ..Default::default() };
         pipeline_report(&p, job, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
-        final_evaluation(d, &cfg, interrupted.clone())?;
+        final_evaluation(d, &cfg, &run, interrupted.clone())?;
     }
     Ok(())
 }
@@ -196,8 +204,8 @@ pub fn train_dirs_holding(
 /// that fails (a dead env server, a checkpoint whose network the run's settings no longer
 /// describe) is reported and leaves the file unwritten, so a rerun tries again; the training
 /// itself is finished and intact, and the seeds after it go on. Ctrl-C still stops everything.
-fn final_evaluation(d: &Path, cfg: &TrainConfig, interrupted: Arc<AtomicBool>) -> Result<()> {
-    match write_final_evaluation(d, cfg, interrupted.clone()) {
+fn final_evaluation(d: &Path, cfg: &TrainConfig, run: &ResolvedRun, interrupted: Arc<AtomicBool>) -> Result<()> {
+    match write_final_evaluation(d, cfg, run, interrupted.clone()) {
         Err(e) if !interrupted.load(Ordering::SeqCst) => {
             eprintln!(
                 "lmac: warning: {}: the final evaluation failed, marl_eval.json not written (a rerun tries again): {e:#}",
@@ -209,7 +217,7 @@ fn final_evaluation(d: &Path, cfg: &TrainConfig, interrupted: Arc<AtomicBool>) -
     }
 }
 
-fn write_final_evaluation(d: &Path, cfg: &TrainConfig, interrupted: Arc<AtomicBool>) -> Result<()> {
+fn write_final_evaluation(d: &Path, cfg: &TrainConfig, run: &ResolvedRun, interrupted: Arc<AtomicBool>) -> Result<()> {
     if d.join("marl_eval.json").exists() {
         return Ok(());
     }
@@ -219,7 +227,7 @@ fn write_final_evaluation(d: &Path, cfg: &TrainConfig, interrupted: Arc<AtomicBo
     } else {
         eprintln!("lmac: {} seed {}: final evaluation of the best checkpoint, {episodes} greedy episodes", cfg.run.env, cfg.learn.seed);
         let spec = EvalSpec { episodes, method: toml::Table::new(), best: true };
-        let r = evaluate_run(d, cfg, &spec, "final", EVAL_SEED_OFFSET, interrupted)?;
+        let r = evaluate_run(d, cfg, run, &spec, "final", EVAL_SEED_OFFSET, interrupted)?;
         eprintln!(
             "lmac: {} seed {}: final evaluation ({} checkpoint, t_env {}): return {:.3}, win rate {:.3}",
             cfg.run.env, cfg.learn.seed, r.checkpoint, r.t_env, r.mean_return, r.win_rate
@@ -229,11 +237,13 @@ fn write_final_evaluation(d: &Path, cfg: &TrainConfig, interrupted: Arc<AtomicBo
     crate::train::marl_eval::write_marl_eval(d, cfg, result.as_ref())
 }
 
-/// One evaluation of the run in `d` through the pipeline. The spec and its result stay with
-/// the run: `<seed dir>/evaluations/<name>.json` and `<name>.result.json`.
+/// One evaluation of the run in `d` (its config and its resolution) through the pipeline. The
+/// spec and its result stay with the run: `<seed dir>/evaluations/<name>.json` and
+/// `<name>.result.json`.
 pub fn evaluate_run(
     d: &Path,
     cfg: &TrainConfig,
+    run: &ResolvedRun,
     spec: &EvalSpec,
     name: &str,
     seed_offset: u64,
@@ -250,7 +260,7 @@ pub fn evaluate_run(
     }
     let spec_path = evals.join(format!("{name}.json"));
     crate::safe_fs::write_replace(&spec_path, &serde_json::to_vec(spec)?).context("writing the evaluation")?;
-    let p = Pipeline::for_run(cfg, cfg.learn.seed + seed_offset)?;
+    let p = Pipeline::for_run(cfg, run, cfg.learn.seed + seed_offset);
     let work = TrainerWork::Evaluate { dir: std::fs::canonicalize(d)?, spec: std::fs::canonicalize(&spec_path)? };
     let job = TrainerJob { warmup: 1, work, ..Default::default() };
     pipeline_report(&p, job, vec![], interrupted).with_context(|| format!("evaluating {}", d.display()))?;

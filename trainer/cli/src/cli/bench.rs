@@ -279,8 +279,8 @@ pub(crate) fn bench_train(
             .push(format!("run.protocol={:?}", std::fs::canonicalize(p).with_context(|| format!("--protocol {p}"))?.display().to_string()));
     }
     let cfg = TrainConfig::resolve(None, &overrides)?;
-    let schema = load_env(env).map_err(anyhow::Error::msg)?;
-    let msg = lmac_protocol_runner::plan_for(&cfg.protocol()?, &schema).map_err(anyhow::Error::msg)?.msg_dim();
+    let run = cfg.resolve_run()?;
+    let (schema, msg) = (&run.schema, run.msg_dim());
     let dims = EpisodeDims {
         n_agents: schema.n_agents,
         obs_width: schema.obs_dim + msg,
@@ -290,8 +290,7 @@ pub(crate) fn bench_train(
     // 1. One update on full-length episodes of this environment's sizes (values do not change
     //    the cost of dense math).
     let learn = cfg.effective_learn()?;
-    let agent = cfg.agent_config(&schema, msg)?;
-    let mut learner = Learner::with_agent(dims, learn.clone(), agent, Device::default())?;
+    let mut learner = Learner::with_agent(dims, learn.clone(), run.agent.clone(), Device::default())?;
     let mut rng = LearnRng::seed_from(0);
     let len = schema.episode_limit;
     for _ in 0..2 * learn.batch_size {
@@ -339,7 +338,8 @@ pub(crate) fn bench_train(
             servers,
             sub_batches: None,
             slots: 4,
-            protocol: cfg.protocol()?,
+            protocol: run.protocol.clone(),
+            msg_dim: Some(msg),
             steps,
             seed: 0,
             startup_timeout: 60.0,

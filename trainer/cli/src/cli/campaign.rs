@@ -132,6 +132,15 @@ struct Stage {
     /// Settings for this stage's runs, after the campaign's.
     #[serde(default)]
     set: Vec<String>,
+    /// This stage's preset, in place of the campaign's.
+    #[serde(default)]
+    preset: Option<String>,
+}
+
+impl Stage {
+    fn preset<'a>(&'a self, head: &'a Head) -> Option<&'a str> {
+        self.preset.as_deref().or(head.preset.as_deref())
+    }
 }
 
 #[derive(Deserialize, Debug)]
@@ -248,7 +257,7 @@ impl Campaign {
                     env: task.clone(),
                     steps,
                     set: self.spec.campaign.set.iter().chain(&st.set).cloned().collect(),
-                    preset: self.spec.campaign.preset.clone(),
+                    preset: st.preset(&self.spec.campaign).map(str::to_string),
                 };
                 let dir = self.out.join(&st.name).join(env_dir_name(task));
                 claim_dir(&dir, &spec).with_context(|| format!("stage {}, task {task}", st.name))?;
@@ -292,10 +301,14 @@ fn check(f: &CampaignFile) -> Result<()> {
             bail!("campaign.max_cell_hours = {h}: must be a positive number of hours");
         }
     }
-    if let Some(p) = &f.campaign.preset {
-        if !lmac_run::train::PRESETS.iter().any(|(name, _)| name == p) {
-            let names: Vec<&str> = lmac_run::train::PRESETS.iter().map(|(n, _)| *n).collect();
-            bail!("campaign.preset {p:?} is not a preset (one of {})", names.join(", "));
+    let presets = std::iter::once(("campaign.preset".to_string(), &f.campaign.preset))
+        .chain(f.stages.iter().map(|st| (format!("stage {}: preset", st.name), &st.preset)));
+    for (field, p) in presets {
+        if let Some(p) = p {
+            if !lmac_run::train::PRESETS.iter().any(|(name, _)| name == p) {
+                let names: Vec<&str> = lmac_run::train::PRESETS.iter().map(|(n, _)| *n).collect();
+                bail!("{field} {p:?} is not a preset (one of {})", names.join(", "));
+            }
         }
     }
     let mut names = Vec::new();
@@ -660,7 +673,7 @@ fn report(c: &Campaign) -> Result<(String, serde_json::Value)> {
     let mut json_rows = Vec::new();
     for st in &c.spec.stages {
         let steps = st.steps.get()?;
-        let preset = c.spec.campaign.preset.as_deref().unwrap_or("none");
+        let preset = st.preset(&c.spec.campaign).unwrap_or("none");
         let sets: Vec<&String> = c.spec.campaign.set.iter().chain(&st.set).collect();
         md.push_str(&format!(
             "## Stage {}: {} steps, seeds {:?}, preset {preset}{}{}\n\n",

@@ -45,10 +45,9 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
     let code = match c {
         ChildCmd::Runner(o) => {
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
-            let mut plans = (0..o.members)
-                .map(|_| lmac_protocol_runner::plan_for(&o.protocol, &schema))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(anyhow::Error::msg)?;
+            // Compiled once; each ring member gets its own copy (its own history).
+            let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
+            let mut plans: Vec<_> = (0..o.members).map(|_| plan.fresh()).collect();
             let args = RunnerArgs {
                 run: o.run,
                 schema,
@@ -70,7 +69,9 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
             let TrainerJobFile { steps, seed, report: report_to, job } = TrainerJobFile::load(&job)?;
             let TrainerJob { warmup, verify, episodes_out, progress, work } = job;
             let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
-            let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
+            // The one compile in this process: training, evaluation and the message check all
+            // read this.
+            let compiled = lmac_protocol_runner::compile_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
             let check = match o.protocol {
                 lmac_protocol_runner::ProtocolSpec::FullComm => MessageCheck::FullComm,
                 lmac_protocol_runner::ProtocolSpec::None => MessageCheck::None,
@@ -81,7 +82,7 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
                 schema,
                 n_members: o.members,
                 n_slots: o.slots,
-                msg_used: plan.msg_dim(),
+                compiled,
                 env_steps: steps,
                 warmup_slots: warmup,
                 startup_timeout: Duration::from_secs_f64(o.startup_timeout),

@@ -75,11 +75,12 @@ pub(crate) fn evaluate(a: EvaluateArgs) -> Result<i32> {
     let mut results: Vec<EvalResult> = Vec::new();
     for d in &dirs {
         let cfg = TrainConfig::load(d)?;
+        let run = cfg.resolve_run()?;
         for (k, method) in tables.iter().enumerate() {
             let spec = EvalSpec { episodes: a.episodes, method: method.clone(), best: a.best };
             let label = if method.is_empty() { "as trained".to_string() } else { method.to_string().trim().replace('\n', ", ") };
             eprintln!("lmac: evaluating {} ({label}), {} episodes", d.display(), a.episodes);
-            let r = evaluate_run(d, &cfg, &spec, &format!("{stamp}_{k}"), a.seed, interrupted.clone())?;
+            let r = evaluate_run(d, &cfg, &run, &spec, &format!("{stamp}_{k}"), a.seed, interrupted.clone())?;
             println!(
                 "{}  {}  {label}: return {:.3} +- {:.3}, win rate {:.3} ({} episodes, t_env {})",
                 r.algo,

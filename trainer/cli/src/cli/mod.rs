@@ -83,6 +83,7 @@ impl PipelineOpts {
             sub_batches: self.sub_batches,
             slots: self.slots,
             protocol: self.protocol.clone(),
+            msg_dim: None,
             steps: self.steps,
             seed: self.seed,
             startup_timeout: self.startup_timeout,

@@ -7,7 +7,7 @@ use crate::learn::methods::{self, AgentConfig, Messages, MethodContext};
 use crate::learn::LearnConfig;
 use crate::safe_fs::{read_capped, read_text_capped, TEXT_CAP};
 use anyhow::{bail, Context, Result};
-use lmac_protocol_runner::ProtocolSpec;
+use lmac_protocol_runner::{CompiledProtocol, ProtocolSpec};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -352,6 +352,23 @@ pub fn override_value(val: &str) -> toml::Value {
         .unwrap_or_else(|| toml::Value::String(val.to_string()))
 }
 
+/// A run as a process uses it, derived from its config once ([`TrainConfig::resolve_run`]):
+/// the environment's schema, the protocol compiled for it and the method's agent network.
+pub struct ResolvedRun {
+    pub schema: lmac_shm_schema::EnvSchema,
+    pub protocol: ProtocolSpec,
+    /// The compiled protocol; its plan is never applied (each ring member takes `fresh()`).
+    pub compiled: CompiledProtocol,
+    pub agent: AgentConfig,
+}
+
+impl ResolvedRun {
+    /// Message columns after each observation.
+    pub fn msg_dim(&self) -> usize {
+        self.compiled.msg_dim()
+    }
+}
+
 impl TrainConfig {
     /// A run directory's resolved `config.toml`; errors name the file.
     pub fn load(run_dir: &Path) -> Result<TrainConfig> {
@@ -469,8 +486,25 @@ impl TrainConfig {
     }
 
     /// Validate everything: the run, the learner, the protocol against the environment and the
-    /// method's settings.
+    /// method's settings ([`resolve_run`](Self::resolve_run), its result dropped).
     pub fn check(&self) -> Result<()> {
+        self.resolve_run().map(drop)
+    }
+
+    /// Resolve the run once: every field checked, the environment's schema loaded, the
+    /// protocol compiled for it (the one width check) and the method's agent network configured
+    /// against the plan. What a process derives from the config, it takes from here.
+    pub fn resolve_run(&self) -> Result<ResolvedRun> {
+        self.check_fields()?;
+        let schema = lmac_shm_schema::schema::load_env(&self.run.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
+        let protocol = self.protocol()?;
+        let compiled = lmac_protocol_runner::compile_for(&protocol, &schema).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))?;
+        let agent = self.agent_config(&schema, &compiled)?;
+        Ok(ResolvedRun { schema, protocol, compiled, agent })
+    }
+
+    /// The checks of the fields themselves (ranges, the learner, the method's name).
+    fn check_fields(&self) -> Result<()> {
         methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
         self.learn.validate()?;
         let r = &self.run;
@@ -511,10 +545,6 @@ impl TrainConfig {
                 bail!("run.dataset_epsilon: must be in [0, 1], got {e}");
             }
         }
-        let schema = lmac_shm_schema::schema::load_env(&r.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
-        let protocol = self.protocol()?;
-        let plan = lmac_protocol_runner::plan_for(&protocol, &schema).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))?;
-        self.agent_config(&schema, plan.msg_dim())?;
         Ok(())
     }
 
@@ -579,20 +609,15 @@ impl TrainConfig {
     }
 
     /// The method's agent network for this run: its `[method]` settings checked against what
-    /// the environment and the protocol (`msg_cols` message columns) give it.
-    pub fn agent_config(&self, schema: &lmac_shm_schema::EnvSchema, msg_cols: usize) -> Result<AgentConfig> {
+    /// the environment and the compiled protocol (its message columns and critical dims) give it.
+    pub fn agent_config(&self, schema: &lmac_shm_schema::EnvSchema, protocol: &CompiledProtocol) -> Result<AgentConfig> {
         let m = methods::method(&self.run.algo).map_err(|e| anyhow::anyhow!("run.algo: {e}"))?;
-        let protocol = self.protocol()?;
-        let mut critical = std::collections::BTreeSet::new();
-        if let ProtocolSpec::Files(files) = &protocol {
-            let files: Vec<&str> = files.iter().map(String::as_str).collect();
-            let env = lmac_protocol_runner::protocol_env(schema);
-            for phase in lmac_protocol_runner::load_phases(&files, &env).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))? {
-                critical.extend(phase.critical_dims);
-            }
-        }
-        let ctx =
-            MethodContext { msg_cols, alpha: schema.alpha, critical_dims: critical.into_iter().collect(), state_dim: schema.state_dim };
+        let ctx = MethodContext {
+            msg_cols: protocol.msg_dim(),
+            alpha: schema.alpha,
+            critical_dims: protocol.critical_dims.clone(),
+            state_dim: schema.state_dim,
+        };
         (m.configure)(&self.method, &ctx).map_err(|e| anyhow::anyhow!("{}: {e}", m.name))
     }
 }

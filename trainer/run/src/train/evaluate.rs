@@ -113,7 +113,7 @@ pub fn evaluate_in_child(run_dir: &Path, spec_path: &Path, args: &TrainerArgs) -
     }
     let learner = Learner::load_checkpoint(&ck, crate::learn::Device::default()).map_err(|e| anyhow::anyhow!("{}: {e}", ck.display()))?;
     cfg.method.extend(spec.method.clone());
-    let wanted = cfg.agent_config(&args.schema, args.msg_used)?;
+    let wanted = cfg.agent_config(&args.schema, &args.compiled)?;
     let mut agent = learner.acting_net().agent;
     agent.retune(learner.agent_config(), &wanted).map_err(|e| anyhow::anyhow!("{}: {e}", run_dir.display()))?;
 

@@ -24,7 +24,9 @@ mod schedule;
 
 pub use actor::TrainActor;
 pub use checkpoints::{best_checkpoint_dir, checkpoint_dir, read_best_test, refuse_restart_over_metrics, BestTest};
-pub use config::{paper_designs_dir, preset_overrides, preset_then, protocol_files, resolve_paper_spec, RunSection, TrainConfig, PRESETS};
+pub use config::{
+    paper_designs_dir, preset_overrides, preset_then, protocol_files, resolve_paper_spec, ResolvedRun, RunSection, TrainConfig, PRESETS,
+};
 pub use dataset_out::dataset_dir;
 pub use metrics::{read_metrics, CheckpointWritten, Metrics, MetricsResume, MetricsRow};
 pub use run::train_in_child;

@@ -27,13 +27,13 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     let schema = &args.schema;
     let dims = EpisodeDims {
         n_agents: schema.n_agents,
-        obs_width: schema.obs_dim + args.msg_used,
+        obs_width: schema.obs_dim + args.msg_used(),
         state_dim: schema.state_dim,
         n_actions: schema.n_actions,
     };
     let device = crate::learn::Device::default();
     let ck = checkpoint_dir(run_dir);
-    let agent_cfg = cfg.agent_config(schema, args.msg_used)?;
+    let agent_cfg = cfg.agent_config(schema, &args.compiled)?;
     let mut learner = if crate::learn::checkpoint::checkpoint_exists(&ck) {
         let info = crate::learn::checkpoint::peek_checkpoint(&ck).map_err(|e| anyhow::anyhow!("resuming: {e}"))?;
         if info.dims != dims {
