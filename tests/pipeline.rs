@@ -288,7 +288,7 @@ fn cmdline(pid: i32) -> Vec<String> {
 /// and temporary name. The run must succeed and the victim's file stay as it was.
 #[test]
 fn the_trainers_report_is_never_written_through_a_planted_symlink() {
-    use lmac_run::faults::{pipeline_children, Role};
+    use lmac_benches::faults::{pipeline_children, Role};
     let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     // The shared temp directory of this test (TMPDIR), where the report used to go.
     let shared = std::env::temp_dir().join(format!("lmac-symlink-{}", std::process::id()));

@@ -4,8 +4,8 @@
 //! real /dev/shm and iceoryx2.
 
 use iceoryx2::prelude::*;
+use lmac_benches::faults::{alive, pipeline_children, Role};
 use lmac_e2e::harness::{lmac, lmac_shm_files, wait_for};
-use lmac_run::faults::{alive, pipeline_children, Role};
 use lmac_shm_schema::leftovers::{survey, Kind};
 use std::os::unix::process::CommandExt;
 use std::process::{Child, Stdio};

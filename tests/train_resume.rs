@@ -3,8 +3,8 @@
 //! with metrics that continue without a step backwards and with no shared memory left behind.
 //! Runs the release `lmac` binary built by `scripts/setup.sh` (or `$LMAC_BIN`).
 
+use lmac_benches::faults::{metrics_t_env, pipeline_children, Role};
 use lmac_e2e::harness::{lmac, lmac_shm_files, wait_for};
-use lmac_run::faults::{metrics_t_env, pipeline_children, Role};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Stdio};
 use std::sync::Mutex;

@@ -179,7 +179,7 @@ fn dispatch(cli: Cli) -> Result<i32> {
             out,
             json,
         }) => (|| {
-            let mut s = cli::bench_learner::named_shape(&shape)?;
+            let mut s = lmac_benches::learner::named_shape(&shape)?;
             s.batch = batch.unwrap_or(s.batch);
             s.steps = steps.unwrap_or(s.steps);
             s.agents = agents.unwrap_or(s.agents);
@@ -202,13 +202,13 @@ fn dispatch(cli: Cli) -> Result<i32> {
                 anyhow::bail!("--against torch: the PyTorch anchor is pymarl's plain RNN agent; drop --algo to compare with it");
             }
             let method = match algo {
-                Some(name) => Some(cli::bench_learner::MethodUnderTest::new(&name, messages, critical, &method_settings, &s)?),
+                Some(name) => Some(lmac_benches::learner::MethodUnderTest::new(&name, messages, critical, &method_settings, &s)?),
                 None if messages > 0 || critical.is_some() || !method_settings.is_empty() => {
                     anyhow::bail!("--messages, --critical and --method describe a method's input: give --algo")
                 }
                 None => None,
             };
-            cli::bench_learner::bench_learner(cli::bench_learner::LearnerBenchOpts {
+            lmac_benches::learner::bench_learner(lmac_benches::learner::LearnerBenchOpts {
                 shape: s,
                 mixers,
                 method,

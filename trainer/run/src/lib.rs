@@ -6,7 +6,6 @@ pub use lmac_learn as learn;
 pub use lmac_learn::{episode, stats, tune_allocator};
 
 pub mod dataset;
-pub mod faults;
 pub mod pipeline;
 pub mod run_dir;
 pub use lmac_shm_schema::safe_fs;

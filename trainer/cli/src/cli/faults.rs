@@ -1,4 +1,4 @@
-//! `lmac chaos` and `lmac soak` (the work is `lmac_run::faults`).
+//! `lmac chaos` and `lmac soak` (the work is `lmac_benches::faults`).
 
 use super::parse_duration;
 use anyhow::{bail, Context, Result};
@@ -15,7 +15,7 @@ pub(crate) struct ChaosArgs {
     /// before the pipeline is up) or `all` (the three in turn). The first kill is always
     /// `running`, so the run has a checkpoint to resume from.
     #[arg(long, default_value = "running")]
-    mode: lmac_run::faults::ChaosMode,
+    mode: lmac_benches::faults::ChaosMode,
     /// Seconds after a resume within which `startup` kills land (uniformly).
     #[arg(long, default_value_t = 1.5)]
     startup_window: f64,
@@ -68,7 +68,7 @@ pub(crate) struct SoakArgs {
 }
 
 pub(crate) fn chaos(a: ChaosArgs) -> Result<i32> {
-    use lmac_run::faults::{chaos, ChaosOptions};
+    use lmac_benches::faults::{chaos, ChaosOptions};
     let [lo, hi] = a.kill_after[..] else { bail!("--kill-after: give MIN,MAX seconds, e.g. 3,12") };
     if !(lo > 0.0 && hi >= lo) {
         bail!("--kill-after: need 0 < MIN <= MAX, got {lo},{hi}");
@@ -164,7 +164,7 @@ pub(crate) fn soak(a: SoakArgs) -> Result<i32> {
     let buffer = lmac_run::learn::LearnConfig::default().buffer_size as u64;
     let bar = indicatif::ProgressBar::new(a.duration as u64);
     bar.set_style(indicatif::ProgressStyle::with_template("[{elapsed_precise}] {bar:30} {pos}/{len} s {msg}").expect("template"));
-    let r = lmac_run::faults::soak(&args, &out, &a.env, a.duration, a.interval, buffer, |s| {
+    let r = lmac_benches::faults::soak(&args, &out, &a.env, a.duration, a.interval, buffer, |s| {
         bar.set_position(s.wall_s as u64);
         bar.set_message(format!("t_env {} RSS {:.0} MiB, {} fds, {} shm mappings", s.t_env, s.rss_mib, s.open_fds, s.shm_mappings));
     });

@@ -3,7 +3,6 @@
 //! library's [`lmac_run::workflow`].
 
 pub(crate) mod bench;
-pub(crate) mod bench_learner;
 pub(crate) mod campaign;
 pub(crate) mod child;
 pub(crate) mod clean;

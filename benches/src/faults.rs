@@ -7,7 +7,7 @@
 //! Both drive `lmac train` (this executable) as a subprocess, exactly as a user would.
 
 use anyhow::{bail, Context, Result};
-use lmac_learn::stats::quantile;
+use lmac_run::stats::quantile;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 use std::io::{BufRead, BufReader};
@@ -126,7 +126,7 @@ struct Training {
 impl Training {
     /// `lmac train ARGS`, with `fault` (name, value) in its environment (and so its children's).
     fn start(args: &[String], fault: Option<(&str, String)>) -> Result<Training> {
-        let exe = crate::supervisor::self_exe()?;
+        let exe = lmac_run::supervisor::self_exe()?;
         let mut cmd = Command::new(exe);
         if let Some((k, v)) = fault {
             cmd.env(k, v);
@@ -418,7 +418,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
             Some(d) => vec!["--resume".to_string(), d.display().to_string()],
         };
         let mode = o.mode.of_kill(k);
-        use crate::learn::checkpoint::fault;
+        use lmac_run::learn::checkpoint::fault;
         let save_step = (mode == ChaosMode::Save).then(|| fault::EVERY_SAVE[rng.random_range(0..fault::EVERY_SAVE.len())]);
         let mut run = Training::start(&args, save_step.map(|s| (fault::ENV, format!("{s}@1"))))?;
         let t_start = Instant::now();
@@ -444,7 +444,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         let dir = match &seed_dir {
             Some(d) => d.clone(),
             None => {
-                let group = std::fs::read_dir(o.out.join(crate::run_dir::env_dir_name(&o.env)).join("qmix"))?
+                let group = std::fs::read_dir(o.out.join(lmac_run::run_dir::env_dir_name(&o.env)).join("qmix"))?
                     .flatten()
                     .map(|e| e.path())
                     .next()
@@ -465,7 +465,7 @@ pub fn chaos(o: &ChaosOptions, mut progress: impl FnMut(usize, &Kill)) -> Result
         // The first kill waits for the run's first checkpoint too: a run killed before it has
         // one but after logging metrics refuses to restart from step 0 (by design), which
         // would end the chaos on a loaded machine rather than test anything.
-        let has_checkpoint = || crate::learn::checkpoint::checkpoint_exists(crate::train::checkpoint_dir(&dir));
+        let has_checkpoint = || lmac_run::learn::checkpoint::checkpoint_exists(lmac_run::train::checkpoint_dir(&dir));
         while exited_early.is_none()
             && (Instant::now() < deadline || (k == 0 && !has_checkpoint() && t_start.elapsed() < Duration::from_secs(300)))
         {
@@ -730,7 +730,7 @@ pub fn soak(
             bail!("lmac train exited ({st}) during the soak:\n{}", run.text());
         }
         if dir.is_none() {
-            dir = std::fs::read_dir(out.join(crate::run_dir::env_dir_name(env)).join("qmix"))
+            dir = std::fs::read_dir(out.join(lmac_run::run_dir::env_dir_name(env)).join("qmix"))
                 .ok()
                 .and_then(|mut d| d.next())
                 .and_then(|e| e.ok())

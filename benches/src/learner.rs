@@ -18,11 +18,11 @@ use lmac_run::stats::median;
 
 /// The update's shape (batch, steps, agents, input width, actions, state, hidden width): the
 /// learner's own, which its FLOP counts take.
-pub(crate) type Shape = UpdateShape;
+pub type Shape = UpdateShape;
 
 /// Named shapes: `lbf8x8` (LBF 8x8 with the default QMIX settings) and `1o10b` (smaclite
 /// 1o_10b_vs_1r with its designed protocol's messages).
-pub(crate) fn named_shape(name: &str) -> Result<Shape> {
+pub fn named_shape(name: &str) -> Result<Shape> {
     Ok(match name {
         "lbf8x8" => Shape { batch: 32, steps: 25, agents: 2, input: 37, actions: 6, state: 300, hidden: 64 },
         "1o10b" => Shape { batch: 32, steps: 50, agents: 11, input: 108, actions: 16, state: 148, hidden: 64 },
@@ -50,7 +50,7 @@ fn update_flops(shape: &Shape, mixer: MixerKind, cfg: &LearnConfig, method: Opti
 
 /// A method's agent network in place of the plain RNN agent (`--algo`): its configured agent
 /// and what it fixes of the learner.
-pub(crate) struct MethodUnderTest {
+pub struct MethodUnderTest {
     pub name: String,
     pub agent: AgentConfig,
     pub mixer: Option<MixerKind>,
@@ -63,7 +63,7 @@ impl MethodUnderTest {
     /// `name` configured as `lmac train` would (`[method]` settings parsed by the same code),
     /// for an input whose last `messages` observation columns are messages and whose first
     /// `critical` state dims (default all) are task-critical.
-    pub(crate) fn new(name: &str, messages: usize, critical: Option<usize>, settings: &[String], shape: &Shape) -> Result<Self> {
+    pub fn new(name: &str, messages: usize, critical: Option<usize>, settings: &[String], shape: &Shape) -> Result<Self> {
         let spec = methods::method(name).map_err(|e| anyhow::anyhow!("--algo: {e}"))?;
         let obs = dims(shape)?.obs_width;
         if messages >= obs {
@@ -92,7 +92,7 @@ const TWO_CORES: &str = "lmac-two-cores";
 /// What one implementation measured: per-update milliseconds of every round, and the GFLOP/s
 /// that makes of the update's counted FLOPs (see `update_flops`).
 #[derive(Debug, Serialize)]
-pub(crate) struct Figure {
+pub struct Figure {
     pub name: String,
     pub mixer: String,
     pub rounds_ms: Vec<f64>,
@@ -467,7 +467,7 @@ fn profile_update(learner: &mut Learner, k: usize) -> Result<Vec<(&'static str, 
     Ok(phases.into_iter().map(|(p, v)| (p, median(&v))).collect())
 }
 
-pub(crate) struct LearnerBenchOpts {
+pub struct LearnerBenchOpts {
     pub shape: Shape,
     pub mixers: Vec<MixerKind>,
     pub method: Option<MethodUnderTest>,
@@ -483,7 +483,7 @@ pub(crate) struct LearnerBenchOpts {
     pub out: Option<PathBuf>,
 }
 
-pub(crate) fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
+pub fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     // One thread for lmac as for torch: burn's flex backend parallelizes large matmuls on rayon's
     // global pool, which this sizes before its first use.
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
