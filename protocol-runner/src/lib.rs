@@ -37,10 +37,13 @@ pub fn load_phases(files: &[&str], env: &ProtocolEnv) -> Result<Vec<ValidatedPro
 }
 
 /// A protocol compiled for an environment: its plan, never applied (each ring member takes
-/// `plan.fresh()`), and the task-critical state dims its phases name (sorted, each once).
+/// `plan.fresh()`), the task-critical state dims its phases name (sorted, each once) and what is
+/// valid but suspicious about its files (another environment's, an older schema's), each
+/// prefixed by its file.
 pub struct CompiledProtocol {
     pub plan: Box<dyn plan::MessagePlan>,
     pub critical_dims: Vec<usize>,
+    pub warnings: Vec<String>,
 }
 
 impl CompiledProtocol {
@@ -55,16 +58,19 @@ impl CompiledProtocol {
 /// schema's message budget is refused here, the one width check every caller shares. Every
 /// process of a run compiles the same spec the same way, once.
 pub fn compile_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<CompiledProtocol, String> {
-    let (plan, critical_dims): (Box<dyn plan::MessagePlan>, Vec<usize>) = match protocol {
-        ProtocolSpec::None => (Box::new(builtin::NoMessages), Vec::new()),
-        ProtocolSpec::FullComm => (Box::new(builtin::FullComm { n_agents: schema.n_agents, obs_dim: schema.obs_dim }), Vec::new()),
+    let (plan, critical_dims, warnings): (Box<dyn plan::MessagePlan>, Vec<usize>, Vec<String>) = match protocol {
+        ProtocolSpec::None => (Box::new(builtin::NoMessages), Vec::new(), Vec::new()),
+        ProtocolSpec::FullComm => {
+            (Box::new(builtin::FullComm { n_agents: schema.n_agents, obs_dim: schema.obs_dim }), Vec::new(), Vec::new())
+        }
         ProtocolSpec::Files(files) => {
             let env = protocol_env(schema);
-            let files: Vec<&str> = files.iter().map(String::as_str).collect();
-            let phases = load_phases(&files, &env)?;
+            let names: Vec<&str> = files.iter().map(String::as_str).collect();
+            let phases = load_phases(&names, &env)?;
             let critical: std::collections::BTreeSet<usize> = phases.iter().flat_map(|p| p.critical_dims.iter().copied()).collect();
+            let warnings = names.iter().zip(&phases).flat_map(|(f, p)| p.warnings.iter().map(move |w| format!("{f}: {w}"))).collect();
             let plan = protocol::compile(&phases, &env).map_err(|e| protocol::errors_to_text(&e))?;
-            (plan, critical.into_iter().collect())
+            (plan, critical.into_iter().collect(), warnings)
         }
     };
     if plan.msg_dim() > schema.message_columns {
@@ -75,7 +81,7 @@ pub fn compile_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Compil
             schema.message_columns
         ));
     }
-    Ok(CompiledProtocol { plan, critical_dims })
+    Ok(CompiledProtocol { plan, critical_dims, warnings })
 }
 
 /// The message plan of `protocol` ([`compile_for`] without the critical dims).

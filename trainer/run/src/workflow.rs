@@ -124,15 +124,18 @@ pub fn seed_dirs(r: &Path) -> Result<(PathBuf, Vec<PathBuf>)> {
 /// its step target, then evaluate it once ([`final_evaluation`]). A finished run is skipped; an
 /// unfinished one resumes from its checkpoint.
 pub fn train_dirs(dirs: &[PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
-    train_dirs_holding(dirs, Vec::new(), false, interrupted)
+    train_dirs_holding(dirs, Vec::new(), None, false, interrupted)
 }
 
 /// [`train_dirs`] with the locks of some directories already taken (`held[i]` is that of
-/// `dirs[i]`; missing or None: taken here). A run whose `config.toml` differs from the one its
-/// checkpoint was trained with is refused with the differences, unless `allow_changed`.
+/// `dirs[i]`; missing or None: taken here) and, when the caller wrote every config from one
+/// resolved run (seeds apart), that resolution (`resolved`; None: each run is resolved here). A
+/// run whose `config.toml` differs from the one its checkpoint was trained with is refused with
+/// the differences, unless `allow_changed`.
 pub fn train_dirs_holding(
     dirs: &[PathBuf],
     mut held: Vec<Option<crate::run_dir::RunLock>>,
+    resolved: Option<&ResolvedRun>,
     allow_changed: bool,
     interrupted: Arc<AtomicBool>,
 ) -> Result<()> {
@@ -145,7 +148,14 @@ pub fn train_dirs_holding(
             None => crate::run_dir::lock(d)?,
         };
         let cfg = TrainConfig::load(d)?;
-        let run = cfg.resolve_run()?;
+        let own;
+        let run = match resolved {
+            Some(r) => r,
+            None => {
+                own = cfg.resolve_run()?;
+                &own
+            }
+        };
         // Where the run stands: a checkpoint's step, or 0 for a fresh start.
         let ck = crate::train::checkpoint_dir(d);
         let done_t_env = if checkpoint_exists(&ck) {
@@ -183,17 +193,17 @@ pub fn train_dirs_holding(
         let dataset_done = cfg.run.dataset_episodes == 0 || crate::train::dataset_dir(d).exists();
         if done_t_env >= cfg.run.steps && dataset_done {
             eprintln!("lmac: {} seed {}: already finished (t_env {done_t_env} of {})", d.display(), cfg.learn.seed, cfg.run.steps);
-            final_evaluation(d, &cfg, &run, interrupted.clone())?;
+            final_evaluation(d, &cfg, run, interrupted.clone())?;
             continue;
         }
         eprintln!("lmac: {} {} seed {} -> {}", cfg.run.env, cfg.run.algo, cfg.learn.seed, d.display());
         // A resumed segment's environments start from other seeds than the first segment's (else
         // it would replay the same episodes).
-        let p = Pipeline::for_run(&cfg, &run, cfg.learn.seed + done_t_env);
+        let p = Pipeline::for_run(&cfg, run, cfg.learn.seed + done_t_env);
         let job =
             TrainerJob { warmup: 1, progress: true, work: TrainerWork::Train { dir: std::fs::canonicalize(d)? }, ..Default::default() };
         pipeline_report(&p, job, vec![], interrupted.clone()).with_context(|| format!("run {}", d.display()))?;
-        final_evaluation(d, &cfg, &run, interrupted.clone())?;
+        final_evaluation(d, &cfg, run, interrupted.clone())?;
     }
     Ok(())
 }

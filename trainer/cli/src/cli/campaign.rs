@@ -757,8 +757,8 @@ fn report(c: &Campaign) -> Result<(String, serde_json::Value)> {
             }
         }
         md.push('\n');
-        let flips = orderings_that_differ(&compared);
-        if !compared.is_empty() {
+        let (flips, pairs) = orderings_that_differ(&compared);
+        if pairs > 0 {
             if flips.is_empty() {
                 md.push_str("Where both exist, our methods rank as the reference's do (pairs the reference separates by more than its 3-point reading precision).\n\n");
             } else {
@@ -795,16 +795,19 @@ fn duration(s: f64) -> String {
 }
 
 /// Pairs of methods on a task that the reference ranks one way, by more than its reading
-/// precision (3 points), and ours the other way.
-fn orderings_that_differ(rows: &[(String, String, f64, f64)]) -> Vec<String> {
+/// precision (3 points), and ours the other way; and how many pairs it ranks so.
+fn orderings_that_differ(rows: &[(String, String, f64, f64)]) -> (Vec<String>, usize) {
     const PRECISION: f64 = 0.03;
-    let mut out = Vec::new();
+    let (mut out, mut pairs) = (Vec::new(), 0);
     for (i, a) in rows.iter().enumerate() {
         for b in &rows[i + 1..] {
             if a.0 != b.0 {
                 continue;
             }
             let (hi, lo) = if a.3 >= b.3 { (a, b) } else { (b, a) };
+            if hi.3 - lo.3 > PRECISION {
+                pairs += 1;
+            }
             if hi.3 - lo.3 > PRECISION && hi.2 < lo.2 {
                 out.push(format!(
                     "{}: the reference has {} above {} ({:.3} vs {:.3}); ours has it below ({:.3} vs {:.3})",
@@ -813,7 +816,7 @@ fn orderings_that_differ(rows: &[(String, String, f64, f64)]) -> Vec<String> {
             }
         }
     }
-    out
+    (out, pairs)
 }
 
 fn metric_name(m: Metric) -> &'static str {
@@ -843,11 +846,12 @@ mod tests {
     fn an_ordering_is_said_to_differ_only_beyond_the_references_precision() {
         let rows =
             [row("t", "lmac", 0.14, 0.40), row("t", "qmix", 0.01, 0.09), row("t", "fullcomm", 0.30, 0.41), row("u", "qmix", 0.50, 0.10)];
-        let flips = orderings_that_differ(&rows);
+        let (flips, pairs) = orderings_that_differ(&rows);
         // lmac vs fullcomm: 1 point apart in the reference, within its precision: not a flip.
         // fullcomm vs qmix agree; lmac vs qmix agree; tasks are never compared with each other.
         assert!(flips.is_empty(), "{flips:?}");
-        let flips = orderings_that_differ(&[row("t", "lmac", 0.10, 0.40), row("t", "qmix", 0.20, 0.09)]);
+        assert_eq!(pairs, 2, "lmac-qmix and fullcomm-qmix are ranked; one method on u ranks nothing");
+        let (flips, _) = orderings_that_differ(&[row("t", "lmac", 0.10, 0.40), row("t", "qmix", 0.20, 0.09)]);
         assert_eq!(flips.len(), 1);
         assert!(
             flips[0].starts_with("t: the reference has lmac above qmix (0.400 vs 0.090); ours has it below (0.100 vs 0.200)"),

@@ -87,6 +87,8 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
     // The seed directories to run, each with its resolved config.toml.
     // The locks of seed directories this command made (taken before anything was written in them).
     let mut held = Vec::new();
+    // A new group's runs share the resolution made while checking its config (seeds apart).
+    let mut resolved = None;
     let (group, dirs): (std::path::PathBuf, Vec<std::path::PathBuf>) = if let Some(r) = &a.resume {
         seed_dirs(r)?
     } else {
@@ -103,7 +105,7 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
         if let Some(st) = a.steps {
             overrides.push(format!("run.steps={st}"));
         }
-        let mut cfg = TrainConfig::resolve(a.config.as_deref(), &overrides)?;
+        let (mut cfg, mut run) = TrainConfig::resolve_with_run(a.config.as_deref(), &overrides)?;
         // Protocol files by absolute path, so a resumed run finds them from anywhere. A paper
         // design (`paper`, `paper:<task>`) stays as named: it is found in the repository each time.
         let paper = lmac_run::train::resolve_paper_spec(&cfg.run.protocol, &cfg.run.env)? != cfg.run.protocol;
@@ -117,11 +119,12 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
                 Err(_) => absolute(&cfg.run.protocol)?,
             };
         }
-        // Valid but suspicious protocol files (another environment's, or an older schema's); an
-        // invalid protocol is reported by the config check below.
-        for w in cfg.protocol_warnings().unwrap_or_default() {
+        // Valid but suspicious protocol files (another environment's, or an older schema's).
+        for w in &run.compiled.warnings {
             eprintln!("lmac: warning: run.protocol: {w}");
         }
+        // The same files, now by the absolute paths the children are given.
+        run.protocol = cfg.protocol()?;
         // A group directory of this command's own (two launches in the same second get two),
         // and each seed's lock taken before its config is written: no other lmac ever trains a
         // directory with a config it did not write.
@@ -137,10 +140,11 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
             c.save_new_run(&d)?;
             dirs.push(d);
         }
+        resolved = Some(run);
         (group, dirs)
     };
     eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
-    train_dirs_holding(&dirs, held, a.allow_changed, interrupted)?;
+    train_dirs_holding(&dirs, held, resolved.as_ref(), a.allow_changed, interrupted)?;
     plot("plot_runs", &group);
     Ok(0)
 }

@@ -380,6 +380,12 @@ impl TrainConfig {
     /// Read a config file (TOML), apply `key=value` overrides (dotted paths such as
     /// `learn.lr=0.001`, `run.envs=8`), then check it. Errors name the field.
     pub fn resolve(file: Option<&Path>, overrides: &[String]) -> Result<TrainConfig> {
+        Self::resolve_with_run(file, overrides).map(|(cfg, _)| cfg)
+    }
+
+    /// [`resolve`](Self::resolve), with the run's resolution the check made
+    /// ([`resolve_run`](Self::resolve_run)), for a caller that trains it in the same process.
+    pub fn resolve_with_run(file: Option<&Path>, overrides: &[String]) -> Result<(TrainConfig, ResolvedRun)> {
         let mut v: toml::Value = match file {
             Some(p) => toml::from_str(&read_text_capped(p, TEXT_CAP).context("reading the configuration")?)
                 .with_context(|| format!("{}: not valid TOML", p.display()))?,
@@ -416,11 +422,11 @@ impl TrainConfig {
                 anyhow::anyhow!("{origin}: {path}: {e}")
             }
         })?;
-        cfg.check().map_err(|e| anyhow::anyhow!("{origin}: {e:#}"))?;
+        let run = cfg.resolve_run().map_err(|e| anyhow::anyhow!("{origin}: {e:#}"))?;
         cfg.write_method_defaults()?;
         cfg.build = Some(super::build::BuildInfo::current());
         cfg.run.protocol_sha256 = cfg.protocol_digest()?;
-        Ok(cfg)
+        Ok((cfg, run))
     }
 
     /// The SHA-256 (first 16 hex digits) of the run's protocol files' contents in order, or None
@@ -582,19 +588,6 @@ impl TrainConfig {
                 Ok(ProtocolSpec::Files(protocol_files(&spec, self.run.design_k)?))
             }
         }
-    }
-
-    /// What is valid but suspicious about the run's protocol files (designed for another
-    /// environment, or before its schema changed), each naming its file, for the caller to show.
-    pub fn protocol_warnings(&self) -> Result<Vec<String>> {
-        let ProtocolSpec::Files(files) = self.protocol()? else {
-            return Ok(Vec::new());
-        };
-        let schema = lmac_shm_schema::schema::load_env(&self.run.env).map_err(|e| anyhow::anyhow!("run.env: {e}"))?;
-        let env = lmac_protocol_runner::protocol_env(&schema);
-        let refs: Vec<&str> = files.iter().map(String::as_str).collect();
-        let phases = lmac_protocol_runner::load_phases(&refs, &env).map_err(|e| anyhow::anyhow!("run.protocol: {e}"))?;
-        Ok(files.iter().zip(&phases).flat_map(|(f, p)| p.warnings.iter().map(move |w| format!("{f}: {w}"))).collect())
     }
 
     /// The learner config with the method's backbone and inputs applied.
