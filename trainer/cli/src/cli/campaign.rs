@@ -51,16 +51,19 @@ pub(crate) enum CampaignCmd {
     /// What is finished, running or left, and roughly how long the rest takes (from the speed of
     /// the cells trained so far).
     Status {
+        /// The campaign file.
         file: PathBuf,
+        /// The results tree (default: the file's campaign.out).
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Print the cells as JSON (what --ray schedules from).
+        /// Print the cells as JSON: each one's id, directory, state and estimated time left.
         #[arg(long)]
         json: bool,
     },
     /// The results page: per task and method, our last-5-tests score over the seeds trained so
     /// far, beside the [[reference]] values at the same steps, with what is missing said.
     Report {
+        /// The campaign file.
         file: PathBuf,
         /// The results tree to read (default: the file's campaign.out).
         #[arg(long)]
@@ -78,8 +81,11 @@ pub(crate) enum CampaignCmd {
     /// Train one cell (what each Ray task runs).
     #[command(hide = true)]
     Cell {
+        /// The campaign file.
         file: PathBuf,
+        /// The cell's id, `<stage>/<env>/<method>/seed<k>`.
         id: String,
+        /// The results tree (default: the file's campaign.out).
         #[arg(long)]
         out: Option<PathBuf>,
     },
