@@ -1,6 +1,6 @@
 //! `lmac campaign` end to end with tiny budgets on LBF: a two-stage grid created and trained in
 //! order, interrupted and resumed, its status and time left, a cell stopped at the campaign's
-//! time limit and kept as reduced, the results page beside reference values, and bad campaign
+//! time limit and kept as reduced, a failed cell recorded and retried, the results page beside reference values, and bad campaign
 //! files refused with the file and the field named.
 
 use lmac_e2e::harness::{lmac, wait_for};
@@ -161,6 +161,35 @@ fn a_cell_over_the_time_limit_is_kept_as_reduced_and_said_so() {
     assert!(cell.join("marl_eval.json").exists());
     let md = text(&campaign(&dir, &["report", "c.toml"]));
     assert!(md.contains(&format!("seed 0 reduced to {reached} of 200000 steps")), "{md}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_failed_cell_is_recorded_said_so_and_retried_by_the_next_run() {
+    let dir = std::env::temp_dir().join(format!("lmac-campaign-failed-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    campaign_file(&dir, "", "1500");
+    // Env servers that cannot start (a Python that does not exist): the cell fails, the run goes
+    // on to the next cell and ends in failure, and the tree records why.
+    let mut c = lmac();
+    c.args(["campaign", "run", "c.toml", "--max-cells", "1"]).current_dir(&dir).stdin(Stdio::null());
+    let broken = c.env("LMAC_PYTHON", dir.join("no-such-python")).output().unwrap();
+    let t = text(&broken);
+    assert!(!broken.status.success() && t.contains("1 cells failed (rerun to retry them)"), "{t}");
+    let cell = dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/runs/qmix/seed0");
+    let rec: serde_json::Value = serde_json::from_slice(&std::fs::read(cell.join("failed.json")).unwrap()).unwrap();
+    assert!(rec["error"].as_str().unwrap().contains("no-such-python"), "the error names the cause: {rec}");
+    let st = text(&campaign(&dir, &["status", "c.toml"]));
+    assert!(st.contains("FAILED at 0 steps (the next run retries it)") && st.contains("1 failed"), "{st}");
+    let md = text(&campaign(&dir, &["report", "c.toml"]));
+    assert!(md.contains("seed 0 failed: ") && md.contains("no-such-python"), "the page says which seed failed and why: {md}");
+    // Retried with a working Python: trained, and the record is gone.
+    let fixed = campaign(&dir, &["run", "c.toml", "--max-cells", "1"]);
+    assert!(fixed.status.success(), "{}", text(&fixed));
+    assert!(!cell.join("failed.json").exists());
+    let st = text(&campaign(&dir, &["status", "c.toml"]));
+    assert!(st.contains("1 finished") && st.contains("0 failed"), "{st}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

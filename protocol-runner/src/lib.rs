@@ -9,7 +9,26 @@ pub mod spec;
 pub use spec::ProtocolSpec;
 
 use lmac_shm_schema::EnvSchema;
-use protocol::{ProtocolEnv, ValidatedProtocol};
+use protocol::{ProtocolEnv, ValidatedProtocol, ValidationError};
+
+/// Why a protocol could not be loaded or compiled for an environment; each names the file or the
+/// budget at fault, and the validator's errors stay typed for callers that hand them back to an
+/// LLM.
+#[derive(Debug, thiserror::Error)]
+pub enum ProtocolError {
+    /// The file could not be read (missing, not a regular file, too large, not UTF-8).
+    #[error("cannot read protocol file {0}")]
+    Read(String),
+    /// One phase's file does not parse or validate.
+    #[error("{file}:\n{}", protocol::errors_to_text(.errors))]
+    Invalid { file: String, errors: Vec<ValidationError> },
+    /// The phases are valid one by one but do not compile together.
+    #[error("{}", protocol::errors_to_text(.0))]
+    Compile(Vec<ValidationError>),
+    /// The plan writes more message columns than the environment reserves.
+    #[error("protocol {protocol} writes {width} message columns but {env} allows {budget} (its message_columns budget)")]
+    TooWide { protocol: String, width: usize, env: String, budget: usize },
+}
 
 /// What a protocol may use of an environment: its sizes, its message budget (the schema's
 /// `message_columns`) and the meaning of every dimension (for error texts and explanations).
@@ -24,13 +43,14 @@ pub fn protocol_env(schema: &EnvSchema) -> ProtocolEnv {
 }
 
 /// Validate protocol files as consecutive phases (each phase's width counts against the budget
-/// left by the earlier ones). Errors are the validator's text, prefixed by the file.
-pub fn load_phases(files: &[&str], env: &ProtocolEnv) -> Result<Vec<ValidatedProtocol>, String> {
+/// left by the earlier ones). An invalid file's error names it.
+pub fn load_phases(files: &[&str], env: &ProtocolEnv) -> Result<Vec<ValidatedProtocol>, ProtocolError> {
     let mut phases: Vec<ValidatedProtocol> = Vec::new();
     for f in files {
-        let text = protocol::read_protocol_file(std::path::Path::new(f)).map_err(|e| format!("{f}: {e}"))?;
-        let p = protocol::parse_str(&text).map_err(|e| format!("{f}:\n{}", protocol::errors_to_text(&e)))?;
-        let v = protocol::validate_phase(&p, env, &phases).map_err(|e| format!("{f}:\n{}", protocol::errors_to_text(&e)))?;
+        let text = protocol::read_protocol_file(std::path::Path::new(f))?;
+        let invalid = |errors| ProtocolError::Invalid { file: f.to_string(), errors };
+        let p = protocol::parse_str(&text).map_err(invalid)?;
+        let v = protocol::validate_phase(&p, env, &phases).map_err(invalid)?;
         phases.push(v);
     }
     Ok(phases)
@@ -57,7 +77,7 @@ impl CompiledProtocol {
 /// compiled into one plan (the final protocol concatenates the phases). A plan wider than the
 /// schema's message budget is refused here, the one width check every caller shares. Every
 /// process of a run compiles the same spec the same way, once.
-pub fn compile_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<CompiledProtocol, String> {
+pub fn compile_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<CompiledProtocol, ProtocolError> {
     let (plan, critical_dims, warnings): (Box<dyn plan::MessagePlan>, Vec<usize>, Vec<String>) = match protocol {
         ProtocolSpec::None => (Box::new(builtin::NoMessages), Vec::new(), Vec::new()),
         ProtocolSpec::FullComm => {
@@ -69,22 +89,22 @@ pub fn compile_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Compil
             let phases = load_phases(&names, &env)?;
             let critical: std::collections::BTreeSet<usize> = phases.iter().flat_map(|p| p.critical_dims.iter().copied()).collect();
             let warnings = names.iter().zip(&phases).flat_map(|(f, p)| p.warnings.iter().map(move |w| format!("{f}: {w}"))).collect();
-            let plan = protocol::compile(&phases, &env).map_err(|e| protocol::errors_to_text(&e))?;
+            let plan = protocol::compile(&phases, &env).map_err(ProtocolError::Compile)?;
             (plan, critical.into_iter().collect(), warnings)
         }
     };
     if plan.msg_dim() > schema.message_columns {
-        return Err(format!(
-            "protocol {protocol} writes {} message columns but {} allows {} (its message_columns budget)",
-            plan.msg_dim(),
-            schema.name,
-            schema.message_columns
-        ));
+        return Err(ProtocolError::TooWide {
+            protocol: protocol.to_string(),
+            width: plan.msg_dim(),
+            env: schema.name.clone(),
+            budget: schema.message_columns,
+        });
     }
     Ok(CompiledProtocol { plan, critical_dims, warnings })
 }
 
 /// The message plan of `protocol` ([`compile_for`] without the critical dims).
-pub fn plan_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Box<dyn plan::MessagePlan>, String> {
+pub fn plan_for(protocol: &ProtocolSpec, schema: &EnvSchema) -> Result<Box<dyn plan::MessagePlan>, ProtocolError> {
     compile_for(protocol, schema).map(|c| c.plan)
 }

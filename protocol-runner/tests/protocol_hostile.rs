@@ -44,12 +44,12 @@ fn oversized_protocol_files_are_refused_naming_the_file() {
     let f = std::fs::File::create(&path).unwrap();
     // Sparse: the size is what counts, not the bytes.
     f.set_len(MAX_FILE_BYTES + 1).unwrap();
-    let e = read_protocol_file(&path).unwrap_err();
+    let e = read_protocol_file(&path).unwrap_err().to_string();
     assert!(e.contains("huge.json") && e.contains("more than the 16 MiB"), "{e}");
     let env = ProtocolEnv::new(2, 5, 4, 3, 50);
     let errs = check_file(&path, &env).unwrap_err();
     assert_eq!(errs[0].kind, ErrorKind::Io);
-    let e = lmac_protocol_runner::load_phases(&[path.to_str().unwrap()], &env).unwrap_err();
+    let e = lmac_protocol_runner::load_phases(&[path.to_str().unwrap()], &env).unwrap_err().to_string();
     assert!(e.contains("huge.json"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }

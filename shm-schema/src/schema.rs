@@ -397,35 +397,52 @@ pub fn schema_dir() -> Option<PathBuf> {
     None
 }
 
+/// Why an environment's schema could not be found or loaded; each says what and where.
+#[derive(Debug, thiserror::Error)]
+pub enum EnvLookupError {
+    #[error("environment name {0:?} must look like FAMILY:VARIANT")]
+    BadName(String),
+    #[error("cannot find env-server/schemas (set LMAC_SCHEMA_DIR)")]
+    NoSchemaDir,
+    #[error("unknown environment {name:?}: no schema file {} (see `lmac envs`)", .path.display())]
+    Unknown { name: String, path: PathBuf },
+    #[error(transparent)]
+    Invalid(#[from] SchemaErrors),
+    #[error("{}: name: {found:?} does not match the file's place ({expected:?})", .path.display())]
+    Misplaced { path: PathBuf, found: String, expected: String },
+    #[error("{}: {source}", .dir.display())]
+    Io { dir: PathBuf, source: std::io::Error },
+}
+
 /// `lbf:8x8-2p-2f-s1-coop` -> `<schema_dir>/lbf/8x8-2p-2f-s1-coop.toml`
-pub fn schema_path(env_name: &str) -> Result<PathBuf, String> {
+pub fn schema_path(env_name: &str) -> Result<PathBuf, EnvLookupError> {
     let (family, variant) = env_name
         .split_once(':')
         .filter(|(f, v)| !f.is_empty() && !v.is_empty() && !v.contains('/') && !f.contains('/'))
-        .ok_or_else(|| format!("environment name {env_name:?} must look like FAMILY:VARIANT"))?;
-    let dir = schema_dir().ok_or("cannot find env-server/schemas (set LMAC_SCHEMA_DIR)")?;
+        .ok_or_else(|| EnvLookupError::BadName(env_name.to_string()))?;
+    let dir = schema_dir().ok_or(EnvLookupError::NoSchemaDir)?;
     let p = dir.join(family).join(format!("{variant}.toml"));
     if !p.is_file() {
-        return Err(format!("unknown environment {env_name:?}: no schema file {} (see `lmac envs`)", p.display()));
+        return Err(EnvLookupError::Unknown { name: env_name.to_string(), path: p });
     }
     Ok(p)
 }
 
 /// Load an environment's schema by name.
-pub fn load_env(env_name: &str) -> Result<EnvSchema, String> {
+pub fn load_env(env_name: &str) -> Result<EnvSchema, EnvLookupError> {
     let p = schema_path(env_name)?;
-    let s = EnvSchema::load(&p).map_err(|e| e.to_string())?;
+    let s = EnvSchema::load(&p)?;
     if s.name != env_name {
-        return Err(format!("{}: name: {:?} does not match the file's place ({env_name:?})", p.display(), s.name));
+        return Err(EnvLookupError::Misplaced { path: p, found: s.name, expected: env_name.to_string() });
     }
     Ok(s)
 }
 
 /// Every schema file under the schema directory, sorted by name; parse failures are returned too.
-pub fn all_envs() -> Result<Vec<(PathBuf, Result<EnvSchema, SchemaErrors>)>, String> {
-    let dir = schema_dir().ok_or("cannot find env-server/schemas (set LMAC_SCHEMA_DIR)")?;
+pub fn all_envs() -> Result<Vec<(PathBuf, Result<EnvSchema, SchemaErrors>)>, EnvLookupError> {
+    let dir = schema_dir().ok_or(EnvLookupError::NoSchemaDir)?;
     let mut files = Vec::new();
-    for fam in std::fs::read_dir(&dir).map_err(|e| format!("{}: {e}", dir.display()))?.flatten() {
+    for fam in std::fs::read_dir(&dir).map_err(|source| EnvLookupError::Io { dir: dir.clone(), source })?.flatten() {
         if fam.path().is_dir() {
             for f in std::fs::read_dir(fam.path()).into_iter().flatten().flatten() {
                 if f.path().extension().is_some_and(|e| e == "toml") {

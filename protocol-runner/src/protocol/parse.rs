@@ -98,6 +98,6 @@ pub const MAX_FILE_BYTES: u64 = 16 << 20;
 
 /// A protocol file's text, at most [`MAX_FILE_BYTES`], from a regular file only (a FIFO is
 /// refused, not waited on); the error names the file.
-pub fn read_protocol_file(path: &std::path::Path) -> Result<String, String> {
-    lmac_shm_schema::safe_fs::read_text_capped(path, MAX_FILE_BYTES).map_err(|e| format!("cannot read protocol file {e}"))
+pub fn read_protocol_file(path: &std::path::Path) -> Result<String, crate::ProtocolError> {
+    lmac_shm_schema::safe_fs::read_text_capped(path, MAX_FILE_BYTES).map_err(|e| crate::ProtocolError::Read(e.to_string()))
 }

@@ -67,7 +67,7 @@ pub fn check_str(text: &str, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec
 
 /// Read, parse and validate a protocol file.
 pub fn check_file(path: impl AsRef<std::path::Path>, env: &ProtocolEnv) -> Result<ValidatedProtocol, Vec<ValidationError>> {
-    let text = read_protocol_file(path.as_ref()).map_err(|e| vec![ValidationError::new(ErrorKind::Io, "", e)])?;
+    let text = read_protocol_file(path.as_ref()).map_err(|e| vec![ValidationError::new(ErrorKind::Io, "", e.to_string())])?;
     check_str(&text, env)
 }
 

@@ -115,7 +115,7 @@ pub struct SchemaTarget {
 
 impl SchemaTarget {
     fn new() -> Result<Self, String> {
-        let envs = lmac_shm_schema::schema::all_envs()?;
+        let envs = lmac_shm_schema::schema::all_envs().map_err(|e| e.to_string())?;
         let seeds: Vec<String> = envs.iter().filter_map(|(p, _)| std::fs::read_to_string(p).ok()).collect();
         if seeds.is_empty() {
             return Err("no schema files found (set LMAC_SCHEMA_DIR)".into());
@@ -164,7 +164,11 @@ impl ConfigTarget {
     fn new() -> Result<Self, String> {
         let base = TrainConfig::default();
         let mut seeds = vec![toml::to_string(&base).map_err(|e| e.to_string())?];
-        let mut envs: Vec<String> = lmac_shm_schema::schema::all_envs()?.into_iter().filter_map(|(_, s)| s.ok().map(|s| s.name)).collect();
+        let mut envs: Vec<String> = lmac_shm_schema::schema::all_envs()
+            .map_err(|e| e.to_string())?
+            .into_iter()
+            .filter_map(|(_, s)| s.ok().map(|s| s.name))
+            .collect();
         envs.sort();
         for (k, algo) in ["vdn", "qplex", "fullcomm", "qmix-state"].iter().enumerate() {
             let mut c = base.clone();

@@ -187,7 +187,7 @@ pub fn run_design(
     if opts.phases == 0 {
         bail!("--phases: at least 1");
     }
-    let schema = lmac_shm_schema::schema::load_env(&opts.env).map_err(anyhow::Error::msg)?;
+    let schema = lmac_shm_schema::schema::load_env(&opts.env)?;
     let penv = lmac_protocol_runner::protocol_env(&schema);
     // A directory of this design's own, even when another starts in the same second.
     let dir = lmac_run::run_dir::create_unique_dir(

@@ -269,7 +269,12 @@ pub fn run_pipeline(plan: &RunPlan, interrupted: Arc<AtomicBool>) -> Result<RunO
                 .args(&plan.env_server_args)
                 .stdin(Stdio::null());
             stop_with_parent(&mut c);
-            let child = c.spawn().context("starting an env server (python)")?;
+            let child = c.spawn().with_context(|| {
+                format!(
+                    "starting an env server with {} (the Python: $LMAC_PYTHON, else .venv, else python3)",
+                    c.get_program().to_string_lossy()
+                )
+            })?;
             let name = if h == 1 {
                 format!("env server {s} ({})", plan.env)
             } else {

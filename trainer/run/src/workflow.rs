@@ -72,10 +72,10 @@ pub fn interrupt_flag() -> Arc<AtomicBool> {
 /// Start the processes of one pipeline run and return the trainer's report. `job` says what the
 /// trainer does, `env_extra` goes to the env servers' command line.
 pub fn pipeline_report(p: &Pipeline, job: TrainerJob, env_extra: Vec<String>, interrupted: Arc<AtomicBool>) -> Result<TrainerReport> {
-    let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
+    let schema = load_env(&p.env)?;
     let msg_dim = match p.msg_dim {
         Some(m) => m,
-        None => lmac_protocol_runner::plan_for(&p.protocol, &schema).map_err(anyhow::Error::msg)?.msg_dim(),
+        None => lmac_protocol_runner::plan_for(&p.protocol, &schema)?.msg_dim(),
     };
     if p.envs == 0 || p.servers == 0 || p.slots == 0 {
         bail!("--envs, --servers and --slots must be at least 1");

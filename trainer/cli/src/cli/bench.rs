@@ -138,7 +138,7 @@ pub(crate) fn bench_pipeline(p: PipelineOpts, repeat: usize, json: bool) -> Resu
     let p = p.pipeline();
     let interrupted = interrupt_flag();
     let repeat = repeat.max(1);
-    let schema = load_env(&p.env).map_err(anyhow::Error::msg)?;
+    let schema = load_env(&p.env)?;
     let sub_batches = p.sub_batches.unwrap_or_else(|| supervisor::default_sub_batches(&schema, p.envs));
     let m = if p.servers == 1 { bench_interleaved(&p, repeat, interrupted)? } else { bench_separate_runs(&p, repeat, interrupted)? };
     let ratios: Vec<f64> = m.raws.iter().zip(&m.pipes).map(|(r, q)| if *r > 0.0 { q / r } else { 0.0 }).collect();

@@ -44,9 +44,9 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
     let _ = ctrlc::set_handler(lmac_shm_schema::ring::request_stop);
     let code = match c {
         ChildCmd::Runner(o) => {
-            let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
+            let schema = load_env(&o.env)?;
             // Compiled once; each ring member gets its own copy (its own history).
-            let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
+            let plan = lmac_protocol_runner::plan_for(&o.protocol, &schema)?;
             let mut plans: Vec<_> = (0..o.members).map(|_| plan.fresh()).collect();
             let args = RunnerArgs {
                 run: o.run,
@@ -68,10 +68,10 @@ pub(crate) fn child(c: ChildCmd) -> Result<i32> {
         ChildCmd::Trainer { o, job } => {
             let TrainerJobFile { steps, seed, report: report_to, job } = TrainerJobFile::load(&job)?;
             let TrainerJob { warmup, verify, episodes_out, progress, work } = job;
-            let schema = load_env(&o.env).map_err(anyhow::Error::msg)?;
+            let schema = load_env(&o.env)?;
             // The one compile in this process: training, evaluation and the message check all
             // read this.
-            let compiled = lmac_protocol_runner::compile_for(&o.protocol, &schema).map_err(anyhow::Error::msg)?;
+            let compiled = lmac_protocol_runner::compile_for(&o.protocol, &schema)?;
             let check = match o.protocol {
                 lmac_protocol_runner::ProtocolSpec::FullComm => MessageCheck::FullComm,
                 lmac_protocol_runner::ProtocolSpec::None => MessageCheck::None,

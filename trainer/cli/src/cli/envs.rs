@@ -50,7 +50,7 @@ fn pz_command(args: &[&str]) -> Result<std::process::Command> {
 pub(crate) fn envs(check: bool, json: bool) -> Result<i32> {
     let mut rows = Vec::new();
     let mut bad = 0;
-    for (path, r) in all_envs().map_err(anyhow::Error::msg)? {
+    for (path, r) in all_envs()? {
         match r {
             Ok(s) => {
                 if check && place_name(&path).as_deref() != Some(s.name.as_str()) {

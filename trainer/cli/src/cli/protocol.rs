@@ -71,7 +71,7 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
         }
         ProtocolCmd::Check { files, env, dataset } => {
             let files = expand_specs(&files, Some(&env))?;
-            let schema = load_env(&env).map_err(anyhow::Error::msg)?;
+            let schema = load_env(&env)?;
             let penv = lmac_protocol_runner::protocol_env(&schema);
             let refs: Vec<&str> = files.iter().map(|s| s.as_str()).collect();
             match lmac_protocol_runner::load_phases(&refs, &penv) {
@@ -110,11 +110,11 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
             let files = expand_specs(&files, env.as_deref())?;
             let mut ps = Vec::new();
             for f in &files {
-                let text = protocol::read_protocol_file(std::path::Path::new(f)).map_err(anyhow::Error::msg)?;
+                let text = protocol::read_protocol_file(std::path::Path::new(f))?;
                 ps.push(protocol::parse_str(&text).map_err(|e| anyhow::anyhow!("{f}:\n{}", protocol::errors_to_text(&e)))?);
             }
             let penv = match &env {
-                Some(e) => Some(lmac_protocol_runner::protocol_env(&load_env(e).map_err(anyhow::Error::msg)?)),
+                Some(e) => Some(lmac_protocol_runner::protocol_env(&load_env(e)?)),
                 None => None,
             };
             println!("{}", protocol::explain_phases(&ps, penv.as_ref()));
@@ -126,7 +126,7 @@ pub(crate) fn protocol_cmd(c: ProtocolCmd) -> Result<i32> {
             }
             if let (Some(d), Some(e), Some(penv)) = (dataset, env, penv) {
                 let refs: Vec<&str> = files.iter().map(|s| s.as_str()).collect();
-                let phases = lmac_protocol_runner::load_phases(&refs, &penv).map_err(anyhow::Error::msg)?;
+                let phases = lmac_protocol_runner::load_phases(&refs, &penv)?;
                 let dead = dead_fields_on(&d, &e, &phases, &penv)?;
                 println!();
                 println!("{}", dead.join("\n"));
@@ -189,10 +189,10 @@ fn measure(
     seed: u64,
 ) -> Result<i32> {
     use lmac_design::{meta, run, DesignContext};
-    let schema = load_env(env).map_err(anyhow::Error::msg)?;
+    let schema = load_env(env)?;
     let penv = lmac_protocol_runner::protocol_env(&schema);
     let refs: Vec<&str> = files.iter().map(|s| s.as_str()).collect();
-    let phases = lmac_protocol_runner::load_phases(&refs, &penv).map_err(anyhow::Error::msg)?;
+    let phases = lmac_protocol_runner::load_phases(&refs, &penv)?;
     let data = lmac_run::dataset::Dataset::load(dataset).with_context(|| format!("loading the dataset {}", dataset.display()))?;
     if data.header.env != env {
         anyhow::bail!("dataset {} was collected on {}, not {env}", dataset.display(), data.header.env);

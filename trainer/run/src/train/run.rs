@@ -9,7 +9,9 @@ use super::config::TrainConfig;
 use super::dataset_out::save_dataset;
 use super::learner_thread::{learner_loop, Shared, ToLearner};
 use super::metrics::Metrics;
+use super::run_log::RunLog;
 use super::schedule::UpdateSchedule;
+use super::test_phases::TestPhases;
 use crate::episode::EpisodeDims;
 use crate::learn::{Controller, LearnRng, Learner};
 use anyhow::{bail, Result};
@@ -17,7 +19,6 @@ use parking_lot::Mutex;
 use std::path::Path;
 use std::sync::mpsc;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// The trainer child's training entry point: build (or resume) the learner, start its thread,
 /// run the pipeline with the training actor, and finish with a checkpoint.
@@ -99,37 +100,28 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         b.set_position(counters.t_env);
         b
     });
+    let tests = TestPhases::new(
+        args.n_members,
+        envs_per_slab,
+        counters.t_env,
+        cfg.run.test_episodes,
+        cfg.run.test_interval,
+        read_best_test(run_dir),
+    );
+    let log = RunLog::new(metrics, &cfg.run, learn.seed, counters.t_env, earlier.wall_s, bar);
     let mut actor = TrainActor {
-        testing: vec![vec![false; envs_per_slab]; args.n_members],
-        started_tests: vec![vec![std::collections::VecDeque::new(); envs_per_slab]; args.n_members],
-        test_pending: if counters.t_env == 0 { cfg.run.test_episodes } else { 0 },
-        test_returns: Vec::new(),
-        final_test: false,
-        next_test: budget::next_multiple(counters.t_env, cfg.run.test_interval),
-        next_log: budget::next_multiple(counters.t_env, cfg.run.log_interval),
-        log_due: false,
+        tests,
+        log,
         next_checkpoint: budget::next_multiple(counters.t_env, cfg.run.checkpoint_interval),
         t_env: counters.t_env,
         episodes: counters.episodes,
-        train_returns: Vec::new(),
         tx,
         shared: shared.clone(),
         episodes_sent: counters.episodes,
         schedule,
-        metrics,
-        failed: None,
-        started: Instant::now(),
-        wall_offset: earlier.wall_s,
-        t_env_at_start: counters.t_env,
         scratch_first: Vec::new(),
-        bar,
-        last_test_return: None,
-        best_test: read_best_test(run_dir),
-        checkpoints_pending: 0,
         dataset: Vec::new(),
         obs_dim: schema.obs_dim,
-        act_us: Vec::new(),
-        learner_wait: std::time::Duration::ZERO,
         rng: LearnRng::seed_from(learn.seed ^ 0xAC70_0000 ^ counters.t_env),
         controllers,
         dims,
@@ -137,10 +129,10 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
         cfg,
     };
     let result = crate::pipeline::run(args, &mut actor);
-    if let Some(b) = &actor.bar {
+    if let Some(b) = &actor.log.bar {
         b.finish_and_clear();
     }
-    if let Some(line) = actor.acting_summary() {
+    if let Some(line) = actor.log.acting_summary() {
         eprintln!("lmac: trainer: {line}");
     }
     if actor.cfg.run.dataset_episodes > 0 && actor.dataset.len() >= actor.cfg.run.dataset_episodes {
@@ -149,8 +141,8 @@ pub fn train_in_child(run_dir: &Path, args: &crate::pipeline::TrainerArgs, progr
     // Final checkpoint, whatever happened to the pipeline: the learner thread saves on exit.
     drop(std::mem::replace(&mut actor.tx, mpsc::channel().0));
     let joined = learner_thread.join();
-    actor.log_checkpoints();
-    if let Some(e) = &actor.failed {
+    actor.log.log_checkpoints(&actor.shared);
+    if let Some(e) = &actor.log.failed {
         bail!("{e}");
     }
     let s = actor.shared.lock();
