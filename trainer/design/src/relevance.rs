@@ -148,6 +148,11 @@ pub struct Relevance {
     /// how much the return depends on all an agent sees, however its columns correlate.
     #[serde(default)]
     pub groups: Vec<f64>,
+    /// [`measure_actions`] only: each agent's own importance of every state dim (what that
+    /// agent's actions depend on), index [agent][dim]; empty for an agent with too few steps to
+    /// fit, and empty altogether for the return's value model. `importance` is their mean.
+    #[serde(default)]
+    pub per_agent: Vec<Vec<f64>>,
     /// The value model's R^2 on the held-out steps (before any shuffling).
     pub held_out_r2: f64,
     /// The model measured with (the linear one unless the MLP predicted the check episodes
@@ -382,6 +387,7 @@ fn measure_on<'a>(
         return Ok(Relevance {
             importance: vec![0.0; sd],
             groups: vec![0.0; groups.len()],
+            per_agent: Vec::new(),
             held_out_r2: 0.0,
             model: ValueModelKind::Mlp,
             check_r2: Vec::new(),
@@ -507,6 +513,7 @@ fn measure_on<'a>(
     Ok(Relevance {
         importance,
         groups: group_importance,
+        per_agent: Vec::new(),
         held_out_r2: 1.0 - base / var_y,
         model: kind,
         check_r2,
@@ -556,6 +563,7 @@ pub fn measure_actions(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Resu
         out
     };
     let mut importance = vec![0f64; sd];
+    let mut per_agent = vec![Vec::new(); n];
     let (mut r2_sum, mut fitted, mut eval_rows) = (0f64, 0usize, 0usize);
     for (i, tr) in train_rows.iter().enumerate() {
         let te = rows(&test, i);
@@ -612,11 +620,15 @@ pub fn measure_actions(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Resu
             continue;
         }
         let mt = te.len() as f64;
-        for p in 0..sd {
-            let var = (sq[p] / mt - (sum[p] / mt).powi(2)).max(0.0);
-            let b2: f64 = (0..na).map(|k| beta[p * na + k].powi(2)).sum();
-            importance[p] += 2.0 * b2 * var * mt / sst;
-        }
+        let own: Vec<f64> = (0..sd)
+            .map(|p| {
+                let var = (sq[p] / mt - (sum[p] / mt).powi(2)).max(0.0);
+                let b2: f64 = (0..na).map(|k| beta[p * na + k].powi(2)).sum();
+                2.0 * b2 * var * mt / sst
+            })
+            .collect();
+        importance.iter_mut().zip(&own).for_each(|(a, x)| *a += x);
+        per_agent[i] = own;
         r2_sum += 1.0 - sse / sst;
         fitted += 1;
         eval_rows += te.len();
@@ -628,6 +640,7 @@ pub fn measure_actions(data: &Dataset, cfg: &RelevanceConfig, seed: u64) -> Resu
     Ok(Relevance {
         importance,
         groups: Vec::new(),
+        per_agent,
         held_out_r2: r2_sum / fitted as f64,
         model: ValueModelKind::Linear,
         check_r2: Vec::new(),
@@ -729,6 +742,12 @@ mod tests {
         assert!(r.importance[1] > 0.05 && r.importance[2] > 0.05, "{r:?}");
         assert!(r.importance[3] < 0.01 && r.importance[4] < 0.01, "{r:?}");
         assert!(r.held_out_r2 > 0.3, "{r:?}");
+        // Each agent's own dependence: agent 0 acts on its own x (dim 1), not on agent 1's.
+        let own = &r.per_agent;
+        assert!(own[0][1] > 5.0 * own[0][2] && own[1][2] > 5.0 * own[1][1], "{own:?}");
+        for d in 0..sd {
+            assert!((r.importance[d] - (own[0][d] + own[1][d]) / 2.0).abs() < 1e-12, "the mean over agents");
+        }
     }
 
     /// A dataset whose reward depends on state dim 1 only (dims 0 and 2 are noise of the same

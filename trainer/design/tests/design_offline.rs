@@ -353,6 +353,45 @@ fn offline_designer_chooses_what_the_return_depends_on() {
     assert!(measured["relevance"]["what"].as_str().unwrap().starts_with("permutation importance"), "{measured}");
 }
 
+/// Agent 0 acts on hidden value B (action 2 when it is 1 or more, else 0), which only agent 1 sees; agent 1 acts at
+/// random. By the actions, s[3] is critical, and the design log and `measurements()` say that
+/// agent 0 needs it (its actions depend on it and it cannot recover it) and agent 1 supplies it
+/// best; agent 1 needs it hardly at all.
+#[test]
+fn each_agents_need_and_its_supplier_are_measured_and_said() {
+    let mut data = hidden_b_rewarded();
+    for ep in &mut data.episodes {
+        for t in 0..ep.len {
+            ep.actions[t * SYN_N] = if ep.state[t * SYN_SD + 3] >= 1.0 { 2 } else { 0 };
+        }
+    }
+    let schema = synthetic_schema(30);
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    let c = ctx(&schema, &env, &data);
+    let mut designer = OfflineDesigner::new(OfflineConfig {
+        discriminator: quick_disc(),
+        critical_by: CriticalBy::Action,
+        ..OfflineConfig::least_squares_rules()
+    });
+    let p0 = designer.initial(&c).unwrap();
+    assert!(p0.validated.critical_dims.contains(&3), "{}", p0.reasoning);
+    let measured = designer.measurements().unwrap();
+    let needs = measured["needs"].as_array().unwrap();
+    assert_eq!(needs.len(), SYN_N, "{measured}");
+    let of = |agent: usize| needs[agent]["dims"].as_array().unwrap().iter().find(|d| d["dim"] == 3).unwrap().clone();
+    let (a0, a1) = (of(0), of(1));
+    assert_eq!(needs[0]["dims"][0]["dim"], 3, "agent 0 needs hidden value B most: {measured}");
+    assert_eq!(a0["supplier"], 1, "agent 1 sees it: {a0}");
+    assert!(a0["failure"].as_f64().unwrap() > 0.5 && a0["action_dependence"].as_f64().unwrap() > 0.05, "{a0}");
+    assert!(a1["need"].as_f64().unwrap() < a0["need"].as_f64().unwrap() / 5.0, "agent 1 acts at random and sees B: {a1} vs {a0}");
+    let t = designer.transcript();
+    let log = t.iter().find(|e| e.kind == "needs").expect("the needs in the design log");
+    assert!(log.reply.contains("agent 0: s[3] - hidden value B") && log.reply.contains("best recovered by agent 1"), "{}", log.reply);
+    // The ranking is printed by the quantity the choice is made by.
+    let ranking = t.iter().find(|e| e.kind == "relevance").unwrap();
+    assert!(ranking.reply.contains("Dims by relevance x (1 - skill), the order the choice is made in:\n1. s[3]"), "{}", ranking.reply);
+}
+
 /// The return depends on hidden value B, which
 /// only agent 1 sees (its o[2]). Sending all of agent 1's observation raises agent 0's recovery
 /// of s[3]; agent 0's observation tells agent 1 nothing it lacks. So agent 1 is the one

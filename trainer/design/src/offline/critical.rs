@@ -4,6 +4,64 @@ use super::meta_dims::failure;
 use super::{worst, CriticalBy, DesignContext, OfflineDesigner, Targets};
 use crate::meta::{self, Recovery};
 use anyhow::{bail, Context, Result};
+use serde::Serialize;
+
+/// What one agent needs of the task-critical dims, and who can supply each: read from what its
+/// own actions depend on ([`crate::relevance::Relevance::per_agent`]) and how poorly it
+/// recovers each dim from its own observation.
+#[derive(Clone, Debug, Serialize)]
+pub struct AgentNeed {
+    pub agent: usize,
+    /// The critical dims, most needed first.
+    pub dims: Vec<DimNeed>,
+}
+
+/// One agent's need of one critical dim.
+#[derive(Clone, Debug, Serialize)]
+pub struct DimNeed {
+    pub dim: usize,
+    /// How much the agent's own actions depend on the dim: the share of their held-out variance
+    /// lost when the dim is shuffled.
+    pub action_dependence: f64,
+    /// How often the agent fails to recover the dim without messages, relative to a constant
+    /// guess (0: always recovers it, 1: no better than the guess).
+    pub failure: f64,
+    /// `action_dependence x failure`: what a message of the dim is worth to this agent.
+    pub need: f64,
+    /// The other agent that recovers the dim best from its own observation, and its E_t[chi].
+    pub supplier: Option<usize>,
+    pub supplier_recovery: f64,
+}
+
+/// Each agent's need of the `critical` dims and their best supplier. `per_agent` is the
+/// agents' own action dependence ([agent][dim], empty for an agent that could not be fitted);
+/// `r` the recovery without messages, `guess` a constant guess's E_t[chi] in `r`'s order.
+pub(super) fn agent_needs(per_agent: &[Vec<f64>], r: &Recovery, guess: &[f64], critical: &[usize]) -> Vec<AgentNeed> {
+    (0..r.n_agents)
+        .map(|i| {
+            let mut dims: Vec<DimNeed> = critical
+                .iter()
+                .filter_map(|&d| {
+                    let k = r.position(d)?;
+                    let rates = r.rates(k);
+                    let action_dependence = per_agent.get(i).and_then(|v| v.get(d)).copied().unwrap_or(0.0);
+                    let failure = failure(rates[i], guess[k]);
+                    let supplier = (0..r.n_agents).filter(|&j| j != i).max_by(|&a, &b| rates[a].total_cmp(&rates[b]).then(b.cmp(&a)));
+                    Some(DimNeed {
+                        dim: d,
+                        action_dependence,
+                        failure,
+                        need: action_dependence * failure,
+                        supplier,
+                        supplier_recovery: supplier.map_or(0.0, |j| rates[j]),
+                    })
+                })
+                .collect();
+            dims.sort_by(|a, b| b.need.total_cmp(&a.need).then(a.dim.cmp(&b.dim)));
+            AgentNeed { agent: i, dims }
+        })
+        .collect()
+}
 
 impl OfflineDesigner {
     /// Phase 0's targets and critical dims: the no-message discriminator measures every state
@@ -104,6 +162,40 @@ impl OfflineDesigner {
                 )
             })
             .collect();
+        let needs = self
+            .relevance
+            .as_ref()
+            .filter(|(rel, _)| !rel.per_agent.is_empty())
+            .map(|(rel, _)| agent_needs(&rel.per_agent, r, g, &critical));
+        if let Some(needs) = needs {
+            let names = &names;
+            let lines: Vec<String> = needs
+                .iter()
+                .flat_map(|a| {
+                    a.dims.iter().map(move |x| {
+                        format!(
+                            "agent {}: {} - its actions' dependence {:.4} x its failure without messages {:.2} = need {:.4}; {}",
+                            a.agent,
+                            meta::dim_label(x.dim, &names),
+                            x.action_dependence,
+                            x.failure,
+                            x.need,
+                            x.supplier.map_or("no other agent".into(), |j| format!(
+                                "best recovered by agent {j} (E_t[chi] {:.3})",
+                                x.supplier_recovery
+                            ))
+                        )
+                    })
+                })
+                .collect();
+            self.log(
+                0,
+                "needs",
+                "offline designer: what each agent's own actions depend on among the critical dims, how poorly it recovers each without messages, and who recovers it best".into(),
+                lines.join("\n"),
+            );
+            self.needs = needs;
+        }
         self.log(
             0,
             "critical_dims",
@@ -154,11 +246,22 @@ impl OfflineDesigner {
                 rel.model_choice()
             )
         };
-        let ranking: Vec<String> = rel
-            .ranking()
+        // Listed by the quantity the choice is made by, relevance x (1 - skill), so the list
+        // reads top-down as the designer chose; constant dims (no skill) last, by relevance.
+        let mut listed = rel.ranking();
+        listed.sort_by(|&a, &b| {
+            let key = |d: usize| skill_of(d).map(|_| priority(d));
+            key(b)
+                .partial_cmp(&key(a))
+                .unwrap_or(std::cmp::Ordering::Equal)
+                .then(rel.importance[b].total_cmp(&rel.importance[a]))
+                .then(a.cmp(&b))
+        });
+        let ranking: Vec<String> = listed
             .into_iter()
             .take(15)
-            .map(|d| {
+            .enumerate()
+            .map(|(k, d)| {
                 let verdict = match skill_of(d) {
                     None => "not chosen: constant on B".to_string(),
                     Some(_) if chosen.contains(&d) => "CHOSEN: relevant and poorly recovered without messages".into(),
@@ -167,10 +270,12 @@ impl OfflineDesigner {
                     Some(_) => format!("not chosen: beyond the {} dims kept", self.cfg.max_relevant_dims),
                 };
                 format!(
-                    "{}. {}: relevance {:.4}, skill without messages {}; {verdict}",
-                    rel.rank_of(d),
+                    "{}. {}: relevance x (1 - skill) {}, relevance {:.4} (rank {}), skill without messages {}; {verdict}",
+                    k + 1,
                     meta::dim_label(d, &names),
+                    skill_of(d).map_or("-".into(), |_| format!("{:.4}", priority(d))),
                     rel.importance[d],
+                    rel.rank_of(d),
                     skill_of(d).map_or("-".into(), |k| format!("{k:.2}"))
                 )
             })
@@ -179,7 +284,7 @@ impl OfflineDesigner {
             0,
             "relevance",
             "offline designer: fit a value model of the state on B and rank every state dim by its permutation importance".into(),
-            format!("{head}\nMost relevant dims:\n{}", ranking.join("\n")),
+            format!("{head}\nDims by relevance x (1 - skill), the order the choice is made in:\n{}", ranking.join("\n")),
         );
         eprintln!("lmac: offline designer: {head}");
         for line in ranking.iter().take(8) {

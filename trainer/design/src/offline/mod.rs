@@ -87,6 +87,8 @@ pub struct OfflineDesigner {
     /// The first entity phase 0 sent whole ([`ValuesBy::Entity`], [`ValuesBy::Recovery`]), for
     /// [`Phase1By::Frame`].
     sent_entity: Option<SentEntity>,
+    /// Phase 0's need of each agent for the critical dims (with [`CriticalBy::Action`]).
+    needs: Vec<critical::AgentNeed>,
 }
 
 /// An entity phase 0 sent: by whom, which of its values, and its name.
@@ -107,6 +109,7 @@ impl OfflineDesigner {
             guess: Vec::new(),
             gain_scale: 1.0,
             sent_entity: None,
+            needs: Vec::new(),
         }
     }
 
@@ -417,7 +420,8 @@ impl Designer for OfflineDesigner {
                 "eval_rows": r.eval_rows,
                 "top": ranking,
                 "importance": r.importance.iter().map(|x| (x * 1e4).round() / 1e4).collect::<Vec<f64>>(),
-            }
+            },
+            "needs": self.needs,
         }))
     }
 }
