@@ -392,6 +392,40 @@ fn each_agents_need_and_its_supplier_are_measured_and_said() {
     assert!(ranking.reply.contains("Dims by relevance x (1 - skill), the order the choice is made in:\n1. s[3]"), "{}", ranking.reply);
 }
 
+/// The observer-and-actors game (agent 0 sees the goal and cannot act; agents 1 and 2 act on
+/// it and cannot see it; agent 3 is a bystander): routed by need, the observer sends the goal
+/// to the two actors only, never to the bystander (by default it would send to every agent).
+#[test]
+fn routed_by_need_the_observer_sends_the_goal_to_the_actors_only() {
+    let data = observer_and_actors(400, 11);
+    let schema = observer_and_actors_schema();
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    let c = DesignContext { env_name: "synthetic:observer-and-actors", schema: &schema, env: &env, dataset: Some(&data), seed: 5 };
+    let mut designer = OfflineDesigner::new(OfflineConfig {
+        discriminator: quick_disc(),
+        senders_by: lmac_design::offline::SendersBy::Need,
+        receivers_by: lmac_design::offline::ReceiversBy::Need,
+        ..OfflineConfig::default()
+    });
+    let p0 = designer.initial(&c).unwrap();
+    assert!(p0.validated.critical_dims.contains(&0), "the goal is critical: {}", p0.reasoning);
+    let measured = designer.measurements().unwrap();
+    let needs = measured["needs"].as_array().unwrap();
+    let need_of = |i: usize| needs[i]["dims"].as_array().unwrap().iter().map(|x| x["need"].as_f64().unwrap()).sum::<f64>();
+    let least = need_of(1).min(need_of(2));
+    assert!(least > 0.05 && need_of(0) < 0.1 * least && need_of(3) < 0.1 * least, "{measured}");
+    let goal_of = |i: usize| needs[i]["dims"].as_array().unwrap().iter().find(|x| x["dim"] == 0).unwrap().clone();
+    assert_eq!(goal_of(1)["supplier"], 0, "{measured}");
+    let protocol = serde_json::to_value(&p0.protocol).unwrap();
+    assert!(!p0.protocol.fields.is_empty(), "{protocol}");
+    for f in protocol["fields"].as_array().unwrap() {
+        assert_eq!(f["senders"], serde_json::json!([0]), "only the observer sends: {protocol}");
+        let to: Vec<u64> = f["receivers"]["peer"][0]["to"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap()).collect();
+        assert_eq!(to, vec![1, 2], "to the two actors: {protocol}");
+    }
+    assert!(sent_obs(&protocol).contains(&0), "the goal value is sent: {protocol}");
+}
+
 /// The return depends on hidden value B, which
 /// only agent 1 sees (its o[2]). Sending all of agent 1's observation raises agent 0's recovery
 /// of s[3]; agent 0's observation tells agent 1 nothing it lacks. So agent 1 is the one

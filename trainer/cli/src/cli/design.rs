@@ -126,11 +126,17 @@ pub(crate) struct DesignArgs {
     #[arg(long, default_value_t = OfflineConfig::default().relevant_senders, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub(crate) relevant_senders: usize,
     /// How `--fields-by observation-relevance` ranks the senders: `recovery` (how much all an
-    /// agent sees, sent to the others, raises their recovery of the critical dims) or `return`
+    /// agent sees, sent to the others, raises their recovery of the critical dims), `return`
     /// (how much it raises a value model's prediction of the team's return from another agent's
-    /// own observation)
+    /// own observation) or `need` (how much of what the others need of the critical dims it
+    /// recovers better than they do; needs `--critical-by action`)
     #[arg(long, default_value_t = OfflineConfig::default().senders_by)]
     pub(crate) senders_by: lmac_design::offline::SendersBy,
+    /// Whom `--fields-by observation-relevance`'s senders send to: `everyone` (every other
+    /// agent) or `need` (the agents whose own actions depend on critical dims they cannot
+    /// recover alone; needs `--critical-by action`)
+    #[arg(long, default_value_t = OfflineConfig::default().receivers_by)]
+    pub(crate) receivers_by: lmac_design::offline::ReceiversBy,
     /// What of a sender's view `--fields-by observation-relevance` sends: `value` (its values
     /// one by one, most relevant to the return first), `entity` (whole entities of the
     /// schema, e.g. everything the sender sees of the Roach, the entity that matters most to
@@ -229,6 +235,7 @@ pub(crate) fn design_dir(a: &DesignArgs, interrupted: std::sync::Arc<std::sync::
             max_relevant_values: a.relevant_values,
             relevant_senders: a.relevant_senders,
             senders_by: a.senders_by,
+            receivers_by: a.receivers_by,
             values_by: a.values_by,
             phase1_by: a.phase1_by,
             frame_given_own_view: a.frame_given_own_view,

@@ -50,6 +50,8 @@ pub struct OfflineConfig {
     pub relevant_senders: usize,
     /// How [`FieldsBy::ObservationRelevance`] ranks the agents as senders.
     pub senders_by: SendersBy,
+    /// Whom the senders of [`FieldsBy::ObservationRelevance`] (phases 0 and 1) send to.
+    pub receivers_by: ReceiversBy,
     /// What of a sender's view [`FieldsBy::ObservationRelevance`] sends.
     pub values_by: ValuesBy,
     /// How phase 1 (recognition enhancement) chooses its fields.
@@ -146,6 +148,24 @@ pub enum SendersBy {
     /// value model's held-out R^2 of the team's return ([`crate::relevance::receiver_return_gains`]):
     /// what the others need of it for the task, whatever the state's dims.
     Return,
+    /// By what it can supply of what the others need: for each other agent and critical dim,
+    /// that agent's need times how much better this agent recovers the dim without messages
+    /// than that agent does, summed. Needs the actions' models ([`CriticalBy::Action`]); by
+    /// `return` where they were not used.
+    Need,
+}
+
+/// Whom [`FieldsBy::ObservationRelevance`]'s senders send to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ReceiversBy {
+    /// Every other agent.
+    Everyone,
+    /// The agents that need the critical dims: those whose total need (their own actions'
+    /// dependence on each critical dim times their failure to recover it without messages,
+    /// summed over the dims) is at least a tenth of the neediest agent's. Needs the actions'
+    /// models ([`CriticalBy::Action`]); every other agent where they were not used.
+    Need,
 }
 
 /// What of a sender's view [`FieldsBy::ObservationRelevance`] sends.
@@ -214,7 +234,8 @@ macro_rules! option_from_str {
 
 option_from_str!(Phase1By, "least-squares or frame");
 option_from_str!(ValuesBy, "value, entity or recovery");
-option_from_str!(SendersBy, "recovery or return");
+option_from_str!(SendersBy, "recovery, return or need");
+option_from_str!(ReceiversBy, "everyone or need");
 option_from_str!(FieldsBy, "least-squares or observation-relevance");
 option_from_str!(CriticalBy, "relevance, action or recovery");
 
@@ -239,6 +260,7 @@ impl OfflineConfig {
             max_relevant_values: 6,
             relevant_senders: 1,
             senders_by: SendersBy::Recovery,
+            receivers_by: ReceiversBy::Everyone,
             values_by: ValuesBy::Value,
             phase1_by: Phase1By::LeastSquares,
             frame_min_gain: 0.05,

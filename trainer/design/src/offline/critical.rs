@@ -31,6 +31,31 @@ pub struct DimNeed {
     /// The other agent that recovers the dim best from its own observation, and its E_t[chi].
     pub supplier: Option<usize>,
     pub supplier_recovery: f64,
+    /// Every agent's E_t[chi] of the dim without messages.
+    pub recovery: Vec<f64>,
+}
+
+/// Share of the neediest agent's total need an agent must have to receive, with
+/// [`super::ReceiversBy::Need`]: a tenth keeps the agents whose actions visibly depend on what
+/// they miss and drops those whose need is estimation noise.
+const NEEDY_SHARE: f64 = 0.1;
+
+/// The agents that need the critical dims ([`super::ReceiversBy::Need`]), with each agent's
+/// total need; None when no agent needs anything (then everyone receives).
+pub(super) fn needy_agents(needs: &[AgentNeed]) -> Option<(Vec<usize>, Vec<f64>)> {
+    let totals: Vec<f64> = needs.iter().map(|a| a.dims.iter().map(|x| x.need).sum()).collect();
+    let max = totals.iter().copied().fold(0.0, f64::max);
+    (max > 0.0).then(|| ((0..totals.len()).filter(|&i| totals[i] >= NEEDY_SHARE * max).collect(), totals))
+}
+
+/// What agent `j` can supply of what the others need ([`super::SendersBy::Need`]): for each
+/// other agent and critical dim, its need times how much better `j` recovers the dim than it.
+pub(super) fn supply(needs: &[AgentNeed], j: usize) -> f64 {
+    needs
+        .iter()
+        .filter(|a| a.agent != j)
+        .flat_map(|a| a.dims.iter().map(move |x| x.need * (x.recovery[j] - x.recovery[a.agent]).max(0.0)))
+        .sum()
 }
 
 /// Each agent's need of the `critical` dims and their best supplier. `per_agent` is the
@@ -54,6 +79,7 @@ pub(super) fn agent_needs(per_agent: &[Vec<f64>], r: &Recovery, guess: &[f64], c
                         need: action_dependence * failure,
                         supplier,
                         supplier_recovery: supplier.map_or(0.0, |j| rates[j]),
+                        recovery: rates,
                     })
                 })
                 .collect();

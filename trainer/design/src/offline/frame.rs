@@ -17,7 +17,7 @@
 use super::assemble::short;
 use super::candidates::{Candidate, Kind};
 use super::observation_relevance::varies_for;
-use super::select::{self, to_everyone_from, Pick};
+use super::select::{self, receivers_text, to_receivers_from, Pick};
 use super::{DesignContext, OfflineDesigner};
 use anyhow::{Context, Result};
 use lmac_run::dataset::Dataset;
@@ -186,7 +186,12 @@ impl OfflineDesigner {
             min_gain: self.cfg.frame_min_gain,
             given_own_view,
         };
-        let fits = frame_fit(data, j, &sent.values, &candidates, &fit_cfg);
+        let receivers = self.receivers();
+        // Only the receivers phase 0 sends to are placed.
+        let fits: Vec<FrameFit> = frame_fit(data, j, &sent.values, &candidates, &fit_cfg)
+            .into_iter()
+            .filter(|f| receivers.as_ref().is_none_or(|r| !r.iter().any(|&i| i != j) || r.contains(&f.receiver)))
+            .collect();
         // Each value by the share it adds, summed over the receivers it places.
         let mut by_value: BTreeMap<usize, (f64, Vec<usize>)> = BTreeMap::new();
         for f in &fits {
@@ -263,10 +268,13 @@ impl OfflineDesigner {
         let mut picks = Vec::new();
         for &d in &kept {
             let cand = obs_cand(d).context("offline designer: a frame value has no candidate (a bug)")?;
-            picks.push(Pick { cand, links: to_everyone_from(n, j), gain: by_value[&d].0 / (n - 1) as f64 });
+            picks.push(Pick { cand, links: to_receivers_from(n, j, &receivers), gain: by_value[&d].0 / (n - 1) as f64 });
         }
-        let how =
-            format!("{head} Phase 1 sends the {} value(s) that place some receiver, from agent {j} to every other agent.", picks.len());
+        let how = format!(
+            "{head} Phase 1 sends the {} value(s) that place some receiver, from agent {j} to {}.",
+            picks.len(),
+            receivers_text(j, &receivers)
+        );
         Ok(Some((picks, lines, how)))
     }
 }

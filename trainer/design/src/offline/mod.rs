@@ -65,7 +65,7 @@ mod probes;
 mod select;
 use assemble::{fields_from, short};
 use candidates::{kinds_for, probe};
-pub use config::{CriticalBy, FieldsBy, OfflineConfig, Phase1By, SendersBy, ValuesBy};
+pub use config::{CriticalBy, FieldsBy, OfflineConfig, Phase1By, ReceiversBy, SendersBy, ValuesBy};
 pub use frame::{frame_fit, FrameFit, FrameFitConfig};
 use meta_dims::{failure, meta_dims};
 use select::{covariance, prescreen, sample, select, RowSource};
@@ -120,6 +120,16 @@ impl OfflineDesigner {
     /// Phase 0's relevance measurement, once made.
     pub fn relevance(&self) -> Option<&super::relevance::Relevance> {
         self.relevance.as_ref().map(|r| &r.0)
+    }
+
+    /// Whom a sender sends to, by [`OfflineConfig::receivers_by`]: every other agent, or the
+    /// agents that need the critical dims (everyone when the needs were not measured or no agent
+    /// needs anything).
+    fn receivers(&self) -> Option<Vec<usize>> {
+        if self.cfg.receivers_by != ReceiversBy::Need {
+            return None;
+        }
+        critical::needy_agents(&self.needs).map(|x| x.0)
     }
 
     fn log(&mut self, phase: usize, kind: &str, prompt: String, reply: String) {

@@ -4,7 +4,7 @@
 use super::assemble::short;
 use super::candidates::{Candidate, Kind};
 use super::probes::Probe;
-use super::select::{to_everyone_from, Pick};
+use super::select::{receivers_text, to_receivers_from, Pick};
 use super::{DesignContext, OfflineDesigner, SendersBy, SentEntity, ValuesBy};
 use anyhow::{Context, Result};
 
@@ -56,6 +56,14 @@ impl OfflineDesigner {
     ) -> Result<Option<(Vec<Pick>, Vec<String>, String)>> {
         let data = ctx.dataset.context("offline designer: ranking observation values by relevance needs the dataset B")?;
         let (n, od) = (data.header.n_agents, data.header.obs_dim);
+        let receivers = self.receivers();
+        // Senders by need only where the needs were measured (the actions' models were used).
+        let senders_by = if self.cfg.senders_by == SendersBy::Need && self.needs.is_empty() {
+            eprintln!("lmac: offline designer: senders by the return instead of by need: the needs were not measured (the dims were not ranked by the actions)");
+            SendersBy::Return
+        } else {
+            self.cfg.senders_by
+        };
         let entities = ctx.schema.obs_entities();
         let rel = crate::relevance::measure_joint_observation(data, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0001)
             .context("offline designer: measuring each agent's observation values' relevance to the return")?;
@@ -81,7 +89,17 @@ impl OfflineDesigner {
         // Per agent, its whole view sent to the others (SendersBy::Recovery only; the check
         // below reuses it).
         let mut whole_views: Option<Vec<Probe>> = None;
-        let (gains, gain_text): (Vec<f64>, Vec<String>) = match self.cfg.senders_by {
+        let (gains, gain_text): (Vec<f64>, Vec<String>) = match senders_by {
+            SendersBy::Need => {
+                let g: Vec<f64> = (0..n).map(|j| super::critical::supply(&self.needs, j)).collect();
+                let text = g
+                    .iter()
+                    .map(|x| {
+                        format!("it can supply {x:.4} of what the others need (their need x how much better it recovers each critical dim)")
+                    })
+                    .collect();
+                (g, text)
+            }
             SendersBy::Recovery => {
                 let probes = self.whole_view_probes(ctx, critical)?;
                 let g: Vec<f64> = probes.iter().map(|p| p.gain).collect();
@@ -171,7 +189,7 @@ impl OfflineDesigner {
                 for &d in &varying {
                     let cand = obs_cand(d).context("offline designer: a varying value has no candidate (a bug)")?;
                     per_sender[j] += 1;
-                    picks.push(Pick { cand, links: to_everyone_from(n, j), gain: importance(j * od + d) });
+                    picks.push(Pick { cand, links: to_receivers_from(n, j, &receivers), gain: importance(j * od + d) });
                 }
                 let left_out = if cut > 0 {
                     format!(" ({cut} least relevant left out: a sender's block holds {block} values)")
@@ -273,13 +291,14 @@ impl OfflineDesigner {
                         per_sender[j] += 1;
                         picks.push(Pick {
                             cand,
-                            links: to_everyone_from(n, j),
+                            links: to_receivers_from(n, j, &receivers),
                             gain: if by_recovery { x } else { importance(j * od + d) },
                         });
                     }
                     format!(
-                        "CHOSEN: o[{}] sent by this agent to every other agent",
-                        varying.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")
+                        "CHOSEN: o[{}] sent by this agent to {}",
+                        varying.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", "),
+                        receivers_text(j, &receivers)
                     )
                 };
                 lines.push(format!(
@@ -306,8 +325,8 @@ impl OfflineDesigner {
                     format!("not chosen: agent {j}'s block is full ({per_block} values)")
                 } else if let Some(k) = obs_cand(d) {
                     per_sender[j] += 1;
-                    picks.push(Pick { cand: k, links: to_everyone_from(n, j), gain: imp });
-                    "CHOSEN: sent by this agent to every other agent".into()
+                    picks.push(Pick { cand: k, links: to_receivers_from(n, j, &receivers), gain: imp });
+                    format!("CHOSEN: sent by this agent to {}", receivers_text(j, &receivers))
                 } else {
                     "not chosen: constant on the dataset".into()
                 };
@@ -324,7 +343,8 @@ impl OfflineDesigner {
             rel.eval_rows,
             rel.model_choice(),
             senders.len(),
-            match self.cfg.senders_by {
+            match senders_by {
+                SendersBy::Need => "supplies most of what the others need of the critical dims; each sends its values most relevant to the joint observation's value model",
                 SendersBy::Recovery => "sent to the others most raises their recovery of the critical dims; each sends its values most relevant to the joint observation's value model",
                 SendersBy::Return => "most helps the others predict the team's return (a value model on a receiver's observation with and without it); each sends the values of its view that model uses most (their relevance below is in that model)",
             }
@@ -341,7 +361,8 @@ impl OfflineDesigner {
         }
         if picks.is_empty() {
             let reason = if usable && senders.is_empty() {
-                match self.cfg.senders_by {
+                match senders_by {
+                    SendersBy::Need => "no agent can supply what the others need of the critical dims".to_string(),
                     SendersBy::Recovery => {
                         "no agent's observation, sent to the others, raises their recovery of the critical dims".to_string()
                     }

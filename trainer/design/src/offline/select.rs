@@ -434,6 +434,26 @@ pub(super) fn to_everyone_from(n: usize, j: usize) -> Vec<Vec<bool>> {
     (0..n).map(|s| (0..n).map(|i| s == j && i != j).collect()).collect()
 }
 
+/// Links from `j` to `receivers` (but never to itself), or to every other agent when None or
+/// when `receivers` holds no other agent.
+pub(super) fn to_receivers_from(n: usize, j: usize, receivers: &Option<Vec<usize>>) -> Vec<Vec<bool>> {
+    match receivers {
+        Some(r) if r.iter().any(|&i| i != j) => (0..n).map(|s| (0..n).map(|i| s == j && i != j && r.contains(&i)).collect()).collect(),
+        _ => to_everyone_from(n, j),
+    }
+}
+
+/// "every other agent" or "agents 1, 2", for the log.
+pub(super) fn receivers_text(j: usize, receivers: &Option<Vec<usize>>) -> String {
+    match receivers {
+        Some(r) if r.iter().any(|&i| i != j) => {
+            let to: Vec<String> = r.iter().filter(|&&i| i != j).map(|i| i.to_string()).collect();
+            format!("agent(s) {} (those that need the critical dims)", to.join(", "))
+        }
+        _ => "every other agent".into(),
+    }
+}
+
 /// Greedy selection (see the module doc). `w[i][d]`: weight of receiver i and target d.
 pub(super) fn select(
     stats: Stats,

@@ -157,3 +157,71 @@ pub fn ctx<'a>(schema: &'a EnvSchema, env: &'a ProtocolEnv, data: &'a Dataset) -
 pub fn phase_from(text: &str, env: &ProtocolEnv, prev: &[ValidatedProtocol]) -> ValidatedProtocol {
     protocol::validate_phase(&protocol::parse_str(text).unwrap(), env, prev).unwrap()
 }
+
+// ------------------------------------------------------------------------------------------
+// A communication game with a known answer and agents that differ.
+//
+// 4 agents, obs 3, state 4, 3 actions, episodes of 12 steps. Agent 0 is an observer that
+// cannot act (its action is always 0): it sees the goal (o0[0] = s[0] in {0,1,2}, changing
+// now and then). Agents 1 and 2 are actors that cannot see the goal: each sees its own
+// position (o[1] = s[1] or s[2]) and a bit all agents share (o[2] = s[3]). Agent 3 is a
+// bystander: it sees the bit only and does nothing. B's policy (one that saw the state) moves
+// each actor towards the goal: action 2 when the goal is 1 or more, else 0, and the team is
+// rewarded when both do. The right protocol: agent 0 sends o[0] to agents 1 and 2; neither the
+// observer nor the bystander needs anything.
+
+pub const GAME_N: usize = 4;
+pub const GAME_OD: usize = 3;
+pub const GAME_SD: usize = 4;
+
+pub fn observer_and_actors(episodes: usize, seed: u64) -> Dataset {
+    let mut rng = LearnRng::seed_from(seed);
+    let len = 12;
+    let mut eps = Vec::new();
+    for _ in 0..episodes {
+        let mut tr = Trajectory { len, terminated: false, truncated: true, ..Default::default() };
+        let mut goal = rng.below(3) as f32;
+        for _ in 0..len {
+            if rng.uniform() < 0.3 {
+                goal = rng.below(3) as f32;
+            }
+            let (p1, p2, bit) = (rng.below(3) as f32, rng.below(3) as f32, rng.below(2) as f32);
+            tr.obs.extend_from_slice(&[goal, 0.0, bit]);
+            tr.obs.extend_from_slice(&[0.0, p1, bit]);
+            tr.obs.extend_from_slice(&[0.0, p2, bit]);
+            tr.obs.extend_from_slice(&[0.0, 0.0, bit]);
+            tr.state.extend_from_slice(&[goal, p1, p2, bit]);
+            let toward = if goal >= 1.0 { 2 } else { 0 };
+            // The actors follow the goal nine times in ten (B's policy explores).
+            let mut act = || if rng.uniform() < 0.9 { toward } else { rng.below(3) as i32 };
+            let (a1, a2) = (act(), act());
+            tr.actions.extend_from_slice(&[0, a1, a2, 0]);
+            tr.reward.push(if a1 == toward && a2 == toward { 1.0 } else { 0.0 });
+        }
+        eps.push(tr);
+    }
+    Dataset { header: header("synthetic:observer-and-actors", GAME_N, GAME_OD, GAME_SD, 3, len), episodes: eps }
+}
+
+pub fn observer_and_actors_schema() -> EnvSchema {
+    EnvSchema {
+        name: "synthetic:observer-and-actors".into(),
+        task: "An observer that sees the goal but cannot act, two actors that act on it but cannot see it, and a bystander.".into(),
+        n_agents: GAME_N,
+        obs_dim: GAME_OD,
+        state_dim: GAME_SD,
+        n_actions: 3,
+        episode_limit: 12,
+        message_columns: 60,
+        double_buffer: true,
+        alpha: 0.1,
+        reward: "1 when both actors move towards the goal".into(),
+        actions: vec!["stay".into(), "left".into(), "right".into()],
+        obs_dims: vec![
+            group(1, "the goal (the observer only; 0 for the actors)"),
+            group(1, "own position (the actors)"),
+            group(1, "shared bit"),
+        ],
+        state_dims: vec![group(1, "the goal"), group(1, "actor 1's position"), group(1, "actor 2's position"), group(1, "shared bit")],
+    }
+}
