@@ -494,6 +494,19 @@ def generate(name: str, episode_limit: int | None = None, alpha: float = 0.1) ->
                 text += f"; always 0 (padding) for {', '.join(pad)}"
             out.append(_group("obs_dims", hi - lo, text))
             out.append("")
+        # Agents whose spaces differ observe different things: each kind its own meanings, so
+        # no prompt or log names one agent's value with another's meaning.
+        kinds: dict[tuple, list[str]] = {}
+        for a, o in zip(agents, lay.obs):
+            kinds.setdefault((o.dim, tuple(o.shape)), []).append(a)
+        for (dim, shape), who in kinds.items():
+            ids = [agents.index(a) for a in who]
+            out += ["[[agent_obs]]", "name = " + _toml_str(f"EDIT: what {', '.join(who)} are"),
+                    f"agents = [{', '.join(str(i) for i in ids)}]"]
+            out.append(_group("agent_obs.obs_dims", dim, f"EDIT: {', '.join(who)}'s observation {_index_words(shape)}", shape))
+            if dim < lay.obs_dim:
+                out.append(_group("agent_obs.obs_dims", lay.obs_dim - dim, "always 0 (padding to the widest agent's observation)"))
+            out.append("")
     out.append("")
     if lay.has_state:
         shape = tuple(lay.state_space.shape) if lay.state_space is not None and lay.state_space.shape else (lay.state_dim,)

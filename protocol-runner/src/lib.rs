@@ -35,6 +35,9 @@ pub enum ProtocolError {
 pub fn protocol_env(schema: &EnvSchema) -> ProtocolEnv {
     let mut env = ProtocolEnv::new(schema.n_agents, schema.obs_dim, schema.n_actions, schema.state_dim, schema.message_columns);
     env.obs_names = schema.obs_meanings();
+    if schema.agents_differ() {
+        env.agent_obs_names = (0..schema.n_agents).map(|j| schema.obs_meanings_of(j)).collect();
+    }
     env.state_names = schema.state_meanings();
     env.action_names = schema.actions.clone();
     env.env_name = schema.name.clone();

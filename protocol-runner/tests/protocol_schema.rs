@@ -132,3 +132,26 @@ fn explain_shows_the_compact_layout_per_receiver() {
     assert!(text.contains("each receiving agent gets 14 columns"), "{text}");
     assert!(text.contains("Layout (sender_blocks)"), "{text}");
 }
+
+/// Where agents observe different things, a field every agent sends is explained in each
+/// kind of sender's own meanings.
+#[test]
+fn explain_reads_each_senders_values_in_its_own_meanings() {
+    let mut env = ProtocolEnv::new(2, 2, 3, 2, 8);
+    env.obs_names = vec!["shared 0".into(), "shared 1".into()];
+    env.agent_obs_names = vec![vec!["goal colour".into(), "padding".into()], vec!["own velocity".into(), "padding".into()]];
+    let p = parse_str(
+        r#"{"message_design_instruction": "x", "critical_state_dims": [0], "fields": [
+            {"name": "first", "description": "the first value", "senders": "all", "receivers": "broadcast", "value": {"obs": [0]}}]}"#,
+    )
+    .unwrap();
+    let text = explain(&p, Some(&env));
+    assert!(
+        text.contains("value from agent 0: obs[0] (goal colour)") && text.contains("value from agent 1: obs[0] (own velocity)"),
+        "{text}"
+    );
+    // Agents that read alike: one value line, in the shared names.
+    env.agent_obs_names.clear();
+    let text = explain(&p, Some(&env));
+    assert!(text.contains("value: obs[0] (shared 0)"), "{text}");
+}

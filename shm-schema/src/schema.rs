@@ -57,6 +57,25 @@ pub struct EnvSchema {
     pub actions: Vec<String>,
     pub obs_dims: Vec<DimGroup>,
     pub state_dims: Vec<DimGroup>,
+    /// Agents that observe different things (a speaker and a listener padded to one width):
+    /// per kind of agent, which agents and what each of their observation values means. An
+    /// agent listed here reads these meanings in the prompts, `protocol explain` and the
+    /// designer's log; an agent not listed reads `obs_dims`. The entities the designer sends
+    /// stay those of `obs_dims`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub agent_obs: Vec<AgentObs>,
+}
+
+/// The observation of one kind of agent ([`EnvSchema::agent_obs`]).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct AgentObs {
+    /// What these agents are ("speaker").
+    pub name: String,
+    /// The agents (0-based) that observe so.
+    pub agents: Vec<usize>,
+    /// Groups covering all `obs_dim` values, padding included.
+    pub obs_dims: Vec<DimGroup>,
 }
 
 fn double_buffer_default() -> bool {
@@ -209,69 +228,25 @@ impl EnvSchema {
         if self.actions.len() != self.n_actions {
             bad("actions", format!("lists {} action names but n_actions = {}", self.actions.len(), self.n_actions));
         }
-        for (field, groups, dim) in [("obs_dims", &self.obs_dims, self.obs_dim), ("state_dims", &self.state_dims, self.state_dim)] {
-            let mut total = 0usize;
-            // What `expand` will allocate, bounded before anything expands it.
-            let mut text_bytes = 0usize;
-            for (i, g) in groups.iter().enumerate() {
-                let at = format!("{field}[{i}]");
-                if g.count == 0 {
-                    bad(&at, "count must be at least 1".into());
-                }
-                if g.count > MAX_DIM {
-                    // Checked before anything expands the group into one description per dim.
-                    bad(&format!("{at}.count"), format!("{} is more than the supported {MAX_DIM}", g.count));
-                }
-                match g.repeat {
-                    Some(0) => bad(&format!("{at}.repeat"), "must be at least 1".into()),
-                    Some(_) if g.dims().is_none_or(|d| d > MAX_DIM) => {
-                        bad(&format!("{at}.repeat"), format!("count x repeat is more than the supported {MAX_DIM}"))
-                    }
-                    None if g.meaning.contains("{r}") => bad(&at, "meaning uses {r} but the group has no repeat".into()),
-                    _ => {}
-                }
-                if g.meaning.trim().is_empty() {
-                    bad(&at, "meaning is empty: every dimension needs a description".into());
-                }
-                if let Some(shape) = &g.shape {
-                    match shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)) {
-                        Some(prod) if prod == g.count => {}
-                        Some(prod) => bad(&at, format!("shape {shape:?} holds {prod} dimensions but count = {}", g.count)),
-                        None => bad(&at, format!("shape {shape:?} holds more dimensions than fit in memory; count = {}", g.count)),
-                    }
-                }
-                if let Some(labels) = &g.labels {
-                    if labels.len() != g.count {
-                        bad(&at, format!("{} labels for count = {}", labels.len(), g.count));
-                    }
-                } else if g.meaning.contains("{label}") {
-                    bad(&at, "meaning uses {label} but the group has no labels".into());
-                }
-                total = total.saturating_add(g.dims().unwrap_or(usize::MAX));
-                // Each dimension's text: the meaning with {k}, {r} and {iN} as numbers (at most 20
-                // digits each) and {label} as the longest label.
-                let label = g.labels.as_ref().and_then(|l| l.iter().map(String::len).max()).unwrap_or(0);
-                let per_dim = g.meaning.len().saturating_add(g.meaning.matches('{').count().saturating_mul(20 + label));
-                let group_bytes = per_dim.saturating_mul(g.dims().unwrap_or(usize::MAX));
-                let before = text_bytes;
-                text_bytes = text_bytes.saturating_add(group_bytes);
-                // Named once: at the group that crosses the bound.
-                if before <= MAX_MEANING_BYTES && text_bytes > MAX_MEANING_BYTES {
-                    bad(
-                        &format!("{at}.meaning"),
-                        format!(
-                            "the descriptions of {field} expand to more than {} MiB ({} dimensions x {per_dim} bytes in this group); \
-                             shorten the meaning or describe fewer dimensions",
-                            MAX_MEANING_BYTES >> 20,
-                            g.dims().unwrap_or(usize::MAX)
-                        ),
-                    );
+        check_groups("obs_dims", &self.obs_dims, self.obs_dim, "obs_dim", &mut bad);
+        check_groups("state_dims", &self.state_dims, self.state_dim, "state_dim", &mut bad);
+        let mut seen = vec![None::<usize>; self.n_agents];
+        for (i, a) in self.agent_obs.iter().enumerate() {
+            let at = format!("agent_obs[{i}]");
+            if a.name.trim().is_empty() {
+                bad(&format!("{at}.name"), "is empty: say what these agents are".into());
+            }
+            if a.agents.is_empty() {
+                bad(&format!("{at}.agents"), "lists no agent".into());
+            }
+            for &j in &a.agents {
+                match seen.get_mut(j) {
+                    None => bad(&format!("{at}.agents"), format!("agent {j} does not exist (n_agents = {})", self.n_agents)),
+                    Some(Some(first)) => bad(&format!("{at}.agents"), format!("agent {j} is already described by agent_obs[{first}]")),
+                    Some(slot) => *slot = Some(i),
                 }
             }
-            let dim_field = if field == "obs_dims" { "obs_dim" } else { "state_dim" };
-            if total != dim {
-                bad(field, format!("the groups describe {total} dimensions but {dim_field} = {dim}"));
-            }
+            check_groups(&format!("{at}.obs_dims"), &a.obs_dims, self.obs_dim, "obs_dim", &mut bad);
         }
         if errs.is_empty() {
             Ok(())
@@ -295,7 +270,12 @@ impl EnvSchema {
         for (i, a) in self.actions.iter().enumerate() {
             see(format!("actions[{i}]"), a);
         }
-        for (kind, groups) in [("obs_dims", &self.obs_dims), ("state_dims", &self.state_dims)] {
+        let mut lists: Vec<(String, &Vec<DimGroup>)> = vec![("obs_dims".into(), &self.obs_dims), ("state_dims".into(), &self.state_dims)];
+        for (k, a) in self.agent_obs.iter().enumerate() {
+            see(format!("agent_obs[{k}].name"), &a.name);
+            lists.push((format!("agent_obs[{k}].obs_dims"), &a.obs_dims));
+        }
+        for (kind, groups) in lists {
             for (i, g) in groups.iter().enumerate() {
                 see(format!("{kind}[{i}].meaning"), &g.meaning);
                 for (j, l) in g.labels.iter().flatten().enumerate() {
@@ -306,9 +286,28 @@ impl EnvSchema {
         at
     }
 
-    /// The meaning of every observation dimension, in order.
+    /// The meaning of every observation dimension, in order (of the agents `agent_obs` does
+    /// not describe).
     pub fn obs_meanings(&self) -> Vec<String> {
         expand(&self.obs_dims)
+    }
+
+    /// Whether some agents observe differently from the others ([`EnvSchema::agent_obs`]).
+    pub fn agents_differ(&self) -> bool {
+        !self.agent_obs.is_empty()
+    }
+
+    /// The kind of agent `agent` is (its `agent_obs` entry), if it has one.
+    pub fn agent_kind(&self, agent: usize) -> Option<&AgentObs> {
+        self.agent_obs.iter().find(|a| a.agents.contains(&agent))
+    }
+
+    /// The meaning of every value of agent `agent`'s observation, in order.
+    pub fn obs_meanings_of(&self, agent: usize) -> Vec<String> {
+        match self.agent_kind(agent) {
+            Some(a) => expand(&a.obs_dims),
+            None => self.obs_meanings(),
+        }
     }
 
     /// The meaning of every state dimension, in order.
@@ -349,6 +348,71 @@ impl EnvSchema {
     /// and 0 rather than an underflow for zero agents (a schema that failed validation).
     pub fn fullcomm_columns(&self) -> usize {
         self.n_agents.saturating_sub(1).saturating_mul(self.obs_dim.saturating_add(self.n_agents))
+    }
+}
+
+/// The checks of one list of dimension groups describing `dim` dimensions (`dim_field`).
+fn check_groups(field: &str, groups: &[DimGroup], dim: usize, dim_field: &str, bad: &mut impl FnMut(&str, String)) {
+    let mut total = 0usize;
+    // What `expand` will allocate, bounded before anything expands it.
+    let mut text_bytes = 0usize;
+    for (i, g) in groups.iter().enumerate() {
+        let at = format!("{field}[{i}]");
+        if g.count == 0 {
+            bad(&at, "count must be at least 1".into());
+        }
+        if g.count > MAX_DIM {
+            // Checked before anything expands the group into one description per dim.
+            bad(&format!("{at}.count"), format!("{} is more than the supported {MAX_DIM}", g.count));
+        }
+        match g.repeat {
+            Some(0) => bad(&format!("{at}.repeat"), "must be at least 1".into()),
+            Some(_) if g.dims().is_none_or(|d| d > MAX_DIM) => {
+                bad(&format!("{at}.repeat"), format!("count x repeat is more than the supported {MAX_DIM}"))
+            }
+            None if g.meaning.contains("{r}") => bad(&at, "meaning uses {r} but the group has no repeat".into()),
+            _ => {}
+        }
+        if g.meaning.trim().is_empty() {
+            bad(&at, "meaning is empty: every dimension needs a description".into());
+        }
+        if let Some(shape) = &g.shape {
+            match shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)) {
+                Some(prod) if prod == g.count => {}
+                Some(prod) => bad(&at, format!("shape {shape:?} holds {prod} dimensions but count = {}", g.count)),
+                None => bad(&at, format!("shape {shape:?} holds more dimensions than fit in memory; count = {}", g.count)),
+            }
+        }
+        if let Some(labels) = &g.labels {
+            if labels.len() != g.count {
+                bad(&at, format!("{} labels for count = {}", labels.len(), g.count));
+            }
+        } else if g.meaning.contains("{label}") {
+            bad(&at, "meaning uses {label} but the group has no labels".into());
+        }
+        total = total.saturating_add(g.dims().unwrap_or(usize::MAX));
+        // Each dimension's text: the meaning with {k}, {r} and {iN} as numbers (at most 20
+        // digits each) and {label} as the longest label.
+        let label = g.labels.as_ref().and_then(|l| l.iter().map(String::len).max()).unwrap_or(0);
+        let per_dim = g.meaning.len().saturating_add(g.meaning.matches('{').count().saturating_mul(20 + label));
+        let group_bytes = per_dim.saturating_mul(g.dims().unwrap_or(usize::MAX));
+        let before = text_bytes;
+        text_bytes = text_bytes.saturating_add(group_bytes);
+        // Named once: at the group that crosses the bound.
+        if before <= MAX_MEANING_BYTES && text_bytes > MAX_MEANING_BYTES {
+            bad(
+                &format!("{at}.meaning"),
+                format!(
+                    "the descriptions of {field} expand to more than {} MiB ({} dimensions x {per_dim} bytes in this group); \
+                             shorten the meaning or describe fewer dimensions",
+                    MAX_MEANING_BYTES >> 20,
+                    g.dims().unwrap_or(usize::MAX)
+                ),
+            );
+        }
+    }
+    if total != dim {
+        bad(field, format!("the groups describe {total} dimensions but {dim_field} = {dim}"));
     }
 }
 

@@ -278,6 +278,12 @@ def test_generated_schema_has_a_placeholder_for_every_dim(tmp_path):
     assert len(s.raw["actions"]) == 5 and "only listener_0" in s.raw["actions"][4]
     groups = s.raw["obs_dims"]
     assert [g["count"] for g in groups] == [3, 8] and "padding" in groups[1]["meaning"]
+    # The speaker and the listener observe different things: each kind its own meanings.
+    kinds = s.raw["agent_obs"]
+    assert [k["agents"] for k in kinds] == [[0], [1]]
+    assert [[g["count"] for g in k["obs_dims"]] for k in kinds] == [[3, 8], [11]]
+    assert "speaker_0" in kinds[0]["obs_dims"][0]["meaning"] and "padding" in kinds[0]["obs_dims"][1]["meaning"]
+    assert "listener_0" in kinds[1]["obs_dims"][0]["meaning"]
     assert sum(g["count"] for g in s.raw["state_dims"]) == 14
     assert all(t.startswith("EDIT") for t in [s.raw["task"], s.raw["reward"], *s.raw["actions"]])
     toy = generated(tmp_path, "pz:pz_toy", episode_limit=7)

@@ -70,7 +70,28 @@ pub fn explain(p: &Protocol, env: Option<&ProtocolEnv>) -> String {
         let head = format!("{}. {} ({w}): ", k + 1, f.name);
         s.push_str(&wrap(&format!("{head}{}", f.description.trim()), "", "   "));
         writeln!(s, "   who:   {}", who(f)).unwrap();
-        writeln!(s, "   value: {}", explain_expr(&f.value, env)).unwrap();
+        // Where agents observe different things, each kind of sender's values read in its own
+        // meanings: one line per distinct reading.
+        let senders: Vec<usize> = match &f.senders {
+            Senders::All => (0..env.map_or(0, |e| e.n_agents)).collect(),
+            Senders::List(l) => l.clone(),
+        };
+        let mut readings: Vec<(String, Vec<usize>)> = Vec::new();
+        for &j in senders.iter().filter(|_| env.is_some_and(|e| !e.agent_obs_names.is_empty())) {
+            let text = explain_expr_of(&f.value, env, Some(j));
+            match readings.iter_mut().find(|r| r.0 == text) {
+                Some(r) => r.1.push(j),
+                None => readings.push((text, vec![j])),
+            }
+        }
+        if readings.len() > 1 {
+            for (text, from) in &readings {
+                writeln!(s, "   value from {}: {text}", agents_list(from)).unwrap();
+            }
+        } else {
+            let text = readings.pop().map_or_else(|| explain_expr(&f.value, env), |r| r.0);
+            writeln!(s, "   value: {text}").unwrap();
+        }
     }
 
     let mut parts = Vec::new();
@@ -316,8 +337,8 @@ fn width(e: &Expr, env: Option<&ProtocolEnv>) -> Option<usize> {
     })
 }
 
-fn dims_text(dims: &[usize], env: Option<&ProtocolEnv>) -> String {
-    let names: Vec<&str> = dims.iter().filter_map(|&d| env.and_then(|e| e.obs_name(d))).collect();
+fn dims_text(dims: &[usize], env: Option<&ProtocolEnv>, sender: Option<usize>) -> String {
+    let names: Vec<&str> = dims.iter().filter_map(|&d| env.and_then(|e| e.obs_name_of(sender, d))).collect();
     if names.len() == dims.len() && !names.is_empty() && names.len() <= 8 {
         format!(" ({})", names.join(", "))
     } else {
@@ -335,15 +356,21 @@ fn num(x: f64) -> String {
 
 /// One expression as a short formula in words.
 pub fn explain_expr(e: &Expr, env: Option<&ProtocolEnv>) -> String {
-    let x = |a: &Expr| explain_expr(a, env);
+    explain_expr_of(e, env, None)
+}
+
+/// [`explain_expr`] as sent by agent `sender`: observation values named in its own meanings
+/// where agents observe different things.
+pub fn explain_expr_of(e: &Expr, env: Option<&ProtocolEnv>, sender: Option<usize>) -> String {
+    let x = |a: &Expr| explain_expr_of(a, env, sender);
     match e {
         Expr::Obs(dims) => {
             let d: Vec<String> = dims.iter().map(|d| d.to_string()).collect();
-            format!("obs[{}]{}", d.join(", "), dims_text(dims, env))
+            format!("obs[{}]{}", d.join(", "), dims_text(dims, env, sender))
         }
         Expr::ObsSlice(s) => {
             let dims: Vec<usize> = (s.start..s.end.min(s.start.saturating_add(9))).collect();
-            let names = if s.end.saturating_sub(s.start) <= 8 { dims_text(&dims, env) } else { String::new() };
+            let names = if s.end.saturating_sub(s.start) <= 8 { dims_text(&dims, env, sender) } else { String::new() };
             format!("obs[{}..{}]{names}", s.start, s.end)
         }
         Expr::LastAction(ActionEncoding::OneHot) => "one-hot of the sender's previous action".into(),

@@ -205,8 +205,29 @@ impl Templates {
     /// I_T: the task, the observation tensor shape, the meaning of every observation and state
     /// dim (`o[batch][agent_id][d]`, `s[d]`) and of every action.
     pub fn task(&self, env_name: &str, schema: &EnvSchema) -> Result<String> {
-        let obs: Vec<String> =
-            schema.obs_meanings().iter().enumerate().map(|(d, m)| format!("  - `o[batch][agent_id][{d}]`: {m}")).collect();
+        let dims = |meanings: &[String], indent: &str| -> Vec<String> {
+            meanings.iter().enumerate().map(|(d, m)| format!("{indent}- `o[batch][agent_id][{d}]`: {m}")).collect()
+        };
+        let obs: Vec<String> = if schema.agents_differ() {
+            // Agents that observe different things: each kind's own meanings, under its agents.
+            let rest: Vec<usize> = (0..schema.n_agents).filter(|&j| schema.agent_kind(j).is_none()).collect();
+            let mut kinds: Vec<(String, Vec<usize>, Vec<String>)> =
+                schema.agent_obs.iter().map(|k| (k.name.clone(), k.agents.clone(), schema.obs_meanings_of(k.agents[0]))).collect();
+            if !rest.is_empty() {
+                kinds.push(("the other agents".into(), rest, schema.obs_meanings()));
+            }
+            kinds
+                .into_iter()
+                .flat_map(|(name, agents, meanings)| {
+                    let ids: Vec<String> = agents.iter().map(|a| a.to_string()).collect();
+                    let mut lines = vec![format!("  - agent_id in {{{}}} ({name}):", ids.join(", "))];
+                    lines.extend(dims(&meanings, "    "));
+                    lines
+                })
+                .collect()
+        } else {
+            dims(&schema.obs_meanings(), "  ")
+        };
         let state: Vec<String> = schema.state_meanings().iter().enumerate().map(|(d, m)| format!("  - `s[{d}]`: {m}")).collect();
         let actions: Vec<String> = schema.actions.iter().enumerate().map(|(a, m)| format!("  - {a}: {m}")).collect();
         self.render(
@@ -545,6 +566,22 @@ mod tests {
                 assert!(row.contains(&format!("`{p}`")), "prompts/README.md: {} lacks {p}", s.name);
             }
         }
+    }
+
+    /// Agents that observe different things: the task prompt gives each kind's own meanings
+    /// under its agents, never one agent's values in another's words.
+    #[test]
+    fn the_task_prompt_gives_each_kind_of_agent_its_own_meanings() {
+        let t = Templates::embedded();
+        let mut schema = lmac_shm_schema::schema::load_env("lbf:8x8-2p-2f-s1-coop").unwrap();
+        let mut kind = schema.obs_dims.clone();
+        kind[0].meaning = format!("as the scout sees it: {}", kind[0].meaning);
+        schema.agent_obs = vec![lmac_shm_schema::schema::AgentObs { name: "scout".into(), agents: vec![1], obs_dims: kind }];
+        let task = t.task("lbf:8x8-2p-2f-s1-coop", &schema).unwrap();
+        assert!(task.contains("agent_id in {1} (scout):") && task.contains("agent_id in {0} (the other agents):"), "{task}");
+        let scout = schema.obs_meanings_of(1);
+        assert!(task.contains(&format!("    - `o[batch][agent_id][0]`: {}", scout[0])), "{task}");
+        assert!(task.contains(&format!("    - `o[batch][agent_id][0]`: {}", schema.obs_meanings()[0])), "{task}");
     }
 
     /// Appendix B.1's prompts, rendered for one map: every part the paper's templates have.

@@ -424,6 +424,9 @@ fn routed_by_need_the_observer_sends_the_goal_to_the_actors_only() {
         assert_eq!(to, vec![1, 2], "to the two actors: {protocol}");
     }
     assert!(sent_obs(&protocol).contains(&0), "the goal value is sent: {protocol}");
+    // Named as the observer sees it (its own meanings in the schema), not as the bystander does.
+    let description = protocol["fields"][0]["description"].as_str().unwrap();
+    assert!(description.contains("o[0] (the goal)"), "{description}");
 }
 
 /// The return depends on hidden value B, which

@@ -46,6 +46,8 @@ pub(super) fn fields_from(picks: &[Pick], cands: &[Candidate], env: &ProtocolEnv
         let name = if *k == 1 { stem } else { format!("{stem}_{k}") };
         let broadcast = (0..n).all(|j| (0..n).all(|i| i == j || links[j][i]));
         let senders_list: Vec<usize> = (0..n).filter(|&j| links[j].iter().any(|&x| x)).collect();
+        // Named in the one sender's own meanings where agents observe different things.
+        let one_sender = (senders_list.len() == 1).then(|| senders_list[0]);
         let (senders, receivers) = if broadcast {
             (Senders::All, Receivers::Broadcast)
         } else {
@@ -55,7 +57,7 @@ pub(super) fn fields_from(picks: &[Pick], cands: &[Candidate], env: &ProtocolEnv
         let description = if kind.per_dim() {
             let names: Vec<String> = dims
                 .iter()
-                .map(|&d| format!("o[{d}] ({})", env.obs_names.get(d).map(|s| short(s)).unwrap_or_else(|| "unnamed".into())))
+                .map(|&d| format!("o[{d}] ({})", env.obs_name_of(one_sender, d).map(short).unwrap_or_else(|| "unnamed".into())))
                 .collect();
             format!("{what}, dims {}; {}", names.join(", "), links_text(&links))
         } else {

@@ -169,7 +169,10 @@ impl OfflineDesigner {
         let data = ctx.dataset.context("offline designer: placing the receivers in the sender's view needs the dataset B")?;
         let n = data.header.n_agents;
         let obs_cand = |d: usize| cands.iter().position(|c| c.kind == Kind::Obs && c.dim == Some(d));
-        let label = |d: usize| ctx.env.obs_names.get(d).map(|s| short(s)).unwrap_or_else(|| "unnamed".into());
+        let label = |d: usize| {
+            let sender = self.sent_entity.as_ref().map(|e| e.sender);
+            ctx.env.obs_name_of(sender, d).map(short).unwrap_or_else(|| "unnamed".into())
+        };
         let Some(sent) = self.sent_entity.clone() else {
             let reason = "phase 0 sent no single entity to place the receivers by (it sent every agent's whole view, or chose its fields by least squares)";
             eprintln!("lmac: offline designer: phase 1's fields by least squares instead: {reason}");

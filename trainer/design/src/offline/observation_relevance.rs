@@ -70,7 +70,7 @@ impl OfflineDesigner {
         let obs_cand = |d: usize| cands.iter().position(|c| c.kind == Kind::Obs && c.dim == Some(d));
         let label = |col: usize| {
             let (j, d) = (col / od, col % od);
-            format!("agent {j}'s o[{d}] ({})", ctx.env.obs_names.get(d).map(|s| short(s)).unwrap_or_else(|| "unnamed".into()))
+            format!("agent {j}'s o[{d}] ({})", ctx.env.obs_name_of(Some(j), d).map(short).unwrap_or_else(|| "unnamed".into()))
         };
         let mut per_sender = vec![0usize; n];
         let mut picks: Vec<Pick> = Vec::new();
@@ -207,7 +207,8 @@ impl OfflineDesigner {
             // of the critical dims per value sent. Each sends every value of it that varies for
             // its sender on B, whole, while the budget has room for it (the first entity chosen
             // fills what room there is with its most relevant values).
-            let meanings = &ctx.env.obs_names;
+            // Each sender's own meanings (agents may observe different things).
+            let meanings: Vec<Vec<String>> = (0..n).map(|j| ctx.schema.obs_meanings_of(j)).collect();
             // varying_by[j][k]: the values of entity k that vary for sender j on B (each a scan of B,
             // so once per sender).
             let mut varying_by: Vec<Vec<Vec<usize>>> = vec![Vec::new(); n];
@@ -283,7 +284,7 @@ impl OfflineDesigner {
                     varying.truncate(room);
                     varying.sort_unstable();
                     if self.sent_entity.is_none() {
-                        let name = short(&entity_name(meanings.get(e.clone()).unwrap_or(&[])));
+                        let name = short(&entity_name(meanings[j].get(e.clone()).unwrap_or(&[])));
                         self.sent_entity = Some(SentEntity { sender: j, values: varying.clone(), name });
                     }
                     for &d in &varying {
@@ -303,7 +304,7 @@ impl OfflineDesigner {
                 };
                 lines.push(format!(
                     "agent {j}'s {} (o[{}..{}]): {}; {verdict}",
-                    short(&entity_name(meanings.get(e.clone()).unwrap_or(&[]))),
+                    short(&entity_name(meanings[j].get(e.clone()).unwrap_or(&[]))),
                     e.start,
                     e.end,
                     score_text[j][k]

@@ -6,7 +6,7 @@ use lmac_design::DesignContext;
 use lmac_protocol_runner::protocol::{self, ProtocolEnv, ValidatedProtocol};
 use lmac_run::dataset::{Dataset, DatasetHeader, Trajectory};
 use lmac_run::learn::LearnRng;
-use lmac_shm_schema::schema::{DimGroup, EnvSchema};
+use lmac_shm_schema::schema::{AgentObs, DimGroup, EnvSchema};
 use std::path::PathBuf;
 
 pub fn tmp_dir(name: &str) -> PathBuf {
@@ -131,6 +131,7 @@ pub fn synthetic_schema(message_columns: usize) -> EnvSchema {
             group(1, "hidden value B"),
             group(1, "episode constant"),
         ],
+        agent_obs: Vec::new(),
     }
 }
 
@@ -217,11 +218,20 @@ pub fn observer_and_actors_schema() -> EnvSchema {
         alpha: 0.1,
         reward: "1 when both actors move towards the goal".into(),
         actions: vec!["stay".into(), "left".into(), "right".into()],
-        obs_dims: vec![
-            group(1, "the goal (the observer only; 0 for the actors)"),
-            group(1, "own position (the actors)"),
-            group(1, "shared bit"),
-        ],
+        obs_dims: vec![group(1, "unused: always 0"), group(1, "unused: always 0"), group(1, "shared bit")],
         state_dims: vec![group(1, "the goal"), group(1, "actor 1's position"), group(1, "actor 2's position"), group(1, "shared bit")],
+        // The bystander (agent 3) reads `obs_dims`; the observer and the actors their own.
+        agent_obs: vec![
+            AgentObs {
+                name: "observer".into(),
+                agents: vec![0],
+                obs_dims: vec![group(1, "the goal"), group(1, "unused: always 0"), group(1, "shared bit")],
+            },
+            AgentObs {
+                name: "actor".into(),
+                agents: vec![1, 2],
+                obs_dims: vec![group(1, "unused: always 0"), group(1, "own position"), group(1, "shared bit")],
+            },
+        ],
     }
 }
