@@ -25,6 +25,12 @@ from .core import Batch, Schema, VecEnv, schema_path
 from .registry import UnknownFamily, make
 from .sizes import SizeChecked, SizeMismatch
 
+
+# Optional environment packages that set-up installs on request: what to run when one is missing.
+INSTALL_HINTS = {
+    "gfootball": "; install it with `LMAC_WITH_GRF=1 bash scripts/setup.sh` (or `bash scripts/setup-grf.sh`)",
+}
+
 FLAG_FIRST = 1     # shm-schema layout.rs FLAG_FIRST: this row starts an episode
 FLAG_PREV_WON = 2  # FLAG_PREV_WON: the episode that ended at this row was won
 FLAG_FINAL = 4     # FLAG_FINAL: this row is the observation after a truncated episode's last step
@@ -237,7 +243,8 @@ def serve(args) -> int:
         except (ImportError, UnknownFamily) as e:
             # The env's module cannot be found or imported: one line, no traceback (an error
             # from inside a module that did load is the module's own bug and keeps its traceback).
-            print(f"lmac: {who}: {e} (python: {sys.executable})", file=sys.stderr, flush=True)
+            hint = INSTALL_HINTS.get(getattr(e, "name", None) or "", "")
+            print(f"lmac: {who}: {e} (python: {sys.executable}){hint}", file=sys.stderr, flush=True)
             return 2
         for u in units:
             u.port.handshake(args.startup_timeout)

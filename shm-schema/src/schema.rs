@@ -230,7 +230,9 @@ impl EnvSchema {
         }
         check_groups("obs_dims", &self.obs_dims, self.obs_dim, "obs_dim", &mut bad);
         check_groups("state_dims", &self.state_dims, self.state_dim, "state_dim", &mut bad);
-        let mut seen = vec![None::<usize>; self.n_agents];
+        // Which agent_obs entry describes each agent listed (a map: n_agents may be any number
+        // in a hostile file, and is only bounded above).
+        let mut seen = std::collections::BTreeMap::<usize, usize>::new();
         for (i, a) in self.agent_obs.iter().enumerate() {
             let at = format!("agent_obs[{i}]");
             if a.name.trim().is_empty() {
@@ -240,10 +242,10 @@ impl EnvSchema {
                 bad(&format!("{at}.agents"), "lists no agent".into());
             }
             for &j in &a.agents {
-                match seen.get_mut(j) {
-                    None => bad(&format!("{at}.agents"), format!("agent {j} does not exist (n_agents = {})", self.n_agents)),
-                    Some(Some(first)) => bad(&format!("{at}.agents"), format!("agent {j} is already described by agent_obs[{first}]")),
-                    Some(slot) => *slot = Some(i),
+                if j >= self.n_agents {
+                    bad(&format!("{at}.agents"), format!("agent {j} does not exist (n_agents = {})", self.n_agents));
+                } else if let Some(first) = seen.insert(j, i) {
+                    bad(&format!("{at}.agents"), format!("agent {j} is already described by agent_obs[{first}]"));
                 }
             }
             check_groups(&format!("{at}.obs_dims"), &a.obs_dims, self.obs_dim, "obs_dim", &mut bad);
