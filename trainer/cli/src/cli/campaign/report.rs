@@ -123,12 +123,9 @@ pub(super) fn report(c: &Campaign) -> Result<(String, serde_json::Value)> {
                 let row = summarize(algo, algo, &trained)?;
                 let per_seed = |v: &[f64]| v.iter().map(|x| format!("{x:.3}")).collect::<Vec<_>>().join(", ");
                 let wins = &row.final_win_rates;
-                // Envs without wins (LBF) report none: "-", not a measured 0.
-                let win = if row.final_win_rate_mean.is_some() {
-                    format!("{:.3} ± {:.3} ({})", lmac_run::stats::mean(wins), lmac_run::stats::sample_sd(wins), per_seed(wins))
-                } else {
-                    "-".into()
-                };
+                // Every env reports a won flag with each episode (false where it defines no win),
+                // so a run that never won reads 0.000, a measured value, like any other.
+                let win = format!("{:.3} ± {:.3} ({})", lmac_run::stats::mean(wins), lmac_run::stats::sample_sd(wins), per_seed(wins));
                 let ret = format!("{:.3} ± {:.3} ({})", row.final_return_mean, row.final_return_std, per_seed(&row.final_returns));
                 let ours_on_metric = reference.as_ref().map(|(_, m)| match m {
                     Metric::WinRate => lmac_run::stats::mean(wins),
