@@ -124,18 +124,19 @@ pub fn seed_dirs(r: &Path) -> Result<(PathBuf, Vec<PathBuf>)> {
 /// its step target, then evaluate it once ([`final_evaluation`]). A finished run is skipped; an
 /// unfinished one resumes from its checkpoint.
 pub fn train_dirs(dirs: &[PathBuf], interrupted: Arc<AtomicBool>) -> Result<()> {
-    train_dirs_holding(dirs, Vec::new(), None, false, interrupted)
+    train_dirs_holding(dirs, Vec::new(), &[], false, interrupted)
 }
 
 /// [`train_dirs`] with the locks of some directories already taken (`held[i]` is that of
-/// `dirs[i]`; missing or None: taken here) and, when the caller wrote every config from one
-/// resolved run (seeds apart), that resolution (`resolved`; None: each run is resolved here). A
+/// `dirs[i]`; missing or None: taken here) and the resolutions the caller made when it wrote
+/// the configs (`resolved[i]` that of `dirs[i]`; missing or None: resolved here), so each run
+/// is resolved, and its protocol compiled, once per process. A
 /// run whose `config.toml` differs from the one its checkpoint was trained with is refused with
 /// the differences, unless `allow_changed`.
 pub fn train_dirs_holding(
     dirs: &[PathBuf],
     mut held: Vec<Option<crate::run_dir::RunLock>>,
-    resolved: Option<&ResolvedRun>,
+    resolved: &[Option<&ResolvedRun>],
     allow_changed: bool,
     interrupted: Arc<AtomicBool>,
 ) -> Result<()> {
@@ -149,7 +150,7 @@ pub fn train_dirs_holding(
         };
         let cfg = TrainConfig::load(d)?;
         let own;
-        let run = match resolved {
+        let run = match resolved.get(i).copied().flatten() {
             Some(r) => r,
             None => {
                 own = cfg.resolve_run()?;

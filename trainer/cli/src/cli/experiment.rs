@@ -11,8 +11,11 @@ use clap::Args;
 use lmac_run::safe_fs;
 use lmac_run::stats::{mean, sample_sd};
 use lmac_run::train::{read_metrics, TrainConfig};
-use lmac_run::workflow::{interrupt_flag, plot, train_dirs};
+use lmac_run::workflow::{interrupt_flag, plot, train_dirs_holding};
 use serde::{Deserialize, Serialize};
+
+/// The runs resolved while their configs were written, by run directory.
+pub(crate) type Resolutions = std::collections::HashMap<PathBuf, lmac_run::train::ResolvedRun>;
 use std::path::{Path, PathBuf};
 
 #[derive(Args)]
@@ -187,11 +190,13 @@ pub(crate) fn experiment(a: ExperimentArgs) -> Result<i32> {
     };
 
     // 2. Every variant and seed, with the same settings.
-    let groups = prepare_runs(&dir, &spec, design.as_deref(), &rows_to_train, &a.seeds)?;
+    let mut resolved = Resolutions::new();
+    let groups = prepare_runs(&dir, &spec, design.as_deref(), &rows_to_train, &a.seeds, &mut resolved)?;
     // Seed by seed, so an interrupted experiment has every variant of its first seeds.
     let all: Vec<PathBuf> = (0..a.seeds.len()).flat_map(|k| groups.iter().map(move |g| g.2[k].clone())).collect();
     eprintln!("lmac: experiment in {}: {} runs ({} variants x {} seeds)", dir.display(), all.len(), groups.len(), a.seeds.len());
-    train_dirs(&all, interrupted)?;
+    let per_dir: Vec<_> = all.iter().map(|d| resolved.get(d)).collect();
+    train_dirs_holding(&all, Vec::new(), &per_dir, false, interrupted)?;
 
     // 3. The table and the curves.
     let mut rows = Vec::new();
@@ -274,13 +279,15 @@ pub(crate) fn design_protocol(design: &Path, env: &str) -> Result<String> {
 
 /// The seed directories of an experiment's rows under `dir/runs/<label>/seed<k>`, each with its
 /// resolved `config.toml` written when missing (an existing one is kept: that is how a rerun
-/// resumes). `protocol` is `run.protocol` for the LMAC rows.
+/// resumes). `protocol` is `run.protocol` for the LMAC rows. Each config written is resolved
+/// once, and its resolution kept in `resolved` by run directory for training it.
 pub(crate) fn prepare_runs(
     dir: &Path,
     spec: &ExperimentSpec,
     protocol: Option<&str>,
     rows: &[(String, String, Vec<String>)],
     seeds: &[u64],
+    resolved: &mut Resolutions,
 ) -> Result<Vec<(String, String, Vec<PathBuf>)>> {
     let mut groups = Vec::new();
     for (label, algo, extra) in rows {
@@ -298,7 +305,7 @@ pub(crate) fn prepare_runs(
                     o.push(format!("run.protocol={p:?}"));
                 }
                 o.extend(extra.iter().cloned());
-                let cfg = TrainConfig::resolve(None, &o).with_context(|| format!("the {label} runs"))?;
+                let (cfg, run) = TrainConfig::resolve_with_run(None, &o).with_context(|| format!("the {label} runs"))?;
                 std::fs::create_dir_all(&d)?;
                 // Protocol copies left by a creation interrupted before its config.toml.
                 let copies = d.join("protocol");
@@ -306,6 +313,7 @@ pub(crate) fn prepare_runs(
                     std::fs::remove_dir_all(&copies).with_context(|| format!("clearing {}", copies.display()))?;
                 }
                 cfg.save_new_run(&d)?;
+                resolved.insert(d.clone(), run);
             }
             dirs.push(d);
         }

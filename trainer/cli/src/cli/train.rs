@@ -144,7 +144,8 @@ pub(crate) fn train(a: TrainArgs) -> Result<i32> {
         (group, dirs)
     };
     eprintln!("lmac: training {} run(s) in {}", dirs.len(), group.display());
-    train_dirs_holding(&dirs, held, resolved.as_ref(), a.allow_changed, interrupted)?;
+    let per_dir: Vec<_> = dirs.iter().map(|_| resolved.as_ref()).collect();
+    train_dirs_holding(&dirs, held, &per_dir, a.allow_changed, interrupted)?;
     plot("plot_runs", &group);
     Ok(0)
 }

@@ -13,15 +13,15 @@
 
 mod report;
 
-use super::experiment::{claim_dir, design_protocol, prepare_runs, ExperimentSpec};
+use super::experiment::{claim_dir, design_protocol, prepare_runs, ExperimentSpec, Resolutions};
 use super::parse_steps;
 use anyhow::{bail, Context, Result};
 use clap::Subcommand;
 use lmac_run::learn::checkpoint::{checkpoint_exists, peek_checkpoint};
 use lmac_run::run_dir::env_dir_name;
 use lmac_run::safe_fs;
-use lmac_run::train::{checkpoint_dir, read_metrics, TrainConfig};
-use lmac_run::workflow::{interrupt_flag, train_dirs};
+use lmac_run::train::{checkpoint_dir, read_metrics, ResolvedRun, TrainConfig};
+use lmac_run::workflow::{interrupt_flag, train_dirs_holding};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -277,7 +277,9 @@ impl Campaign {
     }
 
     /// Create every cell's run directory with its config.toml (kept when it exists).
-    fn prepare(&self) -> Result<()> {
+    /// Write every cell's config that is missing; the ones written are resolved once and kept.
+    fn prepare(&self) -> Result<Resolutions> {
+        let mut resolved = Resolutions::new();
         for st in &self.spec.stages {
             let steps = st.steps.get()?;
             for task in &st.tasks {
@@ -294,11 +296,11 @@ impl Campaign {
                     None => None,
                 };
                 let rows: Vec<(String, String, Vec<String>)> = st.algos.iter().map(|a| (a.clone(), a.clone(), Vec::new())).collect();
-                prepare_runs(&dir, &spec, protocol.as_deref(), &rows, &st.seeds)
+                prepare_runs(&dir, &spec, protocol.as_deref(), &rows, &st.seeds, &mut resolved)
                     .with_context(|| format!("stage {}, task {task}", st.name))?;
             }
         }
-        Ok(())
+        Ok(resolved)
     }
 
     fn max_cell_s(&self) -> Option<f64> {
@@ -488,7 +490,7 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
             let c = Campaign::load(&file, out)?;
             std::fs::create_dir_all(&c.out).with_context(|| format!("creating {}", c.out.display()))?;
             let _lock = lmac_run::run_dir::lock(&c.out)?;
-            c.prepare()?;
+            let resolved = c.prepare()?;
             let st = Status::read(&c)?;
             eprintln!("lmac: campaign {} in {}: {}", c.spec.campaign.title, c.out.display(), st.summary());
             let pending: Vec<Cell> =
@@ -502,7 +504,7 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
             let mut failed = Vec::new();
             for (k, cell) in pending.iter().enumerate() {
                 eprintln!("lmac: campaign: cell {} of {} left: {}", k + 1, pending.len(), cell.id);
-                if let Err(e) = train_cell(&c, cell, interrupted.clone()) {
+                if let Err(e) = train_cell(&c, cell, resolved.get(&cell.dir), interrupted.clone()) {
                     if interrupted.load(Ordering::SeqCst) {
                         return Err(e);
                     }
@@ -566,7 +568,7 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
             if !cell.dir.join("config.toml").exists() {
                 bail!("cell {id}: {} has no config.toml: `lmac campaign run` creates the cells", cell.dir.display());
             }
-            train_cell(&c, &cell, interrupt_flag())?;
+            train_cell(&c, &cell, None, interrupt_flag())?;
             Ok(0)
         }
     }
@@ -575,9 +577,9 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
 /// Train one cell (see `train_cell_to_limit`) and record how its attempt ended: `failed.json`
 /// with the error when it stops on one (not when interrupted), removed when it trains through,
 /// so `status` and `report` say which cells failed and why, from the tree alone.
-fn train_cell(c: &Campaign, cell: &Cell, interrupted: Arc<AtomicBool>) -> Result<()> {
+fn train_cell(c: &Campaign, cell: &Cell, resolved: Option<&ResolvedRun>, interrupted: Arc<AtomicBool>) -> Result<()> {
     let record = cell.dir.join("failed.json");
-    let result = train_cell_to_limit(c, cell, interrupted.clone());
+    let result = train_cell_to_limit(c, cell, resolved, interrupted.clone());
     match &result {
         Ok(()) if record.exists() => std::fs::remove_file(&record).with_context(|| format!("removing {}", record.display()))?,
         Err(e) if !interrupted.load(Ordering::SeqCst) => {
@@ -592,8 +594,11 @@ fn train_cell(c: &Campaign, cell: &Cell, interrupted: Arc<AtomicBool>) -> Result
 /// Train one cell to its steps, or to the campaign's time limit: a cell still training then is
 /// stopped, its steps lowered to those of its last checkpoint and `reduced.json` written, and
 /// its final evaluation runs on what it reached.
-fn train_cell_to_limit(c: &Campaign, cell: &Cell, interrupted: Arc<AtomicBool>) -> Result<()> {
-    let Some(limit) = c.max_cell_s() else { return train_dirs(std::slice::from_ref(&cell.dir), interrupted) };
+fn train_cell_to_limit(c: &Campaign, cell: &Cell, resolved: Option<&ResolvedRun>, interrupted: Arc<AtomicBool>) -> Result<()> {
+    // The cell's resolution from when its config was written, if this process wrote it; the
+    // steps it may lower below do not enter a resolution.
+    let train = |stop: Arc<AtomicBool>| train_dirs_holding(std::slice::from_ref(&cell.dir), Vec::new(), &[resolved], false, stop);
+    let Some(limit) = c.max_cell_s() else { return train(interrupted) };
     let spent = read_metrics(&cell.dir).ok().and_then(|m| m.last().map(|r| r.wall_s)).unwrap_or(0.0);
     let stop = Arc::new(AtomicBool::new(false));
     let (timed_out, finished) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)));
@@ -615,7 +620,7 @@ fn train_cell_to_limit(c: &Campaign, cell: &Cell, interrupted: Arc<AtomicBool>) 
             }
         })
     };
-    let result = train_dirs(std::slice::from_ref(&cell.dir), stop);
+    let result = train(stop);
     finished.store(true, Ordering::SeqCst);
     let _ = watcher.join();
     if !timed_out.load(Ordering::SeqCst) || interrupted.load(Ordering::SeqCst) {
@@ -642,7 +647,7 @@ fn train_cell_to_limit(c: &Campaign, cell: &Cell, interrupted: Arc<AtomicBool>) 
     cfg.run.steps = reached;
     std::fs::write(cell.dir.join("config.toml"), toml::to_string_pretty(&cfg)?)?;
     // Now finished at its new step count: the final evaluation of its best checkpoint.
-    train_dirs(std::slice::from_ref(&cell.dir), interrupted)
+    train(interrupted)
 }
 
 /// Hand the cells to Ray: `python -m lmac_sweep.campaign` runs `lmac campaign cell` for each as
