@@ -72,12 +72,14 @@ pub fn explain(p: &Protocol, env: Option<&ProtocolEnv>) -> String {
         writeln!(s, "   who:   {}", who(f)).unwrap();
         // Where agents observe different things, each kind of sender's values read in its own
         // meanings: one line per distinct reading.
-        let senders: Vec<usize> = match &f.senders {
-            Senders::All => (0..env.map_or(0, |e| e.n_agents)).collect(),
-            Senders::List(l) => l.clone(),
+        let senders: Vec<usize> = match (env, &f.senders) {
+            (Some(e), _) if e.agent_obs_names.is_empty() => Vec::new(),
+            (Some(e), Senders::All) => (0..e.n_agents).collect(),
+            (Some(_), Senders::List(l)) => l.clone(),
+            (None, _) => Vec::new(),
         };
         let mut readings: Vec<(String, Vec<usize>)> = Vec::new();
-        for &j in senders.iter().filter(|_| env.is_some_and(|e| !e.agent_obs_names.is_empty())) {
+        for &j in &senders {
             let text = explain_expr_of(&f.value, env, Some(j));
             match readings.iter_mut().find(|r| r.0 == text) {
                 Some(r) => r.1.push(j),

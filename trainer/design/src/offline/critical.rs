@@ -28,9 +28,8 @@ pub struct DimNeed {
     pub failure: f64,
     /// `action_dependence x failure`: what a message of the dim is worth to this agent.
     pub need: f64,
-    /// The other agent that recovers the dim best from its own observation, and its E_t[chi].
+    /// The other agent that recovers the dim best from its own observation.
     pub supplier: Option<usize>,
-    pub supplier_recovery: f64,
     /// Every agent's E_t[chi] of the dim without messages.
     pub recovery: Vec<f64>,
 }
@@ -40,12 +39,12 @@ pub struct DimNeed {
 /// they miss and drops those whose need is estimation noise.
 const NEEDY_SHARE: f64 = 0.1;
 
-/// The agents that need the critical dims ([`super::ReceiversBy::Need`]), with each agent's
-/// total need; None when no agent needs anything (then everyone receives).
-pub(super) fn needy_agents(needs: &[AgentNeed]) -> Option<(Vec<usize>, Vec<f64>)> {
+/// The agents that need the critical dims ([`super::ReceiversBy::Need`]); None when no agent
+/// needs anything (then everyone receives).
+pub(super) fn needy_agents(needs: &[AgentNeed]) -> Option<Vec<usize>> {
     let totals: Vec<f64> = needs.iter().map(|a| a.dims.iter().map(|x| x.need).sum()).collect();
     let max = totals.iter().copied().fold(0.0, f64::max);
-    (max > 0.0).then(|| ((0..totals.len()).filter(|&i| totals[i] >= NEEDY_SHARE * max).collect(), totals))
+    (max > 0.0).then(|| (0..totals.len()).filter(|&i| totals[i] >= NEEDY_SHARE * max).collect())
 }
 
 /// What agent `j` can supply of what the others need ([`super::SendersBy::Need`]): for each
@@ -72,15 +71,7 @@ pub(super) fn agent_needs(per_agent: &[Vec<f64>], r: &Recovery, guess: &[f64], c
                     let action_dependence = per_agent.get(i).and_then(|v| v.get(d)).copied().unwrap_or(0.0);
                     let failure = failure(rates[i], guess[k]);
                     let supplier = (0..r.n_agents).filter(|&j| j != i).max_by(|&a, &b| rates[a].total_cmp(&rates[b]).then(b.cmp(&a)));
-                    Some(DimNeed {
-                        dim: d,
-                        action_dependence,
-                        failure,
-                        need: action_dependence * failure,
-                        supplier,
-                        supplier_recovery: supplier.map_or(0.0, |j| rates[j]),
-                        recovery: rates,
-                    })
+                    Some(DimNeed { dim: d, action_dependence, failure, need: action_dependence * failure, supplier, recovery: rates })
                 })
                 .collect();
             dims.sort_by(|a, b| b.need.total_cmp(&a.need).then(a.dim.cmp(&b.dim)));
@@ -208,7 +199,7 @@ impl OfflineDesigner {
                             x.need,
                             x.supplier.map_or("no other agent".into(), |j| format!(
                                 "best recovered by agent {j} (E_t[chi] {:.3})",
-                                x.supplier_recovery
+                                x.recovery[j]
                             ))
                         )
                     })

@@ -190,11 +190,10 @@ impl OfflineDesigner {
             given_own_view,
         };
         let receivers = self.receivers();
-        // Only the receivers phase 0 sends to are placed.
-        let fits: Vec<FrameFit> = frame_fit(data, j, &sent.values, &candidates, &fit_cfg)
-            .into_iter()
-            .filter(|f| receivers.as_ref().is_none_or(|r| !r.iter().any(|&i| i != j) || r.contains(&f.receiver)))
-            .collect();
+        let links = to_receivers_from(n, j, &receivers);
+        // Only the receivers the sender's values go to are placed.
+        let fits: Vec<FrameFit> =
+            frame_fit(data, j, &sent.values, &candidates, &fit_cfg).into_iter().filter(|f| links[j][f.receiver]).collect();
         // Each value by the share it adds, summed over the receivers it places.
         let mut by_value: BTreeMap<usize, (f64, Vec<usize>)> = BTreeMap::new();
         for f in &fits {
@@ -271,7 +270,7 @@ impl OfflineDesigner {
         let mut picks = Vec::new();
         for &d in &kept {
             let cand = obs_cand(d).context("offline designer: a frame value has no candidate (a bug)")?;
-            picks.push(Pick { cand, links: to_receivers_from(n, j, &receivers), gain: by_value[&d].0 / (n - 1) as f64 });
+            picks.push(Pick { cand, links: links.clone(), gain: by_value[&d].0 / (n - 1) as f64 });
         }
         let how = format!(
             "{head} Phase 1 sends the {} value(s) that place some receiver, from agent {j} to {}.",

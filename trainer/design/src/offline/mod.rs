@@ -129,7 +129,7 @@ impl OfflineDesigner {
         if self.cfg.receivers_by != ReceiversBy::Need {
             return None;
         }
-        critical::needy_agents(&self.needs).map(|x| x.0)
+        critical::needy_agents(&self.needs)
     }
 
     fn log(&mut self, phase: usize, kind: &str, prompt: String, reply: String) {

@@ -160,9 +160,12 @@ impl Actor for TrainActor {
             }
         }
         self.log.log_checkpoints(&self.shared);
-        let (eps, upd, last) = (self.epsilon(), self.shared.lock().updates, self.tests.last_return);
-        self.log
-            .progress(self.t_env, || format!("eps {eps:.2} updates {upd} test return {}", last.map_or("-".into(), |r| format!("{r:.3}"))));
+        // The bar's message is built (and the learner's count read) only where a bar is shown.
+        let (eps, last, shared) = (self.epsilon(), self.tests.last_return, &self.shared);
+        self.log.progress(self.t_env, || {
+            let upd = shared.lock().updates;
+            format!("eps {eps:.2} updates {upd} test return {}", last.map_or("-".into(), |r| format!("{r:.3}")))
+        });
         self.wait_for_learner();
     }
 
