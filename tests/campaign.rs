@@ -1,7 +1,8 @@
 //! `lmac campaign` end to end with tiny budgets on LBF: a two-stage grid created and trained in
 //! order, interrupted and resumed, its status and time left, a cell stopped at the campaign's
-//! time limit and kept as reduced, a failed cell recorded and retried, the results page beside reference values, and bad campaign
-//! files refused with the file and the field named.
+//! time limit and kept as reduced, a failed cell recorded and retried, cells whose settings no
+//! longer match the campaign's rewritten or retrained, the results page beside reference values,
+//! and bad campaign files refused with the file and the field named.
 
 use lmac_e2e::harness::{lmac, wait_for};
 use std::path::Path;
@@ -190,6 +191,57 @@ fn a_failed_cell_is_recorded_said_so_and_retried_by_the_next_run() {
     assert!(!cell.join("failed.json").exists());
     let st = text(&campaign(&dir, &["status", "c.toml"]));
     assert!(st.contains("1 finished") && st.contains("0 failed"), "{st}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A kept config the campaign would no longer write (as when a preset's meaning changes): an
+/// untrained cell's is written again, a trained cell is said to differ and, when asked, moved
+/// whole under `superseded/` and trained again.
+#[test]
+fn cells_whose_settings_changed_are_rewritten_or_said_so_and_retrained_when_asked() {
+    let dir = std::env::temp_dir().join(format!("lmac-campaign-changed-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    campaign_file(&dir, "", "1500");
+    assert!(campaign(&dir, &["run", "c.toml", "--max-cells", "1"]).status.success());
+    let runs = dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/runs");
+    let edit = |cell: &str| {
+        let p = runs.join(cell).join("config.toml");
+        let text = std::fs::read_to_string(&p).unwrap();
+        let lr = text.lines().find(|l| l.starts_with("lr = ")).expect("learn.lr is written").to_string();
+        std::fs::write(&p, text.replace(&lr, "lr = 0.00123")).unwrap();
+        lr.trim_start_matches("lr = ").to_string()
+    };
+    let lr = edit("qmix/seed0");
+    edit("vdn/seed0");
+    let st = text(&campaign(&dir, &["status", "c.toml"]));
+    let want = format!("learn.lr: 0.00123 -> {lr}");
+    assert!(st.contains(&format!("TRAINED WITH OTHER SETTINGS than the campaign's now: {want}")), "{st}");
+    assert!(st.contains(&format!("the next run writes its config again: {want}")), "{st}");
+    assert!(st.contains("1 cells trained with settings the campaign no longer resolves to"), "{st}");
+    let md = text(&campaign(&dir, &["report", "c.toml"]));
+    assert!(md.contains(&format!("seed 0 trained with settings the campaign no longer resolves to: {want}")), "{md}");
+
+    // The next run writes the untrained cell's config again and trains it; the trained one is kept.
+    let next = campaign(&dir, &["run", "c.toml", "--max-cells", "1"]);
+    let t = text(&next);
+    assert!(next.status.success(), "{t}");
+    assert!(t.contains("vdn/seed0 has not trained; its config is written again"), "{t}");
+    assert!(t.contains("qmix/seed0 trained with settings the campaign no longer resolves to"), "{t}");
+    assert!(std::fs::read_to_string(runs.join("vdn/seed0/config.toml")).unwrap().contains(&format!("lr = {lr}")));
+    assert!(runs.join("qmix/seed0/metrics.csv").exists());
+
+    // Asked to, the trained cell moves whole under superseded/ and trains again with today's settings.
+    let again = campaign(&dir, &["run", "c.toml", "--max-cells", "1", "--retrain-changed"]);
+    let t = text(&again);
+    assert!(again.status.success(), "{t}");
+    let moved: Vec<_> = std::fs::read_dir(dir.join("tree/superseded")).unwrap().map(|e| e.unwrap().path()).collect();
+    assert_eq!(moved.len(), 1, "{moved:?}");
+    let old = moved[0].join("short/lbf_8x8-2p-2f-s1-coop/qmix/seed0");
+    assert!(old.join("metrics.csv").exists() && old.join("config.toml").exists(), "the old run is kept whole");
+    assert!(std::fs::read_to_string(runs.join("qmix/seed0/config.toml")).unwrap().contains(&format!("lr = {lr}")));
+    let st = text(&campaign(&dir, &["status", "c.toml"]));
+    assert!(st.contains("2 finished") && !st.contains("OTHER SETTINGS"), "{st}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

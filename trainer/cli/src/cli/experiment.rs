@@ -295,16 +295,7 @@ pub(crate) fn prepare_runs(
         for &seed in seeds {
             let d = dir.join("runs").join(label).join(format!("seed{seed}"));
             if !d.join("config.toml").exists() {
-                let mut o = lmac_run::train::preset_then(spec.preset.as_deref(), Some(algo.as_str()), &spec.set)?;
-                o.push(format!("run.env={:?}", spec.env));
-                o.push(format!("run.algo={algo:?}"));
-                o.push(format!("run.steps={}", spec.steps));
-                o.push(format!("learn.seed={seed}"));
-                if algo == "lmac" {
-                    let p = protocol.with_context(|| format!("the {label} runs need a design"))?;
-                    o.push(format!("run.protocol={p:?}"));
-                }
-                o.extend(extra.iter().cloned());
+                let o = run_overrides(spec, protocol, label, algo, extra, seed)?;
                 let (cfg, run) = TrainConfig::resolve_with_run(None, &o).with_context(|| format!("the {label} runs"))?;
                 std::fs::create_dir_all(&d)?;
                 // Protocol copies left by a creation interrupted before its config.toml.
@@ -320,6 +311,29 @@ pub(crate) fn prepare_runs(
         groups.push((label.clone(), algo.clone(), dirs));
     }
     Ok(groups)
+}
+
+/// The overrides that resolve one seed's config of an experiment's row: the preset, the
+/// experiment's sets, the env, method, steps and seed, the design for LMAC, the row's own sets.
+pub(crate) fn run_overrides(
+    spec: &ExperimentSpec,
+    protocol: Option<&str>,
+    label: &str,
+    algo: &str,
+    extra: &[String],
+    seed: u64,
+) -> Result<Vec<String>> {
+    let mut o = lmac_run::train::preset_then(spec.preset.as_deref(), Some(algo), &spec.set)?;
+    o.push(format!("run.env={:?}", spec.env));
+    o.push(format!("run.algo={algo:?}"));
+    o.push(format!("run.steps={}", spec.steps));
+    o.push(format!("learn.seed={seed}"));
+    if algo == "lmac" {
+        let p = protocol.with_context(|| format!("the {label} runs need a design"))?;
+        o.push(format!("run.protocol={p:?}"));
+    }
+    o.extend(extra.iter().cloned());
+    Ok(o)
 }
 
 /// The experiment's design: reused when it already finished, else designed into `<dir>/design`.

@@ -12,7 +12,8 @@ episode runner): run.updates_per_episode = 1 gradient update (of learn.batch_siz
 per collected episode once the buffer holds 32, the target network copied every 200 episodes =
 200 updates, and each update on both cores (acting waits for the learner at this ratio): the
 batch's halves on two threads (learn.data_parallel) or the target network unrolled on the second
-(learn.parallel_target). --preset paper spells these defaults out; --preset epymarl is the same
+(learn.parallel_target). --preset paper spells these defaults out, with the authors' time limit (a
+termination) and, for LMAC, their GRU-gate encoder; --preset epymarl is the same
 schedule on one core; --preset pymarl-parallel is pymarl's parallel runner with 8 environments,
 0.125 updates per episode (8x fewer; the target copied every 25 updates), lmac's default before
 the paper's schedule was affordable; --preset released is everything as the authors' released

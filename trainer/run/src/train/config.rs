@@ -141,8 +141,8 @@ pub const PRESETS: &[(&str, &str)] = &[
          holds 32, target copy every 200 episodes (= 200 updates), and each update on both cores \
          (acting waits for the learner at this ratio, so the second core is free): the batch's two \
          halves on two threads where the method's losses split exactly (learn.data_parallel), else the \
-         target network unrolled on the second; and the time limit a termination, as their runner \
-         treats it (learn.time_limit)",
+         target network unrolled on the second; the time limit a termination, as their runner \
+         treats it (learn.time_limit); and for LMAC their GRU-gate encoder (method.encoder)",
     ),
     (
         "epymarl",
@@ -159,10 +159,9 @@ pub const PRESETS: &[(&str, &str)] = &[
     (
         "released",
         "everything as the LMAC authors' released code runs it, where lmac's defaults and `paper` differ \
-         by measured choice: `paper`'s schedule and time limit, their episode runner (one env, one \
-         server; 100 greedy test episodes every 50k steps), and for LMAC their meta-cognitive module \
-         (method.encoder = \"gru-gate\", the consistency loss averaged over padding: \
-         method.mask_consistency = false) and their rewards (standardised over the padded batch: \
+         by measured choice: `paper`'s schedule, time limit and LMAC encoder, their episode runner (one \
+         env, one server; 100 greedy test episodes every 50k steps), and for LMAC their consistency \
+         loss averaged over padding (method.mask_consistency = false) and their rewards (standardised over the padded batch: \
          learn.reward_standardisation = \"released\"); other methods keep raw rewards, as the \
          authors' QMIX config does. The state without last actions is an env variant \
          (smaclite's -no-last-action); dropout stays off when acting (not a setting)",
@@ -201,9 +200,14 @@ pub fn preset_overrides(name: &str, algo: &str) -> Result<Vec<String>> {
             format!("learn.data_parallel={second_thread}"),
         ]
     };
+    // The authors' settings where lmac's differ, but where a measured choice is better (see
+    // `docs/reference/fidelity.md`): their module's GRU-gate encoder for LMAC.
     let paper = || {
         let mut o = schedule("1.0", true);
         o.push("learn.time_limit=\"terminal\"".into());
+        if algo == "lmac" {
+            o.push("method.encoder=\"gru-gate\"".into());
+        }
         o
     };
     Ok(match name {
@@ -214,10 +218,7 @@ pub fn preset_overrides(name: &str, algo: &str) -> Result<Vec<String>> {
             let mut o = paper();
             o.extend(["run.envs=1", "run.servers=1", "run.test_interval=50000", "run.test_episodes=100"].map(String::from));
             if algo == "lmac" {
-                o.extend(
-                    ["method.encoder=\"gru-gate\"", "method.mask_consistency=false", "learn.reward_standardisation=\"released\""]
-                        .map(String::from),
-                );
+                o.extend(["method.mask_consistency=false", "learn.reward_standardisation=\"released\""].map(String::from));
             }
             o
         }
@@ -375,6 +376,36 @@ impl TrainConfig {
         let path = run_dir.join("config.toml");
         let text = read_text_capped(&path, TEXT_CAP).context("reading the run's configuration")?;
         toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))
+    }
+
+    /// The settings in which `self` differs from `now`, one `key: self -> now` line each
+    /// (dotted keys, TOML values; the build that wrote each is not a setting).
+    pub fn settings_changed(&self, now: &TrainConfig) -> Result<Vec<String>> {
+        let table = |c: &TrainConfig| -> Result<toml::Table> {
+            let mut t = toml::Table::try_from(c).context("writing a configuration as TOML")?;
+            t.remove("build");
+            Ok(t)
+        };
+        fn walk(prefix: &str, a: Option<&toml::Value>, b: Option<&toml::Value>, out: &mut Vec<String>) {
+            match (a, b) {
+                (Some(toml::Value::Table(x)), Some(toml::Value::Table(y))) => {
+                    let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+                    for k in keys {
+                        let key = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+                        walk(&key, x.get(k), y.get(k), out);
+                    }
+                }
+                (a, b) if a != b => {
+                    let shown = |v: Option<&toml::Value>| v.map_or("(unset)".to_string(), |v| v.to_string());
+                    out.push(format!("{prefix}: {} -> {}", shown(a), shown(b)));
+                }
+                _ => {}
+            }
+        }
+        let (a, b) = (toml::Value::Table(table(self)?), toml::Value::Table(table(now)?));
+        let mut out = Vec::new();
+        walk("", Some(&a), Some(&b), &mut out);
+        Ok(out)
     }
 
     /// Read a config file (TOML), apply `key=value` overrides (dotted paths such as
@@ -687,8 +718,9 @@ mod tests {
         assert!(e.contains("latent_dims"), "an unknown [method] key is named: {e}");
     }
 
-    /// `released` is the authors' code for the method at hand: LMAC's module and rewards as
-    /// released, other methods' raw rewards; the method comes from `--algo` or from the sets.
+    /// `paper` gives LMAC the authors' encoder; `released` is the authors' code for the method at
+    /// hand: LMAC's module and rewards as released, other methods' raw rewards; the method comes
+    /// from `--algo` or from the sets.
     #[test]
     fn the_released_preset_follows_the_method() {
         let lmac = |o: Vec<String>| {
@@ -696,6 +728,11 @@ mod tests {
             o.extend(["run.algo=\"lmac\"", "run.env=\"smaclite:1o_10b_vs_1r\"", "run.protocol=\"paper\""].map(String::from));
             TrainConfig::resolve(None, &o).unwrap()
         };
+        let paper = toml::to_string(&lmac(preset_then(Some("paper"), Some("lmac"), &[]).unwrap()).method).unwrap();
+        assert!(paper.contains("encoder = \"gru-gate\"") && paper.contains("mask_consistency = true"), "{paper}");
+        let plain = toml::to_string(&lmac(Vec::new()).method).unwrap();
+        assert!(plain.contains("encoder = \"window\""), "lmac's own default stays the window encoder: {plain}");
+        assert!(!preset_overrides("paper", "qmix").unwrap().iter().any(|s| s.starts_with("method.")), "no LMAC setting for QMIX");
         let c = lmac(preset_then(Some("released"), Some("lmac"), &[]).unwrap());
         assert_eq!((c.run.envs, c.run.servers, c.run.test_interval, c.run.test_episodes), (1, 1, 50_000, 100));
         assert_eq!(c.learn.time_limit, crate::learn::TimeLimit::Terminal);

@@ -9,11 +9,14 @@
 //! trains, and trained stage by stage, seed by seed: every cell's first seed before any
 //! cell's second. A cell that would run longer than `max_cell_hours` is stopped there and kept
 //! as a reduced cell (`reduced.json`: the steps it reached, the steps planned and why), which
-//! every status and report line shows.
+//! every status and report line shows. A cell's kept config is compared with what the campaign
+//! resolves to today (a preset whose meaning changed, say): a cell not yet trained is written
+//! again, a trained one is said to differ everywhere it is shown, and `run --retrain-changed`
+//! moves it under `<out>/superseded/` and trains it again.
 
 mod report;
 
-use super::experiment::{claim_dir, design_protocol, prepare_runs, ExperimentSpec, Resolutions};
+use super::experiment::{claim_dir, design_protocol, prepare_runs, run_overrides, ExperimentSpec, Resolutions};
 use super::parse_steps;
 use anyhow::{bail, Context, Result};
 use clap::Subcommand;
@@ -49,6 +52,11 @@ pub(crate) enum CampaignCmd {
         /// Stop after training this many cells (the rest waits for the next run).
         #[arg(long)]
         max_cells: Option<usize>,
+        /// Train again the cells trained with settings the campaign no longer resolves to (a
+        /// preset's meaning changed, say); each old run is moved, whole, to
+        /// `<out>/superseded/<time>/<cell id>`. Without it they are kept and said to differ.
+        #[arg(long)]
+        retrain_changed: bool,
     },
     /// What is finished, running or left, and roughly how long the rest takes (from the speed of
     /// the cells trained so far).
@@ -276,25 +284,113 @@ impl Campaign {
         cells
     }
 
-    /// Create every cell's run directory with its config.toml (kept when it exists).
-    /// Write every cell's config that is missing; the ones written are resolved once and kept.
-    fn prepare(&self) -> Result<Resolutions> {
+    fn stage(&self, name: &str) -> &Stage {
+        self.spec.stages.iter().find(|st| st.name == name).expect("a cell's stage is the campaign's")
+    }
+
+    /// What the experiment directory of a stage and task is made for.
+    fn experiment_spec(&self, st: &Stage, task: &str) -> Result<ExperimentSpec> {
+        Ok(ExperimentSpec {
+            env: task.to_string(),
+            steps: st.steps.get()?,
+            set: self.spec.campaign.set.iter().chain(&st.set).cloned().collect(),
+            preset: st.preset(&self.spec.campaign).map(str::to_string),
+        })
+    }
+
+    /// `run.protocol` of a stage's LMAC runs on a task.
+    fn protocol(&self, st: &Stage, task: &str) -> Result<Option<String>> {
+        st.design
+            .as_ref()
+            .map(|d| design_protocol(Path::new(d), task))
+            .transpose()
+            .with_context(|| format!("stage {}, task {task}", st.name))
+    }
+
+    /// The settings in which a cell's kept config differs from the config the campaign resolves
+    /// for it today (none for a cell without one). A reduced cell's lowered steps are its own.
+    fn settings_changed(&self, cell: &Cell) -> Result<Vec<String>> {
+        if !cell.dir.join("config.toml").exists() {
+            return Ok(Vec::new());
+        }
+        let st = self.stage(&cell.stage);
+        let spec = self.experiment_spec(st, &cell.task)?;
+        let o = run_overrides(&spec, self.protocol(st, &cell.task)?.as_deref(), &cell.algo, &cell.algo, &[], cell.seed)?;
+        let now = TrainConfig::resolve(None, &o).with_context(|| format!("cell {}", cell.id))?;
+        let kept = TrainConfig::load(&cell.dir).with_context(|| format!("cell {}", cell.id))?;
+        let reduced = cell.dir.join("reduced.json").exists();
+        Ok(kept.settings_changed(&now)?.into_iter().filter(|d| !(reduced && d.starts_with("run.steps:"))).collect())
+    }
+
+    /// Create every cell's run directory with its config.toml, resolved once and kept. A kept
+    /// config that differs from today's resolution is written again when its cell never
+    /// trained; a trained cell is moved under `<out>/superseded/` and made again with
+    /// `retrain_changed`, else kept and said to differ.
+    fn prepare(&self, retrain_changed: bool) -> Result<Resolutions> {
+        // A stage whose settings are now written otherwise (a setting named that a preset used to
+        // imply, say) keeps its tree when its cells resolve to the configs they have.
+        for st in &self.spec.stages {
+            for task in &st.tasks {
+                let spec = self.experiment_spec(st, task)?;
+                let dir = self.out.join(&st.name).join(env_dir_name(task));
+                if claim_dir(&dir, &spec).is_ok() {
+                    continue;
+                }
+                let mut changed = Vec::new();
+                for cell in self.cells().iter().filter(|c| c.stage == st.name && &c.task == task) {
+                    changed.extend(self.settings_changed(cell)?.into_iter().map(|d| format!("{}: {d}", cell.id)));
+                }
+                if !changed.is_empty() {
+                    return Err(claim_dir(&dir, &spec).unwrap_err()).with_context(|| {
+                        format!("stage {}, task {task}: its cells would train otherwise ({})", st.name, changed.join("; "))
+                    });
+                }
+                eprintln!(
+                    "lmac: campaign: stage {}, task {task}: its settings are written otherwise and resolve to the configs its cells have",
+                    st.name
+                );
+                std::fs::write(dir.join("experiment.json"), serde_json::to_string_pretty(&spec)?)?;
+            }
+        }
+        let superseded = self.out.join("superseded").join(lmac_run::run_dir::stamp());
+        for cell in self.cells() {
+            let changed = self.settings_changed(&cell)?;
+            if changed.is_empty() {
+                continue;
+            }
+            // Not while another lmac trains it (`campaign cell` on a second worker, say).
+            let lock = lmac_run::run_dir::lock(&cell.dir).with_context(|| format!("cell {}", cell.id))?;
+            let trained = !matches!(cell_state(&cell)?, CellState::Pending) || cell.dir.join("metrics.csv").exists();
+            let what = changed.join("; ");
+            if !trained {
+                eprintln!("lmac: campaign: cell {} has not trained; its config is written again with today's settings ({what})", cell.id);
+                std::fs::remove_file(cell.dir.join("config.toml"))?;
+                drop(lock);
+            } else if retrain_changed {
+                drop(lock);
+                let to = superseded.join(&cell.id);
+                std::fs::create_dir_all(to.parent().expect("a cell id has folders"))?;
+                std::fs::rename(&cell.dir, &to).with_context(|| format!("moving {} to {}", cell.dir.display(), to.display()))?;
+                eprintln!(
+                    "lmac: campaign: cell {} trained with other settings ({what}): moved to {}; it trains again",
+                    cell.id,
+                    to.display()
+                );
+            } else {
+                eprintln!(
+                    "lmac: campaign: cell {} trained with settings the campaign no longer resolves to ({what}); kept as it is \
+                     (`campaign run --retrain-changed` trains it again)",
+                    cell.id
+                );
+            }
+        }
         let mut resolved = Resolutions::new();
         for st in &self.spec.stages {
-            let steps = st.steps.get()?;
             for task in &st.tasks {
-                let spec = ExperimentSpec {
-                    env: task.clone(),
-                    steps,
-                    set: self.spec.campaign.set.iter().chain(&st.set).cloned().collect(),
-                    preset: st.preset(&self.spec.campaign).map(str::to_string),
-                };
+                let spec = self.experiment_spec(st, task)?;
                 let dir = self.out.join(&st.name).join(env_dir_name(task));
                 claim_dir(&dir, &spec).with_context(|| format!("stage {}, task {task}", st.name))?;
-                let protocol = match &st.design {
-                    Some(d) => Some(design_protocol(Path::new(d), task).with_context(|| format!("stage {}, task {task}", st.name))?),
-                    None => None,
-                };
+                let protocol = self.protocol(st, task)?;
                 let rows: Vec<(String, String, Vec<String>)> = st.algos.iter().map(|a| (a.clone(), a.clone(), Vec::new())).collect();
                 prepare_runs(&dir, &spec, protocol.as_deref(), &rows, &st.seeds, &mut resolved)
                     .with_context(|| format!("stage {}, task {task}", st.name))?;
@@ -423,14 +519,21 @@ fn seconds_per_step(dir: &Path) -> Option<f64> {
 /// The status of every cell, and the estimate of what is left.
 struct Status {
     cells: Vec<(Cell, CellState, Option<f64>)>,
+    /// Cell id -> the settings its kept config has that the campaign no longer resolves to.
+    changed: BTreeMap<String, Vec<String>>,
 }
 
 impl Status {
     fn read(c: &Campaign) -> Result<Status> {
         let cells = c.cells();
         let mut states = Vec::new();
+        let mut changed = BTreeMap::new();
         for cell in &cells {
             states.push(cell_state(cell)?);
+            let d = c.settings_changed(cell)?;
+            if !d.is_empty() {
+                changed.insert(cell.id.clone(), d);
+            }
         }
         // Seconds per step of each (task, method): its cells trained so far, pooled.
         let mut rates: BTreeMap<(String, String), Vec<f64>> = BTreeMap::new();
@@ -456,7 +559,7 @@ impl Status {
             }
             out.push((cell, st, eta));
         }
-        Ok(Status { cells: out })
+        Ok(Status { cells: out, changed })
     }
 
     fn summary(&self) -> String {
@@ -480,17 +583,24 @@ impl Status {
                 "; {unknown} cells without an estimate yet (no cell of their task and method has trained; the first one gives the speed)"
             ));
         }
+        let trained_otherwise =
+            self.cells.iter().filter(|c| self.changed.contains_key(&c.0.id) && !matches!(c.1, CellState::Pending)).count();
+        if trained_otherwise > 0 {
+            s.push_str(&format!(
+                "; {trained_otherwise} cells trained with settings the campaign no longer resolves to (`campaign run --retrain-changed` trains them again)"
+            ));
+        }
         s
     }
 }
 
 pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
     match cmd {
-        CampaignCmd::Run { file, out, ray, cpus_per_cell, max_cells } => {
+        CampaignCmd::Run { file, out, ray, cpus_per_cell, max_cells, retrain_changed } => {
             let c = Campaign::load(&file, out)?;
             std::fs::create_dir_all(&c.out).with_context(|| format!("creating {}", c.out.display()))?;
             let _lock = lmac_run::run_dir::lock(&c.out)?;
-            let resolved = c.prepare()?;
+            let resolved = c.prepare(retrain_changed)?;
             let st = Status::read(&c)?;
             eprintln!("lmac: campaign {} in {}: {}", c.spec.campaign.title, c.out.display(), st.summary());
             let pending: Vec<Cell> =
@@ -525,8 +635,14 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
             }
             let st = Status::read(&c)?;
             if json {
-                let cells: Vec<_> =
-                    st.cells.iter().map(|(cell, s, eta)| serde_json::json!({"cell": cell, "status": s, "eta_s": eta})).collect();
+                let cells: Vec<_> = st
+                    .cells
+                    .iter()
+                    .map(|(cell, s, eta)| {
+                        let changed = st.changed.get(&cell.id).cloned().unwrap_or_default();
+                        serde_json::json!({"cell": cell, "status": s, "eta_s": eta, "settings_changed": changed})
+                    })
+                    .collect();
                 println!("{}", serde_json::to_string_pretty(&serde_json::json!({"out": c.out, "cells": cells}))?);
                 return Ok(0);
             }
@@ -539,7 +655,12 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
                     CellState::Failed { t_env, error } => format!("FAILED at {t_env} steps (the next run retries it): {error}"),
                 };
                 let eta = eta.map(|e| format!(", about {} left", duration(e))).unwrap_or_default();
-                println!("{:<60} {what}{eta}", cell.id);
+                let changed = match (st.changed.get(&cell.id), s) {
+                    (None, _) => String::new(),
+                    (Some(d), CellState::Pending) => format!("; the next run writes its config again: {}", d.join("; ")),
+                    (Some(d), _) => format!("; TRAINED WITH OTHER SETTINGS than the campaign's now: {}", d.join("; ")),
+                };
+                println!("{:<60} {what}{eta}{changed}", cell.id);
             }
             println!("{}", st.summary());
             Ok(0)

@@ -95,6 +95,15 @@ pub(super) fn report(c: &Campaign) -> Result<(String, serde_json::Value)> {
                         continue;
                     }
                     let state = cell_state(cell).unwrap_or(CellState::Pending);
+                    match c.settings_changed(cell) {
+                        Ok(d) if !d.is_empty() => notes.push(format!(
+                            "seed {} trained with settings the campaign no longer resolves to: {}",
+                            cell.seed,
+                            d.join("; ")
+                        )),
+                        Ok(_) => {}
+                        Err(e) => notes.push(format!("seed {}: its settings could not be compared: {e:#}", cell.seed)),
+                    }
                     match &state {
                         CellState::Failed { error, .. } => notes.push(format!("seed {} failed: {error}", cell.seed)),
                         CellState::Finished { .. } => trained.push(cell.dir.clone()),
