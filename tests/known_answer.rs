@@ -1,7 +1,7 @@
 //! A communication game with a known answer and agents that differ
 //! (`lmac_env.examples.signal:observer-2actors`): an observer that sees the goal but cannot act,
 //! two actors that are rewarded for naming the goal but cannot see it, and a bystander. The
-//! offline designer, routed by need, sends the goal from the observer to the two actors only;
+//! default offline designer (routing by need) sends the goal from the observer to the two actors only;
 //! LMAC trained with that design earns all of the reward where QMIX, without messages, can only
 //! guess (a third of it).
 
@@ -43,13 +43,13 @@ fn final_test_return(run: &Path) -> f64 {
 }
 
 #[test]
-fn routed_by_need_the_observer_tells_the_actors_and_lmac_beats_qmix() {
+fn by_default_the_observer_tells_the_actors_and_lmac_beats_qmix() {
     let dir = std::env::temp_dir().join(format!("lmac-known-answer-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let small = ["--envs", "8", "--servers", "1", "--seed", "0"];
     let small_run = ["--set", "run.envs=8", "--set", "run.servers=1", "--set", "run.test_interval=2500", "--seeds", "0"];
-    let mut design = vec!["design", "--env", ENV, "--llm", "offline", "--senders-by", "need", "--receivers-by", "need"];
+    let mut design = vec!["design", "--env", ENV, "--llm", "offline"];
     design.extend(["--pretrain-steps", "20000", "--dataset-episodes", "200", "--dataset-epsilon", "0.05"]);
     design.extend(["--disc-updates", "300", "--phases", "1", "--out", "design"]);
     design.extend(small);

@@ -393,20 +393,16 @@ fn each_agents_need_and_its_supplier_are_measured_and_said() {
 }
 
 /// The observer-and-actors game (agent 0 sees the goal and cannot act; agents 1 and 2 act on
-/// it and cannot see it; agent 3 is a bystander): routed by need, the observer sends the goal
-/// to the two actors only, never to the bystander (by default it would send to every agent).
+/// it and cannot see it; agent 3 is a bystander): by default (routed by need) the observer sends
+/// the goal to the two actors only, never to the bystander; `--receivers-by everyone` sends it to
+/// all three.
 #[test]
-fn routed_by_need_the_observer_sends_the_goal_to_the_actors_only() {
+fn by_default_the_observer_sends_the_goal_to_the_actors_only() {
     let data = observer_and_actors(400, 11);
     let schema = observer_and_actors_schema();
     let env = lmac_protocol_runner::protocol_env(&schema);
     let c = DesignContext { env_name: "synthetic:observer-and-actors", schema: &schema, env: &env, dataset: Some(&data), seed: 5 };
-    let mut designer = OfflineDesigner::new(OfflineConfig {
-        discriminator: quick_disc(),
-        senders_by: lmac_design::offline::SendersBy::Need,
-        receivers_by: lmac_design::offline::ReceiversBy::Need,
-        ..OfflineConfig::default()
-    });
+    let mut designer = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..OfflineConfig::default() });
     let p0 = designer.initial(&c).unwrap();
     assert!(p0.validated.critical_dims.contains(&0), "the goal is critical: {}", p0.reasoning);
     let measured = designer.measurements().unwrap();
@@ -427,6 +423,16 @@ fn routed_by_need_the_observer_sends_the_goal_to_the_actors_only() {
     // Named as the observer sees it (its own meanings in the schema), not as the bystander does.
     let description = protocol["fields"][0]["description"].as_str().unwrap();
     assert!(description.contains("o[0] (the goal)"), "{description}");
+    let everyone = OfflineConfig {
+        discriminator: quick_disc(),
+        receivers_by: lmac_design::offline::ReceiversBy::Everyone,
+        ..OfflineConfig::default()
+    };
+    let p0 = OfflineDesigner::new(everyone).initial(&c).unwrap();
+    let protocol = serde_json::to_value(&p0.protocol).unwrap();
+    let to: Vec<u64> =
+        protocol["fields"][0]["receivers"]["peer"][0]["to"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap()).collect();
+    assert_eq!(to, vec![1, 2, 3], "every other agent, the bystander too: {protocol}");
 }
 
 /// The return depends on hidden value B, which

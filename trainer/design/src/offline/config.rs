@@ -279,7 +279,7 @@ impl OfflineConfig {
     /// Combinations of options that cannot work, refused before anything is collected.
     pub fn check(&self) -> Result<()> {
         if self.values_by == ValuesBy::Entity && self.senders_by != SendersBy::Return {
-            bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return: the entities are ranked in the receivers' value model of the return");
+            bail!("offline designer: sending whole entities (--values-by entity) needs --senders-by return (the default is need): the entities are ranked in the receivers' value model of the return");
         }
         if self.phase1_by == Phase1By::Frame && (self.values_by == ValuesBy::Value || self.fields_by != FieldsBy::ObservationRelevance) {
             bail!("offline designer: phase 1 by the sender's frame (--phase1-by frame) places the receivers in the view of the sender of phase 0's entity, so it needs --fields-by observation-relevance --values-by entity (or recovery)");
@@ -293,9 +293,12 @@ impl OfflineConfig {
 
 /// The default is the rule set measured best on SMAC-Comm's 1o_10b and LBF 8x8: the
 /// critical dims by what a state-seeing policy's actions depend on (4 of them), one sender
-/// chosen by what its view adds to the others' prediction of the return, whole entities of its
-/// view by what each adds to the others' recovery, and phase 1 placing each receiver in the
-/// sender's frame. On 1o_10b its design trains LMAC as well as the authors' design and above
+/// chosen by what it can supply of what the others need and sending only to the agents that
+/// need it, whole entities of its view by what each adds to the others' recovery, and phase 1
+/// placing each receiver in the sender's frame. On those two maps routing by need gives the
+/// protocol that the sender by the return and every agent as receiver gave (the Overseer to the
+/// ten Banelings; on LBF the dims are not ranked by the actions, so it falls back to those); on
+/// a game where agents differ it sends only to the agents that act on the message. On 1o_10b its design trains LMAC as well as the authors' design and above
 /// [`OfflineConfig::least_squares_rules`]; on LBF 8x8 the discriminator reads the grid worse
 /// than a constant guess even with the partner's whole view, so every agent sends its whole
 /// view ([`OfflineConfig::whole_view_when_blind`]), above the authors' design (the figures:
@@ -306,7 +309,8 @@ impl Default for OfflineConfig {
     fn default() -> Self {
         OfflineConfig {
             fields_by: FieldsBy::ObservationRelevance,
-            senders_by: SendersBy::Return,
+            senders_by: SendersBy::Need,
+            receivers_by: ReceiversBy::Need,
             values_by: ValuesBy::Recovery,
             phase1_by: Phase1By::Frame,
             critical_by: CriticalBy::Action,
