@@ -53,8 +53,12 @@ fn by_default_the_observer_tells_the_actors_and_lmac_beats_qmix() {
     design.extend(["--pretrain-steps", "20000", "--dataset-episodes", "200", "--dataset-epsilon", "0.05"]);
     design.extend(["--disc-updates", "300", "--phases", "1", "--out", "design"]);
     design.extend(small);
-    run(&dir, &design);
+    let log = run(&dir, &design);
     let d = find(&dir.join("design"), "final_protocol.txt");
+    // The log says per agent what it needs, who supplies it best and what it receives.
+    let line = |i: usize| log.lines().find(|l| l.starts_with(&format!("lmac: agent {i}: "))).unwrap_or_else(|| panic!("{log}")).to_string();
+    assert!(line(1).contains("needs s[") && line(1).contains("best from agent 0") && line(1).contains("from agent 0"), "{}", line(1));
+    assert!(line(3).ends_with("receives nothing"), "{}", line(3));
 
     // The design: the observer sends the goal, to the two actors only.
     let p: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("phase0/protocol.json")).unwrap()).unwrap();
@@ -70,6 +74,12 @@ fn by_default_the_observer_tells_the_actors_and_lmac_beats_qmix() {
     let needs = summary["designer_measurements"]["needs"].as_array().unwrap_or_else(|| panic!("{summary}"));
     let need = |i: usize| needs[i]["dims"].as_array().unwrap().iter().map(|x| x["need"].as_f64().unwrap()).sum::<f64>();
     assert!(need(1) > 10.0 * need(0).max(need(3)) && need(2) > 10.0 * need(0).max(need(3)), "{needs:?}");
+    // And what each receives: the actors the goal from the observer, the others nothing.
+    let received = summary["received"].as_array().unwrap_or_else(|| panic!("{summary}"));
+    let senders =
+        |i: usize| -> Vec<u64> { received[i]["receives"].as_array().unwrap().iter().map(|x| x["sender"].as_u64().unwrap()).collect() };
+    assert!(!senders(1).is_empty() && senders(1).iter().chain(&senders(2)).all(|&s| s == 0), "{received:?}");
+    assert!(senders(0).is_empty() && senders(3).is_empty(), "{received:?}");
 
     // Trained: LMAC with the design finds the goal; QMIX, without messages, can only guess.
     let protocol = std::fs::read_to_string(d.join("final_protocol.txt")).unwrap();

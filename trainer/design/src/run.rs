@@ -381,6 +381,11 @@ pub fn run_design(
 
     let all: Vec<_> = phases.iter().map(|p| p.protocol.clone()).collect();
     write(&dir.join("final.txt"), &protocol::explain_phases(&all, Some(ctx.env)))?;
+    let measurements = designer.measurements();
+    let received = received_per_agent(&phases);
+    for line in agent_lines(&received, measurements.as_ref().and_then(|m| m.get("needs"))) {
+        eprintln!("lmac: {line}");
+    }
     let spec = files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join("+");
     write(&dir.join("final_protocol.txt"), &format!("{spec}\n"))?;
     let summary = serde_json::json!({
@@ -394,9 +399,68 @@ pub fn run_design(
         "fixed_dims_source": fixed_source,
         "evaluations": evaluations,
         "final_protocol": spec,
-        "designer_measurements": designer.measurements(),
+        "designer_measurements": measurements,
+        "received": received,
         "designer_settings": designer.settings(),
     });
     write(&dir.join("summary.json"), &serde_json::to_string_pretty(&summary)?)?;
     Ok(dir)
+}
+
+/// What each agent receives in the final protocol, phase by phase: from which sender, which
+/// field and its value (the `received` entry of `summary.json`).
+fn received_per_agent(phases: &[PhaseProtocol]) -> Vec<serde_json::Value> {
+    let n = phases.first().map_or(0, |p| p.validated.env.n_agents);
+    (0..n)
+        .map(|i| {
+            let mut from = Vec::new();
+            for p in phases {
+                for (f, sends) in p.validated.sends.iter().enumerate() {
+                    for (j, to) in sends.iter().enumerate() {
+                        if to[i] {
+                            let field = &p.protocol.fields[f];
+                            from.push(
+                                serde_json::json!({"phase": p.protocol.phase, "sender": j, "field": field.name, "value": field.value}),
+                            );
+                        }
+                    }
+                }
+            }
+            serde_json::json!({"agent": i, "receives": from})
+        })
+        .collect()
+}
+
+/// One log line per agent: what it needs of the critical dims and who supplies each best (when
+/// the designer measured needs), then what it receives.
+fn agent_lines(received: &[serde_json::Value], needs: Option<&serde_json::Value>) -> Vec<String> {
+    let needs = needs.and_then(|n| n.as_array()).cloned().unwrap_or_default();
+    received
+        .iter()
+        .enumerate()
+        .map(|(i, r)| {
+            let need = needs.iter().find(|n| n["agent"] == i).map(|n| {
+                let dims: Vec<String> = n["dims"]
+                    .as_array()
+                    .map(|d| d.as_slice())
+                    .unwrap_or_default()
+                    .iter()
+                    .map(|d| {
+                        let supplier = d["supplier"].as_u64().map(|s| format!(", best from agent {s}")).unwrap_or_default();
+                        format!("s[{}] {:.3}{supplier}", d["dim"], d["need"].as_f64().unwrap_or(0.0))
+                    })
+                    .collect();
+                format!("needs {}; ", dims.join(", "))
+            });
+            let got: Vec<String> = r["receives"]
+                .as_array()
+                .map(|a| a.as_slice())
+                .unwrap_or_default()
+                .iter()
+                .map(|x| format!("phase {} '{}' {} from agent {}", x["phase"], x["field"].as_str().unwrap_or(""), x["value"], x["sender"]))
+                .collect();
+            let got = if got.is_empty() { "receives nothing".to_string() } else { format!("receives {}", got.join(", ")) };
+            format!("agent {i}: {}{got}", need.unwrap_or_default())
+        })
+        .collect()
 }
