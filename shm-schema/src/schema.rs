@@ -60,8 +60,8 @@ pub struct EnvSchema {
     /// Agents that observe different things (a speaker and a listener padded to one width):
     /// per kind of agent, which agents and what each of their observation values means. An
     /// agent listed here reads these meanings in the prompts, `protocol explain` and the
-    /// designer's log; an agent not listed reads `obs_dims`. The entities the designer sends
-    /// stay those of `obs_dims`.
+    /// designer's log, and its groups are its entities when the designer ranks what it sends;
+    /// an agent not listed reads `obs_dims`.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub agent_obs: Vec<AgentObs>,
 }
@@ -324,25 +324,16 @@ impl EnvSchema {
     /// one entity per repetition (split into rows likewise); any other group is one entity.
     /// Empty on a schema whose groups do not add up (one that failed validation).
     pub fn obs_entities(&self) -> Vec<std::ops::Range<usize>> {
-        let mut out = Vec::new();
-        let mut at = 0usize;
-        for g in &self.obs_dims {
-            let row = match g.shape.as_deref() {
-                Some(shape) if shape.len() >= 2 && shape[shape.len() - 1] > 0 => shape[shape.len() - 1],
-                _ => g.count,
-            };
-            if row == 0 || g.count % row != 0 {
-                return Vec::new();
-            }
-            for _ in 0..g.repeat.unwrap_or(1) * (g.count / row) {
-                out.push(at..at + row);
-                at += row;
-            }
+        entities(&self.obs_dims, self.obs_dim)
+    }
+
+    /// Agent `agent`'s entities: those of its own groups ([`EnvSchema::agent_obs`]), else
+    /// [`obs_entities`](Self::obs_entities).
+    pub fn obs_entities_of(&self, agent: usize) -> Vec<std::ops::Range<usize>> {
+        match self.agent_kind(agent) {
+            Some(a) => entities(&a.obs_dims, self.obs_dim),
+            None => self.obs_entities(),
         }
-        if at != self.obs_dim {
-            return Vec::new();
-        }
-        out
     }
 
     /// Message columns the built-in full-communication protocol needs per agent:
@@ -351,6 +342,29 @@ impl EnvSchema {
     pub fn fullcomm_columns(&self) -> usize {
         self.n_agents.saturating_sub(1).saturating_mul(self.obs_dim.saturating_add(self.n_agents))
     }
+}
+
+/// The entities of `groups` describing `dim` values (see [`EnvSchema::obs_entities`]).
+fn entities(groups: &[DimGroup], dim: usize) -> Vec<std::ops::Range<usize>> {
+    let mut out = Vec::new();
+    let mut at = 0usize;
+    for g in groups {
+        let row = match g.shape.as_deref() {
+            Some(shape) if shape.len() >= 2 && shape[shape.len() - 1] > 0 => shape[shape.len() - 1],
+            _ => g.count,
+        };
+        if row == 0 || g.count % row != 0 {
+            return Vec::new();
+        }
+        for _ in 0..g.repeat.unwrap_or(1) * (g.count / row) {
+            out.push(at..at + row);
+            at += row;
+        }
+    }
+    if at != dim {
+        return Vec::new();
+    }
+    out
 }
 
 /// The checks of one list of dimension groups describing `dim` dimensions (`dim_field`).

@@ -1,5 +1,5 @@
-//! Agents that observe different things: per-kind observation meanings (`agent_obs`), read for
-//! each agent, and refused with the field named when they do not fit.
+//! Agents that observe different things: per-kind observation meanings and entities
+//! (`agent_obs`), read for each agent, and refused with the field named when they do not fit.
 use lmac_shm_schema::schema::EnvSchema;
 use std::path::Path;
 
@@ -22,6 +22,9 @@ fn each_agent_reads_its_own_meanings() {
     assert_eq!(s.obs_meanings_of(1), s.obs_meanings(), "an agent not listed reads obs_dims");
     assert_eq!(s.obs_meanings_of(1)[0], "position 0");
     assert_eq!(s.agent_kind(0).map(|k| k.name.as_str()), Some("speaker"));
+    // Its entities are its own groups': the colour alone, then the padding.
+    assert_eq!(s.obs_entities_of(0), vec![0..1, 1..3]);
+    assert_eq!(s.obs_entities_of(1), s.obs_entities(), "an agent not listed has obs_dims' entities");
     // A schema without agent_obs reads as before, and writes no agent_obs back.
     let plain = EnvSchema::parse(TOY, Path::new(FILE)).unwrap();
     assert!(!plain.agents_differ() && !toml::to_string(&plain).unwrap().contains("agent_obs"));

@@ -272,11 +272,11 @@ impl ReturnGain {
 /// every receiver counts alike), with rows [o_i | o_j] against [o_i]; both models see the same
 /// episodes and the same split. An agent that alone sees what the return depends on scores
 /// high; one whose view the receivers share, or that sees nothing the return moves with, near 0.
-/// `entities` are runs of observation dims measured as groups too (the schema's
-/// [`obs_entities`](lmac_shm_schema::schema::EnvSchema::obs_entities); may be empty).
+/// `entities(j)` are runs of agent j's observation dims measured as groups too (the schema's
+/// [`obs_entities_of`](lmac_shm_schema::schema::EnvSchema::obs_entities_of); may be empty).
 pub fn receiver_return_gains(
     data: &Dataset,
-    entities: &[std::ops::Range<usize>],
+    entities: impl Fn(usize) -> Vec<std::ops::Range<usize>>,
     cfg: &RelevanceConfig,
     seed: u64,
 ) -> Result<Vec<ReturnGain>> {
@@ -284,13 +284,14 @@ pub fn receiver_return_gains(
     if n < 2 {
         bail!("relevance: a sender needs another agent to receive (the dataset has {n} agent)");
     }
-    if let Some(e) = entities.iter().find(|e| e.end > od || e.is_empty()) {
-        bail!("relevance: entity {e:?} is not a run of the observation's {od} dims");
-    }
-    // The sender's entities, in the columns of [o_i | o_j].
-    let groups: Vec<Vec<usize>> = entities.iter().map(|e| e.clone().map(|d| od + d).collect()).collect();
     (0..n)
         .map(|j| {
+            let entities = entities(j);
+            if let Some(e) = entities.iter().find(|e| e.end > od || e.is_empty()) {
+                bail!("relevance: entity {e:?} of agent {j} is not a run of the observation's {od} dims");
+            }
+            // The sender's entities, in the columns of [o_i | o_j].
+            let groups: Vec<Vec<usize>> = entities.iter().map(|e| e.clone().map(|d| od + d).collect()).collect();
             let with = measure_grouped(&receiver_view(data, j, true), &groups, cfg, seed)?;
             let without = measure(&receiver_view(data, j, false), cfg, seed)?;
             Ok(ReturnGain {
@@ -789,7 +790,8 @@ mod tests {
             })
             .collect();
         let data = synthetic(n, od, 1, len, episodes);
-        let g = receiver_return_gains(&data, &[], &RelevanceConfig { gamma: 0.0, updates: 1500, ..Default::default() }, 4).unwrap();
+        let g =
+            receiver_return_gains(&data, |_| Vec::new(), &RelevanceConfig { gamma: 0.0, updates: 1500, ..Default::default() }, 4).unwrap();
         assert_eq!(g.iter().map(|x| x.sender).collect::<Vec<_>>(), vec![0, 1, 2]);
         assert!(g[2].gain() > 0.5, "{g:?}");
         assert!(g[0].gain() < 0.2 && g[1].gain() < 0.2, "{g:?}");
@@ -825,12 +827,13 @@ mod tests {
             .collect();
         let data = synthetic(n, od, 1, len, episodes);
         let cfg = RelevanceConfig { gamma: 0.0, updates: 2000, ..Default::default() };
-        let g = receiver_return_gains(&data, &[0..3, 3..4], &cfg, 6).unwrap();
+        let g = receiver_return_gains(&data, |_| vec![0..3, 3..4], &cfg, 6).unwrap();
         let (v, e) = (&g[2].sender_importance, &g[2].entity_importance);
         assert_eq!(e.len(), 2);
         assert!(v[0].max(v[1]).max(v[2]) < v[3], "one by one a copy ranks below o[3]: {g:?}");
         assert!(e[0] > 1.5 * e[1], "together the copies rank first: {g:?}");
-        assert!(receiver_return_gains(&data, &[3..5], &cfg, 6).unwrap_err().to_string().contains("not a run of the observation's 4 dims"));
+        let e = format!("{:#}", receiver_return_gains(&data, |_| vec![3..5], &cfg, 6).unwrap_err());
+        assert!(e.contains("entity 3..5 of agent 0 is not a run of the observation's 4 dims"), "{e}");
     }
 
     /// A return that moves linearly with dim 2, plus noise, on few episodes: the linear model

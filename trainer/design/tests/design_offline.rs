@@ -435,6 +435,26 @@ fn by_default_the_observer_sends_the_goal_to_the_actors_only() {
     assert_eq!(to, vec![1, 2, 3], "every other agent, the bystander too: {protocol}");
 }
 
+/// A sender's entities are its own groups': where the shared groups make the whole view one
+/// entity (as the bystander reads it), the observer's own groups make the goal one entity, and
+/// the designer ranks and sends that.
+#[test]
+fn the_designer_ranks_each_senders_own_entities() {
+    let data = observer_and_actors(400, 11);
+    let mut schema = observer_and_actors_schema();
+    schema.obs_dims = vec![group(3, "the bystander's view (unused, unused, the shared bit)")];
+    let env = lmac_protocol_runner::protocol_env(&schema);
+    let c = DesignContext { env_name: "synthetic:observer-and-actors", schema: &schema, env: &env, dataset: Some(&data), seed: 5 };
+    let mut designer = OfflineDesigner::new(OfflineConfig { discriminator: quick_disc(), ..OfflineConfig::default() });
+    let p0 = designer.initial(&c).unwrap();
+    let ranking = designer.transcript().iter().find(|e| e.kind == "observation_relevance").expect("the ranking is logged").reply.clone();
+    let goal = ranking.lines().find(|l| l.contains("agent 0's the goal (o[0..1])")).unwrap_or_else(|| panic!("{ranking}"));
+    assert!(goal.contains("CHOSEN"), "{goal}");
+    assert!(!ranking.contains("agent 0's the bystander's view"), "{ranking}");
+    let protocol = serde_json::to_value(&p0.protocol).unwrap();
+    assert!(sent_obs(&protocol).contains(&0), "the goal is sent: {protocol}");
+}
+
 /// The return depends on hidden value B, which
 /// only agent 1 sees (its o[2]). Sending all of agent 1's observation raises agent 0's recovery
 /// of s[3]; agent 0's observation tells agent 1 nothing it lacks. So agent 1 is the one

@@ -64,7 +64,8 @@ impl OfflineDesigner {
         } else {
             self.cfg.senders_by
         };
-        let entities = ctx.schema.obs_entities();
+        // Each agent's own entities (agents may observe different things).
+        let entities: Vec<Vec<std::ops::Range<usize>>> = (0..n).map(|j| ctx.schema.obs_entities_of(j)).collect();
         let rel = crate::relevance::measure_joint_observation(data, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0001)
             .context("offline designer: measuring each agent's observation values' relevance to the return")?;
         let obs_cand = |d: usize| cands.iter().position(|c| c.kind == Kind::Obs && c.dim == Some(d));
@@ -111,8 +112,13 @@ impl OfflineDesigner {
                 (g, text)
             }
             SendersBy::Return => {
-                let g = crate::relevance::receiver_return_gains(data, &entities, &self.cfg.relevance, ctx.seed ^ 0x0B5E_0000_0000_0002)
-                    .context("offline designer: measuring what each agent's observation adds to the others' prediction of the return")?;
+                let g = crate::relevance::receiver_return_gains(
+                    data,
+                    |j| entities[j].clone(),
+                    &self.cfg.relevance,
+                    ctx.seed ^ 0x0B5E_0000_0000_0002,
+                )
+                .context("offline designer: measuring what each agent's observation adds to the others' prediction of the return")?;
                 let text = g
                     .iter()
                     .map(|x| {
@@ -214,7 +220,7 @@ impl OfflineDesigner {
             let mut varying_by: Vec<Vec<Vec<usize>>> = vec![Vec::new(); n];
             for &j in &senders {
                 varying_by[j] =
-                    entities.iter().map(|e| e.clone().filter(|&d| varies_for(data, j, d) && obs_cand(d).is_some()).collect()).collect();
+                    entities[j].iter().map(|e| e.clone().filter(|&d| varies_for(data, j, d) && obs_cand(d).is_some()).collect()).collect();
             }
             let by_recovery = self.cfg.values_by == ValuesBy::Recovery;
             // score[j][k] and what it measured, per sender j (others stay empty).
@@ -234,10 +240,10 @@ impl OfflineDesigner {
                         ));
                     }
                 } else {
-                    for k in 0..entities.len() {
+                    for k in 0..entities[j].len() {
                         let imp = entity_importance[j][k];
                         score[j].push(imp);
-                        let e = entities[k].clone();
+                        let e = entities[j][k].clone();
                         score_text[j].push(format!(
                             "relevance {imp:.4} (its values one by one: {})",
                             e.map(|d| format!("{:.3}", importance(j * od + d))).collect::<Vec<_>>().join(", ")
@@ -245,7 +251,8 @@ impl OfflineDesigner {
                     }
                 }
             }
-            let mut ranked: Vec<(usize, usize)> = senders.iter().flat_map(|&j| (0..entities.len()).map(move |k| (j, k))).collect();
+            let mut ranked: Vec<(usize, usize)> =
+                senders.iter().flat_map(|&j| (0..entities[j].len()).map(|k| (j, k)).collect::<Vec<_>>()).collect();
             ranked.sort_by(|&(a, x), &(b, y)| score[b][y].total_cmp(&score[a][x]).then((a, x).cmp(&(b, y))));
             if by_recovery {
                 let budget = self.cfg.max_relevant_values;
@@ -263,7 +270,7 @@ impl OfflineDesigner {
                 }
             }
             for &(j, k) in ranked.iter().take(shown_entities) {
-                let e = entities[k].clone();
+                let e = entities[j][k].clone();
                 let x = score[j][k];
                 let mut varying = varying_by[j][k].clone();
                 let room = self.cfg.max_relevant_values.saturating_sub(picks.len()).min(per_block.saturating_sub(per_sender[j]));
