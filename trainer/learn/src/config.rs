@@ -117,9 +117,9 @@ pub struct LearnConfig {
     /// Each update's batch in two halves of its episodes on two threads (online and target
     /// unroll and backward each), the gradients summed: both cores at work on one update. The
     /// same update up to float summation order (each half's losses are divided by the whole
-    /// batch's trained steps) where every loss term of the method is a mean over trained steps:
-    /// the plain agent's methods and LMAC with its masked consistency term. Other methods
-    /// ignore it (and use `parallel_target`). On by default for the reason `parallel_target` is.
+    /// batch's trained steps, or all its steps) where every loss term of the method is such a
+    /// mean: the plain agent's methods and LMAC. Other methods ignore it (and use
+    /// `parallel_target`). On by default for the reason `parallel_target` is.
     pub data_parallel: bool,
     /// The agents' recurrence in training unrolls as one fused operation with a hand-written
     /// backward (`learn::gru_sequence`); false: burn's per-step GRU cell, the slower reference.

@@ -313,7 +313,7 @@ impl Learner {
             // the graphs of tensors that share a leaf into one); parameter ids stay, so the
             // gradients are the network's.
             let net = self.net.clone().map(&mut FreshLeaves);
-            let forward = self.td_loss_part(&net, &half, rewards.as_deref(), mask_sum, i as u64, false);
+            let forward = self.td_loss_part(&net, &half, rewards.as_deref(), (mask_sum, batch.b), i as u64, false);
             forwards_done.wait();
             let (loss, stats) = forward?;
             let value: f32 = loss.clone().detach().into_scalar();
@@ -369,19 +369,20 @@ impl Learner {
     /// [`td_loss`](Self::td_loss) with the TD targets' rewards replaced by `rewards` (one per
     /// (t, b) row, as `batch.reward`).
     fn td_loss_with(&self, batch: &Batch, rewards: Option<&[f32]>) -> Result<(Tensor<1>, TrainStats), LearnError> {
-        self.td_loss_part(&self.net, batch, rewards, batch.trained_steps(), 0, self.cfg.parallel_target)
+        self.td_loss_part(&self.net, batch, rewards, (batch.trained_steps(), batch.b), 0, self.cfg.parallel_target)
     }
 
     /// [`td_loss_with`](Self::td_loss_with) of the online network `net` on `batch`, a part of an
-    /// update's batch whose trained steps number `mask_sum` (every mean over trained steps
-    /// divides by it; the method's terms see it as `TrainContext::mask_sum`); part `part`'s
+    /// update's batch whose trained steps number `mask_sum` and whose episodes number
+    /// `batch_episodes` (every mean over trained steps, or over all steps, divides by the whole
+    /// batch's count; the method's terms see them in `TrainContext`); part `part`'s
     /// random draws; the target network unrolled on a second thread when `parallel_target`.
     fn td_loss_part(
         &self,
         net: &QNet,
         batch: &Batch,
         rewards: Option<&[f32]>,
-        mask_sum: f32,
+        (mask_sum, batch_episodes): (f32, usize),
         part: u64,
         parallel_target: bool,
     ) -> Result<(Tensor<1>, TrainStats), LearnError> {
@@ -422,6 +423,7 @@ impl Learner {
             mask: mask_t.clone(),
             mask_sum,
             b,
+            batch_episodes,
             n_agents: n,
             seed: self.cfg.seed
                 ^ (self.counters.updates + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)

@@ -58,6 +58,7 @@ fn data() -> (Vec<Tensor<2>>, TrainContext, Vec<i64>) {
         mask: Tensor::from_data(TensorData::new(MASK.to_vec(), [T * B]), &device),
         mask_sum: MASK.iter().sum(),
         b: B,
+        batch_episodes: B,
         n_agents: DIMS.n_agents,
         seed: 3,
         actions: Some(StepActions::new(taken_t.clone(), taken_t)),

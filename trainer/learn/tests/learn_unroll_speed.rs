@@ -231,6 +231,7 @@ fn the_lmac_unroll_equals_the_per_step_reference_in_values_terms_and_gradients()
                 mask: Tensor::from_data(TensorData::new(mask.clone(), [t * b]), &device),
                 mask_sum: mask.iter().sum::<f32>().max(1.0),
                 b,
+                batch_episodes: b,
                 n_agents: DIMS.n_agents,
                 seed: 7,
                 actions: None,

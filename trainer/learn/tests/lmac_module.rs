@@ -45,6 +45,7 @@ fn data(t: usize, b: usize, mask: &[f32], device: &Device) -> (Vec<Tensor<2>>, T
         mask: Tensor::from_data(TensorData::new(mask.to_vec(), [t * b]), device),
         mask_sum: mask.iter().sum::<f32>().max(1.0),
         b,
+        batch_episodes: b,
         n_agents: DIMS.n_agents,
         seed: 1,
         actions: None,

@@ -219,9 +219,10 @@ macro_rules! method_networks {
                 }
             }
 
-            /// Whether every loss term of the method is a sum over trained steps divided by
-            /// `TrainContext::mask_sum`, so that the terms of two halves of a batch add up to
-            /// the whole batch's (`learn.data_parallel` splits only such methods' updates).
+            /// Whether every loss term of the method is a sum over the batch's steps divided by
+            /// the whole batch's count (`TrainContext::mask_sum` for trained steps,
+            /// `batch_episodes` for all steps), so that the terms of two halves of a batch add
+            /// up to the whole batch's (`learn.data_parallel` splits only such methods' updates).
             pub fn losses_are_step_means(&self) -> bool {
                 match self {
                     AgentNet::Rnn(_) => true,
@@ -272,8 +273,8 @@ pub trait MethodHooks: Sized {
     fn after_update(self) -> Self {
         self
     }
-    /// Whether every loss term is a sum over trained steps divided by `TrainContext::mask_sum`
-    /// (see `AgentNet::losses_are_step_means`); not by default, so a new method's update is
+    /// Whether every loss term is a sum over the batch's steps divided by the whole batch's
+    /// count (see `AgentNet::losses_are_step_means`); not by default, so a new method's update is
     /// never split unless it says so.
     fn losses_are_step_means(&self) -> bool {
         false
@@ -303,6 +304,9 @@ pub struct TrainContext {
     /// its episodes (the halves' terms then add up to the whole batch's).
     pub mask_sum: f32,
     pub b: usize,
+    /// Episodes of the batch every mean over all its steps, padding included, divides by: `b`,
+    /// or with `learn.data_parallel` the whole batch's while this context holds half of them.
+    pub batch_episodes: usize,
     pub n_agents: usize,
     /// Seed of this update's random draws (dropout), so an update is reproducible and a resumed
     /// run draws what the uninterrupted one would have.

@@ -142,7 +142,8 @@ pub const PRESETS: &[(&str, &str)] = &[
          (acting waits for the learner at this ratio, so the second core is free): the batch's two \
          halves on two threads where the method's losses split exactly (learn.data_parallel), else the \
          target network unrolled on the second; the time limit a termination, as their runner \
-         treats it (learn.time_limit); and for LMAC their GRU-gate encoder (method.encoder)",
+         treats it (learn.time_limit); and for LMAC their GRU-gate encoder (method.encoder) and \
+         consistency loss averaged over padded steps too (method.mask_consistency = false)",
     ),
     (
         "epymarl",
@@ -159,9 +160,9 @@ pub const PRESETS: &[(&str, &str)] = &[
     (
         "released",
         "everything as the LMAC authors' released code runs it, where lmac's defaults and `paper` differ \
-         by measured choice: `paper`'s schedule, time limit and LMAC encoder, their episode runner (one \
-         env, one server; 100 greedy test episodes every 50k steps), and for LMAC their consistency \
-         loss averaged over padding (method.mask_consistency = false) and their rewards (standardised over the padded batch: \
+         by measured choice: `paper`'s schedule, time limit and LMAC module settings, their episode \
+         runner (one env, one server; 100 greedy test episodes every 50k steps), and for LMAC their \
+         rewards (standardised over the padded batch: \
          learn.reward_standardisation = \"released\"); other methods keep raw rewards, as the \
          authors' QMIX config does. The state without last actions is an env variant \
          (smaclite's -no-last-action); dropout stays off when acting (not a setting)",
@@ -201,12 +202,13 @@ pub fn preset_overrides(name: &str, algo: &str) -> Result<Vec<String>> {
         ]
     };
     // The authors' settings where lmac's differ, but where a measured choice is better (see
-    // `docs/reference/fidelity.md`): their module's GRU-gate encoder for LMAC.
+    // `docs/reference/fidelity.md`): for LMAC their module's GRU-gate encoder and consistency
+    // loss averaged over padded steps too.
     let paper = || {
         let mut o = schedule("1.0", true);
         o.push("learn.time_limit=\"terminal\"".into());
         if algo == "lmac" {
-            o.push("method.encoder=\"gru-gate\"".into());
+            o.extend(["method.encoder=\"gru-gate\"", "method.mask_consistency=false"].map(String::from));
         }
         o
     };
@@ -218,7 +220,7 @@ pub fn preset_overrides(name: &str, algo: &str) -> Result<Vec<String>> {
             let mut o = paper();
             o.extend(["run.envs=1", "run.servers=1", "run.test_interval=50000", "run.test_episodes=100"].map(String::from));
             if algo == "lmac" {
-                o.extend(["method.mask_consistency=false", "learn.reward_standardisation=\"released\""].map(String::from));
+                o.push("learn.reward_standardisation=\"released\"".into());
             }
             o
         }
@@ -718,7 +720,7 @@ mod tests {
         assert!(e.contains("latent_dims"), "an unknown [method] key is named: {e}");
     }
 
-    /// `paper` gives LMAC the authors' encoder; `released` is the authors' code for the method at
+    /// `paper` gives LMAC the authors' encoder and consistency loss; `released` is the authors' code for the method at
     /// hand: LMAC's module and rewards as released, other methods' raw rewards; the method comes
     /// from `--algo` or from the sets.
     #[test]
@@ -729,7 +731,7 @@ mod tests {
             TrainConfig::resolve(None, &o).unwrap()
         };
         let paper = toml::to_string(&lmac(preset_then(Some("paper"), Some("lmac"), &[]).unwrap()).method).unwrap();
-        assert!(paper.contains("encoder = \"gru-gate\"") && paper.contains("mask_consistency = true"), "{paper}");
+        assert!(paper.contains("encoder = \"gru-gate\"") && paper.contains("mask_consistency = false"), "{paper}");
         let plain = toml::to_string(&lmac(Vec::new()).method).unwrap();
         assert!(plain.contains("encoder = \"window\""), "lmac's own default stays the window encoder: {plain}");
         assert!(!preset_overrides("paper", "qmix").unwrap().iter().any(|s| s.starts_with("method.")), "no LMAC setting for QMIX");

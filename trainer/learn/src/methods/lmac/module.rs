@@ -89,10 +89,11 @@ impl MethodHooks for LmacAgent {
         Some(&mut self.agent)
     }
 
-    /// Reconstruction, meta and consistency terms are masked means over the trained steps,
-    /// except the released code's unmasked consistency mean (`mask_consistency = false`).
+    /// Reconstruction, meta and consistency terms are masked means over the trained steps, and
+    /// the released code's unmasked consistency mean (`mask_consistency = false`) divides by the
+    /// whole batch's steps.
     fn losses_are_step_means(&self) -> bool {
-        self.cfg.settings.mask_consistency
+        true
     }
 }
 
@@ -342,7 +343,13 @@ impl LmacAgent {
             LatentReduction::Sum => sq_z.sum_dim(2),
         }
         .reshape([t, b, n, 1]);
-        let cons = if s.mask_consistency { (cyc * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32) } else { cyc.mean() };
+        // Unmasked, the mean over every step of the whole batch, padding included (the released
+        // code's `mean()`), as a sum over this context's episodes over the whole batch's count.
+        let cons = if s.mask_consistency {
+            (cyc * mask.clone()).sum().div_scalar(ctx.mask_sum * n as f32)
+        } else {
+            cyc.sum().div_scalar((t * ctx.batch_episodes * n) as f32)
+        };
 
         let scalar = |x: &Tensor<1>| x.clone().detach().into_scalar::<f32>();
         let recovered = scalar(&(xi * mask.clone()).sum().div_scalar(denom));
