@@ -360,7 +360,7 @@ impl Campaign {
             }
             // Not while another lmac trains it (`campaign cell` on a second worker, say).
             let lock = lmac_run::run_dir::lock(&cell.dir).with_context(|| format!("cell {}", cell.id))?;
-            let trained = !matches!(cell_state(&cell)?, CellState::Pending) || cell.dir.join("metrics.csv").exists();
+            let trained = has_trained(&cell);
             let what = changed.join("; ");
             if !trained {
                 eprintln!("lmac: campaign: cell {} has not trained; its config is written again with today's settings ({what})", cell.id);
@@ -497,6 +497,17 @@ fn cell_state(c: &Cell) -> Result<CellState> {
     })
 }
 
+/// Whether a cell has trained any env steps; one that failed before it did holds nothing its
+/// config must keep (a cell that cannot be read counts as trained: nothing is moved or
+/// rewritten on a guess).
+fn has_trained(c: &Cell) -> bool {
+    match cell_state(c) {
+        Ok(CellState::Pending) => false,
+        Ok(CellState::Failed { t_env, .. }) => t_env > 0,
+        _ => true,
+    }
+}
+
 /// A cell's small JSON record (`reduced.json`, `failed.json`), if it has one.
 fn read_json<T: serde::de::DeserializeOwned>(p: &Path) -> Result<Option<T>> {
     if !p.exists() {
@@ -583,8 +594,7 @@ impl Status {
                 "; {unknown} cells without an estimate yet (no cell of their task and method has trained; the first one gives the speed)"
             ));
         }
-        let trained_otherwise =
-            self.cells.iter().filter(|c| self.changed.contains_key(&c.0.id) && !matches!(c.1, CellState::Pending)).count();
+        let trained_otherwise = self.cells.iter().filter(|c| self.changed.contains_key(&c.0.id) && has_trained(&c.0)).count();
         if trained_otherwise > 0 {
             s.push_str(&format!(
                 "; {trained_otherwise} cells trained with settings the campaign no longer resolves to (`campaign run --retrain-changed` trains them again)"
@@ -655,10 +665,10 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
                     CellState::Failed { t_env, error } => format!("FAILED at {t_env} steps (the next run retries it): {error}"),
                 };
                 let eta = eta.map(|e| format!(", about {} left", duration(e))).unwrap_or_default();
-                let changed = match (st.changed.get(&cell.id), s) {
-                    (None, _) => String::new(),
-                    (Some(d), CellState::Pending) => format!("; the next run writes its config again: {}", d.join("; ")),
-                    (Some(d), _) => format!("; TRAINED WITH OTHER SETTINGS than the campaign's now: {}", d.join("; ")),
+                let changed = match st.changed.get(&cell.id) {
+                    None => String::new(),
+                    Some(d) if !has_trained(cell) => format!("; the next run writes its config again: {}", d.join("; ")),
+                    Some(d) => format!("; TRAINED WITH OTHER SETTINGS than the campaign's now: {}", d.join("; ")),
                 };
                 println!("{:<60} {what}{eta}{changed}", cell.id);
             }
