@@ -231,7 +231,18 @@ fn cells_whose_settings_changed_are_rewritten_or_said_so_and_retrained_when_aske
     assert!(std::fs::read_to_string(runs.join("vdn/seed0/config.toml")).unwrap().contains(&format!("lr = {lr}")));
     assert!(runs.join("qmix/seed0/metrics.csv").exists());
 
-    // Asked to, the trained cell moves whole under superseded/ and trains again with today's settings.
+    // Asked to, the trained cell moves whole under superseded/ (here without training yet): an
+    // export then shows no results for it, where an earlier export did.
+    assert!(campaign(&dir, &["report", "c.toml", "--export", "copy"]).status.success());
+    let copied = dir.join("copy/short/lbf_8x8-2p-2f-s1-coop/runs/qmix/seed0");
+    assert!(copied.join("metrics.csv").exists());
+    let moved_only = campaign(&dir, &["run", "c.toml", "--max-cells", "0", "--retrain-changed"]);
+    assert!(moved_only.status.success(), "{}", text(&moved_only));
+    assert!(campaign(&dir, &["report", "c.toml", "--export", "copy"]).status.success());
+    assert!(!copied.join("metrics.csv").exists() && copied.join("config.toml").exists(), "the copy follows the tree");
+    let onto_itself = campaign(&dir, &["report", "c.toml", "--export", "tree"]);
+    assert!(!onto_itself.status.success() && text(&onto_itself).contains("that is the results tree itself"), "{}", text(&onto_itself));
+    // It trains again with today's settings.
     let again = campaign(&dir, &["run", "c.toml", "--max-cells", "1", "--retrain-changed"]);
     let t = text(&again);
     assert!(again.status.success(), "{t}");

@@ -3,7 +3,7 @@
 
 use super::{cell_state, has_trained, Campaign, Cell, CellState, Metric, Reference, Status};
 use crate::cli::experiment::summarize;
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use lmac_run::run_dir::env_dir_name;
 use std::path::{Path, PathBuf};
 
@@ -12,13 +12,27 @@ const EXPORTED: [&str; 6] = ["config.toml", "metrics.csv", "metrics.jsonl", "mar
 
 /// Copy the small files of every cell trained so far into `to`, in the same tree.
 pub(super) fn export_tree(c: &Campaign, to: &Path) -> Result<()> {
+    if std::fs::canonicalize(to).ok().is_some_and(|t| std::fs::canonicalize(&c.out).is_ok_and(|o| o == t)) {
+        bail!("--export {}: that is the results tree itself; export to another directory", to.display());
+    }
     let mut n = 0;
     for cell in c.cells() {
-        if !cell.dir.join("metrics.jsonl").exists() && !cell.dir.join("failed.json").exists() {
-            continue;
-        }
         let rel = cell.dir.strip_prefix(&c.out).expect("cells live under the tree");
         let dest = to.join(rel);
+        if !cell.dir.join("metrics.jsonl").exists() && !cell.dir.join("failed.json").exists() {
+            // Nothing trained to show (a cell made again, say): an earlier copy's results go, so
+            // the copy never shows a run the tree no longer has.
+            if dest.exists() {
+                for f in EXPORTED.iter().filter(|f| **f != "config.toml") {
+                    let _ = std::fs::remove_file(dest.join(f));
+                }
+                let _ = std::fs::remove_file(dest.join("evaluations").join("final.result.json"));
+                if cell.dir.join("config.toml").exists() {
+                    std::fs::copy(cell.dir.join("config.toml"), dest.join("config.toml"))?;
+                }
+            }
+            continue;
+        }
         std::fs::create_dir_all(&dest)?;
         for f in EXPORTED {
             let src = cell.dir.join(f);
