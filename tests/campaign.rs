@@ -123,6 +123,7 @@ fn a_campaign_trains_its_grid_in_order_resumes_and_reports_beside_the_reference(
     let page = campaign(&dir, &["report", "c.toml", "--export", "copy", "--page", "fig.md"]);
     assert!(page.status.success(), "{}", text(&page));
     let md = std::fs::read_to_string(dir.join("fig.md")).unwrap();
+    assert!(md.contains("Progress when this page was made: 5 cells: 5 finished"), "the tree's progress, not the copy's: {md}");
     let qmix = md.lines().find(|l| l.starts_with("| lbf:8x8-2p-2f-s1-coop | qmix | 2/2")).expect("qmix's short row");
     assert!(qmix.contains("| 0.120 |"), "the reference at 1500 steps, as a fraction: {qmix}");
     assert!(md.contains("## Stage longer: 2500 steps") && md.contains("| 0.400 |"), "{md}");

@@ -677,11 +677,14 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
         }
         CampaignCmd::Report { file, out, export, page } => {
             let mut c = Campaign::load(&file, out)?;
+            // The progress is the results tree's, which holds every cell (an export holds only
+            // the trained ones).
+            let progress = Status::read(&c).map(|s| s.summary()).unwrap_or_else(|e| format!("status unavailable: {e:#}"));
             if let Some(to) = export {
                 report::export_tree(&c, &to)?;
                 c.out = to;
             }
-            let (md, json) = report::report(&c)?;
+            let (md, json) = report::report(&c, &progress)?;
             match page {
                 Some(p) => {
                     std::fs::write(&p, md).with_context(|| format!("writing {}", p.display()))?;
