@@ -47,6 +47,14 @@ values = {{ qmix = [12, 40], vdn = [30, 50] }}
     f
 }
 
+/// An empty directory of this test process, `<tmp>/<name>-<pid>`.
+fn fresh_dir(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
 fn campaign(dir: &Path, args: &[&str]) -> Output {
     let mut c = lmac();
     c.arg("campaign").args(args).current_dir(dir).stdin(Stdio::null());
@@ -59,9 +67,7 @@ fn text(o: &Output) -> String {
 
 #[test]
 fn a_campaign_trains_its_grid_in_order_resumes_and_reports_beside_the_reference() {
-    let dir = std::env::temp_dir().join(format!("lmac-campaign-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = fresh_dir("lmac-campaign");
     let file = campaign_file(&dir, "", "1500");
 
     // Status before anything exists says how to start.
@@ -144,9 +150,7 @@ fn a_campaign_trains_its_grid_in_order_resumes_and_reports_beside_the_reference(
 
 #[test]
 fn a_cell_over_the_time_limit_is_kept_as_reduced_and_said_so() {
-    let dir = std::env::temp_dir().join(format!("lmac-campaign-limit-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = fresh_dir("lmac-campaign-limit");
     // 6 seconds for a cell of 200k steps: it stops at its last checkpoint.
     campaign_file(&dir, "max_cell_hours = 0.0017", "200k");
     let r = campaign(&dir, &["run", "c.toml", "--max-cells", "1"]);
@@ -168,9 +172,7 @@ fn a_cell_over_the_time_limit_is_kept_as_reduced_and_said_so() {
 
 #[test]
 fn a_failed_cell_is_recorded_said_so_and_retried_by_the_next_run() {
-    let dir = std::env::temp_dir().join(format!("lmac-campaign-failed-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = fresh_dir("lmac-campaign-failed");
     campaign_file(&dir, "", "1500");
     // Env servers that cannot start (a Python that does not exist): the cell fails, the run goes
     // on to the next cell and ends in failure, and the tree records why.
@@ -200,9 +202,7 @@ fn a_failed_cell_is_recorded_said_so_and_retried_by_the_next_run() {
 /// whole under `superseded/` and trained again.
 #[test]
 fn cells_whose_settings_changed_are_rewritten_or_said_so_and_retrained_when_asked() {
-    let dir = std::env::temp_dir().join(format!("lmac-campaign-changed-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = fresh_dir("lmac-campaign-changed");
     campaign_file(&dir, "", "1500");
     assert!(campaign(&dir, &["run", "c.toml", "--max-cells", "1"]).status.success());
     let runs = dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/runs");
@@ -259,9 +259,7 @@ fn cells_whose_settings_changed_are_rewritten_or_said_so_and_retrained_when_aske
 
 #[test]
 fn bad_campaign_files_are_refused_naming_the_file_and_the_field() {
-    let dir = std::env::temp_dir().join(format!("lmac-campaign-bad-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = fresh_dir("lmac-campaign-bad");
     let head = "[campaign]\ntitle = \"t\"\nout = \"tree\"\n";
     let stage = |body: &str| format!("{head}\n[[stage]]\nname = \"s\"\ntasks = [\"lbf:8x8-2p-2f-s1-coop\"]\nseeds = [0]\n{body}\n");
     for (body, says) in [

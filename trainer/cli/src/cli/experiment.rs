@@ -13,10 +13,10 @@ use lmac_run::stats::{mean, sample_sd};
 use lmac_run::train::{read_metrics, TrainConfig};
 use lmac_run::workflow::{interrupt_flag, plot, train_dirs_holding};
 use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
 
 /// The runs resolved while their configs were written, by run directory.
 pub(crate) type Resolutions = std::collections::HashMap<PathBuf, lmac_run::train::ResolvedRun>;
-use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub(crate) struct ExperimentArgs {

@@ -720,9 +720,9 @@ mod tests {
         assert!(e.contains("latent_dims"), "an unknown [method] key is named: {e}");
     }
 
-    /// `paper` gives LMAC the authors' encoder and consistency loss; `released` is the authors' code for the method at
-    /// hand: LMAC's module and rewards as released, other methods' raw rewards; the method comes
-    /// from `--algo` or from the sets.
+    /// `paper` gives LMAC the authors' encoder and consistency loss; `released` is the authors'
+    /// code for the method at hand: LMAC's module and rewards as released, other methods' raw
+    /// rewards; the method comes from `--algo` or from the sets.
     #[test]
     fn the_released_preset_follows_the_method() {
         let lmac = |o: Vec<String>| {

@@ -333,15 +333,13 @@ impl Campaign {
             for task in &st.tasks {
                 let spec = self.experiment_spec(st, task)?;
                 let dir = self.out.join(&st.name).join(env_dir_name(task));
-                if claim_dir(&dir, &spec).is_ok() {
-                    continue;
-                }
+                let Err(refused) = claim_dir(&dir, &spec) else { continue };
                 let mut changed = Vec::new();
                 for cell in self.cells().iter().filter(|c| c.stage == st.name && &c.task == task) {
                     changed.extend(self.settings_changed(cell)?.into_iter().map(|d| format!("{}: {d}", cell.id)));
                 }
                 if !changed.is_empty() {
-                    return Err(claim_dir(&dir, &spec).unwrap_err()).with_context(|| {
+                    return Err(refused).with_context(|| {
                         format!("stage {}, task {task}: its cells would train otherwise ({})", st.name, changed.join("; "))
                     });
                 }
@@ -501,10 +499,17 @@ fn cell_state(c: &Cell) -> Result<CellState> {
 /// config must keep (a cell that cannot be read counts as trained: nothing is moved or
 /// rewritten on a guess).
 fn has_trained(c: &Cell) -> bool {
-    match cell_state(c) {
-        Ok(CellState::Pending) => false,
-        Ok(CellState::Failed { t_env, .. }) => t_env > 0,
-        _ => true,
+    cell_state(c).map_or(true, |s| s.trained())
+}
+
+impl CellState {
+    /// See [`has_trained`].
+    fn trained(&self) -> bool {
+        match self {
+            CellState::Pending => false,
+            CellState::Failed { t_env, .. } => *t_env > 0,
+            _ => true,
+        }
     }
 }
 
@@ -594,7 +599,7 @@ impl Status {
                 "; {unknown} cells without an estimate yet (no cell of their task and method has trained; the first one gives the speed)"
             ));
         }
-        let trained_otherwise = self.cells.iter().filter(|c| self.changed.contains_key(&c.0.id) && has_trained(&c.0)).count();
+        let trained_otherwise = self.cells.iter().filter(|c| self.changed.contains_key(&c.0.id) && c.1.trained()).count();
         if trained_otherwise > 0 {
             s.push_str(&format!(
                 "; {trained_otherwise} cells trained with settings the campaign no longer resolves to (`campaign run --retrain-changed` trains them again)"
@@ -667,7 +672,7 @@ pub(crate) fn campaign(cmd: CampaignCmd) -> Result<i32> {
                 let eta = eta.map(|e| format!(", about {} left", duration(e))).unwrap_or_default();
                 let changed = match st.changed.get(&cell.id) {
                     None => String::new(),
-                    Some(d) if !has_trained(cell) => format!("; the next run writes its config again: {}", d.join("; ")),
+                    Some(d) if !s.trained() => format!("; the next run writes its config again: {}", d.join("; ")),
                     Some(d) => format!("; TRAINED WITH OTHER SETTINGS than the campaign's now: {}", d.join("; ")),
                 };
                 println!("{:<60} {what}{eta}{changed}", cell.id);

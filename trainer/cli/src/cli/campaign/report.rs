@@ -1,7 +1,7 @@
 //! A campaign's results page and the copy of its small files: one table per stage beside the
 //! reference values at the same steps, the orderings that differ, what failed or was reduced.
 
-use super::{cell_state, has_trained, Campaign, Cell, CellState, Metric, Reference};
+use super::{cell_state, Campaign, Cell, CellState, Metric, Reference};
 use crate::cli::experiment::summarize;
 use anyhow::{bail, Context, Result};
 use lmac_run::run_dir::env_dir_name;
@@ -110,7 +110,7 @@ pub(super) fn report(c: &Campaign, progress: &str) -> Result<(String, serde_json
                     }
                     let state = cell_state(cell).unwrap_or(CellState::Pending);
                     match c.settings_changed(cell) {
-                        Ok(d) if !d.is_empty() && has_trained(cell) => notes.push(format!(
+                        Ok(d) if !d.is_empty() && state.trained() => notes.push(format!(
                             "seed {} trained with settings the campaign no longer resolves to: {}",
                             cell.seed,
                             d.join("; ")
