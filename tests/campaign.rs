@@ -254,6 +254,18 @@ fn cells_whose_settings_changed_are_rewritten_or_said_so_and_retrained_when_aske
     assert!(std::fs::read_to_string(runs.join("qmix/seed0/config.toml")).unwrap().contains(&format!("lr = {lr}")));
     let st = text(&campaign(&dir, &["status", "c.toml"]));
     assert!(st.contains("2 finished") && !st.contains("OTHER SETTINGS"), "{st}");
+
+    // A stage added to a running campaign: its cells are not created yet, and status still
+    // says they are pending and how long they will take.
+    let f = dir.join("c.toml");
+    let added = "\n[[stage]]\nname = \"added\"\ntasks = [\"lbf:8x8-2p-2f-s1-coop\"]\nalgos = [\"qmix\"]\nseeds = [0]\nsteps = 1000\n";
+    std::fs::write(&f, std::fs::read_to_string(&f).unwrap() + added).unwrap();
+    let st = campaign(&dir, &["status", "c.toml", "--json"]);
+    assert!(st.status.success(), "{}", text(&st));
+    let v: serde_json::Value = serde_json::from_slice(&st.stdout).unwrap();
+    let new = v["cells"].as_array().unwrap().iter().find(|c| c["cell"]["stage"] == "added").expect("the added stage's cell");
+    assert_eq!(new["status"]["state"], "pending");
+    assert!(new["eta_s"].as_f64().unwrap() > 0.0, "qmix's speed gives it an estimate: {new}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

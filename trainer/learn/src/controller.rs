@@ -24,6 +24,9 @@ pub struct Controller {
     inputs: Vec<f32>,
     /// Q-values of the last call, [n_envs * n_agents * n_actions].
     last_q: Vec<f32>,
+    /// The acting network's own random draws (LMAC's dropout with `dropout_when_acting`), apart
+    /// from the exploration's so that turning it on does not move the epsilon draws.
+    noise: LearnRng,
 }
 
 impl Controller {
@@ -42,6 +45,7 @@ impl Controller {
             hidden: vec![0.0; n_envs * n * h],
             inputs: Vec::new(),
             last_q: Vec::new(),
+            noise: LearnRng::seed_from(learner.config().seed ^ 0xAC7D_0000_0000_0001),
         }
     }
 
@@ -142,7 +146,7 @@ impl Controller {
             // The usual case: one forward over every env.
             let x: Tensor<2> = Tensor::from_data(TensorData::new(self.inputs.clone(), [b * n, iw]), &self.device);
             let hs: Tensor<2> = Tensor::from_data(TensorData::new(self.hidden.clone(), [b * n, h]), &self.device);
-            let (q, h_new) = self.agents[newest].step(x, hs);
+            let (q, h_new) = self.agents[newest].step_drawing(x, hs, &mut self.noise);
             self.hidden = h_new.into_data().try_into_vec::<f32>().expect("f32 hidden");
             self.last_q = q.into_data().try_into_vec::<f32>().expect("f32 q");
         } else {
@@ -159,7 +163,7 @@ impl Controller {
                 let rows = envs.len() * n;
                 let x: Tensor<2> = Tensor::from_data(TensorData::new(gather(&self.inputs, iw), [rows, iw]), &self.device);
                 let hs: Tensor<2> = Tensor::from_data(TensorData::new(gather(&self.hidden, h), [rows, h]), &self.device);
-                let (q, h_new) = self.agents[k].step(x, hs);
+                let (q, h_new) = self.agents[k].step_drawing(x, hs, &mut self.noise);
                 let (q, h_new) =
                     (q.into_data().try_into_vec::<f32>().expect("f32 q"), h_new.into_data().try_into_vec::<f32>().expect("f32 hidden"));
                 for (j, &e) in envs.iter().enumerate() {

@@ -431,6 +431,7 @@ impl Learner {
             actions: Some(step_actions),
             reward: Some(Tensor::from_data(TensorData::new(reward.to_vec(), [nb]), &ad)),
         };
+        let target_seed = ctx.seed;
         let target_unroll = || {
             // Filled with `None` if the unroll panics, so an online unroll waiting for the greedy
             // actions fails instead of waiting forever.
@@ -441,12 +442,12 @@ impl Learner {
                 }
             }
             let _fill = Fill(&greedy_cell);
-            let out = self.target.agent.unroll(step_inputs(&dev), None);
-            let greedy = out.0.clone().reshape([t, b, n, a]).mask_fill(unavail_t.clone(), -1e9).argmax(3).reshape([t, b * n]);
+            let out = self.target.agent.unroll_target(step_inputs(&dev), target_seed);
+            let greedy = out.clone().reshape([t, b, n, a]).mask_fill(unavail_t.clone(), -1e9).argmax(3).reshape([t, b * n]);
             let _ = greedy_cell.set(Some(Tensor::from_data(greedy.into_data(), &ad)));
             out
         };
-        let ((mac_out, aux), (target_out, _)) = if parallel_target {
+        let ((mac_out, aux), target_out) = if parallel_target {
             std::thread::scope(|s| {
                 let target = s.spawn(target_unroll);
                 let online = net.agent.unroll(step_inputs(&ad), Some(&ctx));

@@ -1,6 +1,6 @@
 //! The LMAC module: the meta target and the reconstruction error as specified, a consistency
 //! loss of zero when the cycle encoder inverts the decoder exactly, gradients that reach
-//! exactly the parameters each option says, dropout only in training, the consistency loss's
+//! exactly the parameters each option says, dropout only in training unless asked, the consistency loss's
 //! reduction and reward standardisation.
 
 use burn::module::{Module, Param};
@@ -223,6 +223,36 @@ fn dropout_acts_in_training_updates_only() {
     assert_eq!(first, mse(&ctx), "the same update seed draws the same units");
     ctx.seed = 2;
     assert_ne!(first, mse(&ctx), "another update draws other units");
+}
+
+/// `dropout_when_acting` (the released code's modules, never in eval mode): acting and the
+/// target network draw units from their own seeds; without it both are the deterministic module.
+#[test]
+fn dropout_acts_when_acting_and_in_the_target_network_only_when_asked() {
+    let device = Device::default();
+    let values = |t: Tensor<2>| t.into_data().try_into_vec::<f32>().unwrap();
+    let values3 = |t: Tensor<3>| t.into_data().try_into_vec::<f32>().unwrap();
+    let (inputs, _, _) = data(3, 2, &[1.0; 6], &device);
+    for when_acting in [false, true] {
+        let a = agent(&config(|s| (s.dropout, s.dropout_when_acting) = (0.5, when_acting)), &device);
+        let state = Tensor::<2>::zeros([inputs[0].dims()[0], a.state_width()], &device);
+        let net = AgentNet::Lmac(a.clone());
+        let acting = |seed: u64| values(net.step_drawing(inputs[0].clone(), state.clone(), &mut LearnRng::seed_from(seed)).0);
+        let target = |seed: u64| values3(net.unroll_target(inputs.clone(), seed));
+        let plain_step = values(a.step(inputs[0].clone(), state.clone()).0);
+        let plain_unroll = values3(a.unroll(inputs.clone(), None).0);
+        assert_eq!(acting(1), acting(1), "a seed fixes the acting draws");
+        assert_eq!(target(1), target(1), "a seed fixes the target network's draws");
+        if when_acting {
+            assert_ne!(acting(1), acting(2), "acting draws other units from another seed");
+            assert_ne!(acting(1), plain_step, "acting drops units out");
+            assert_ne!(target(1), target(2), "the target network draws other units from another seed");
+            assert_ne!(target(1), plain_unroll, "the target network drops units out");
+        } else {
+            assert_eq!(acting(1), plain_step, "acting is the deterministic module");
+            assert_eq!(target(1), plain_unroll, "the target network is the deterministic module");
+        }
+    }
 }
 
 #[test]

@@ -201,7 +201,7 @@ macro_rules! method_networks {
                 }
             }
 
-            /// One acting step, deterministic (no dropout): x [N, in], state [N, S] -> (q [N, A], state').
+            /// One acting step, deterministic (no dropout; see [`AgentNet::step_drawing`]): x [N, in], state [N, S] -> (q [N, A], state').
             pub fn step(&self, x: Tensor<2>, state: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
                 match self {
                     AgentNet::Rnn(a) => a.step(x, state),
@@ -278,6 +278,27 @@ pub trait MethodHooks: Sized {
     /// never split unless it says so.
     fn losses_are_step_means(&self) -> bool {
         false
+    }
+}
+
+impl AgentNet {
+    /// [`step`](Self::step) with the method's acting randomness drawn from `noise`: LMAC's
+    /// embedding dropout with `method.dropout_when_acting`. Every other method acts
+    /// deterministically and draws nothing.
+    pub fn step_drawing(&self, x: Tensor<2>, state: Tensor<2>, noise: &mut LearnRng) -> (Tensor<2>, Tensor<2>) {
+        match self {
+            AgentNet::Lmac(a) if a.drops_out_when_acting() => a.step_with(x, state, Some(noise)),
+            _ => self.step(x, state),
+        }
+    }
+
+    /// The target network's unroll, Q [T, N, A]: deterministic, except LMAC's embedding dropout
+    /// with `method.dropout_when_acting`, drawn from `seed`.
+    pub fn unroll_target(&self, inputs: Vec<Tensor<2>>, seed: u64) -> Tensor<3> {
+        match self {
+            AgentNet::Lmac(a) => a.unroll_target(inputs, seed),
+            _ => self.unroll(inputs, None).0,
+        }
     }
 }
 

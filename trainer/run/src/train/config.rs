@@ -163,9 +163,10 @@ pub const PRESETS: &[(&str, &str)] = &[
          by measured choice: `paper`'s schedule, time limit and LMAC module settings, their episode \
          runner (one env, one server; 100 greedy test episodes every 50k steps), and for LMAC their \
          rewards (standardised over the padded batch: \
-         learn.reward_standardisation = \"released\"); other methods keep raw rewards, as the \
-         authors' QMIX config does. The state without last actions is an env variant \
-         (smaclite's -no-last-action); dropout stays off when acting (not a setting)",
+         learn.reward_standardisation = \"released\") and the embedding's dropout in every forward, \
+         acting and the target network included (method.dropout_when_acting); other methods keep \
+         raw rewards, as the authors' QMIX config does. The state without last actions is an env \
+         variant (smaclite's -no-last-action)",
     ),
 ];
 
@@ -220,7 +221,7 @@ pub fn preset_overrides(name: &str, algo: &str) -> Result<Vec<String>> {
             let mut o = paper();
             o.extend(["run.envs=1", "run.servers=1", "run.test_interval=50000", "run.test_episodes=100"].map(String::from));
             if algo == "lmac" {
-                o.push("learn.reward_standardisation=\"released\"".into());
+                o.extend(["learn.reward_standardisation=\"released\"", "method.dropout_when_acting=true"].map(String::from));
             }
             o
         }
@@ -381,10 +382,14 @@ impl TrainConfig {
     }
 
     /// The settings in which `self` differs from `now`, one `key: self -> now` line each
-    /// (dotted keys, TOML values; the build that wrote each is not a setting).
+    /// (dotted keys, TOML values; the build that wrote each is not a setting). A method setting
+    /// added since `self` was written reads as its default: a new setting's default is the
+    /// behaviour from before it existed.
     pub fn settings_changed(&self, now: &TrainConfig) -> Result<Vec<String>> {
         let table = |c: &TrainConfig| -> Result<toml::Table> {
-            let mut t = toml::Table::try_from(c).context("writing a configuration as TOML")?;
+            let mut c = c.clone();
+            c.write_method_defaults()?;
+            let mut t = toml::Table::try_from(&c).context("writing a configuration as TOML")?;
             t.remove("build");
             Ok(t)
         };
@@ -721,7 +726,7 @@ mod tests {
     }
 
     /// `paper` gives LMAC the authors' encoder and consistency loss; `released` is the authors'
-    /// code for the method at hand: LMAC's module and rewards as released, other methods' raw
+    /// code for the method at hand: LMAC's module, dropout and rewards as released, other methods' raw
     /// rewards; the method comes from `--algo` or from the sets.
     #[test]
     fn the_released_preset_follows_the_method() {
@@ -741,11 +746,26 @@ mod tests {
         assert_eq!(c.learn.reward_standardisation, crate::learn::RewardStandardisation::Released);
         let method = toml::to_string(&c.method).unwrap();
         assert!(method.contains("encoder = \"gru-gate\"") && method.contains("mask_consistency = false"), "{method}");
+        assert!(method.contains("dropout_when_acting = true") && !paper.contains("dropout_when_acting = true"), "{method}");
         let from_sets = preset_then(Some("released"), None, &["run.algo = \"lmac\"".into()]).unwrap();
         assert!(from_sets.iter().any(|s| s.starts_with("method.encoder")), "{from_sets:?}");
         let q = TrainConfig::resolve(None, &preset_then(Some("released"), Some("qmix"), &["run.algo=\"qmix\"".into()]).unwrap()).unwrap();
         assert_eq!(q.learn.reward_standardisation, crate::learn::RewardStandardisation::Method, "their QMIX config keeps raw rewards");
         assert_eq!(q.run.envs, 1);
+    }
+
+    /// A run written before a method setting existed does not differ from today's config by
+    /// that setting (it reads as its default); a setting set otherwise does.
+    #[test]
+    fn a_setting_added_since_a_run_was_written_is_not_a_change() {
+        let o: Vec<String> =
+            ["run.algo=\"lmac\"", "run.env=\"smaclite:1o_10b_vs_1r\"", "run.protocol=\"paper\""].iter().map(|s| s.to_string()).collect();
+        let now = TrainConfig::resolve(None, &o).unwrap();
+        let mut old = now.clone();
+        old.method.remove("dropout_when_acting").expect("the default is written out");
+        assert_eq!(old.settings_changed(&now).unwrap(), Vec::<String>::new());
+        old.method.insert("dropout_when_acting".into(), toml::Value::Boolean(true));
+        assert_eq!(old.settings_changed(&now).unwrap(), vec!["method.dropout_when_acting: true -> false".to_string()]);
     }
 
     /// A saved config states every setting the run trained with: the method's defaults written

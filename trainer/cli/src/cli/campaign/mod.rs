@@ -307,16 +307,31 @@ impl Campaign {
             .with_context(|| format!("stage {}, task {task}", st.name))
     }
 
+    /// The configuration the campaign resolves for `cell` today.
+    fn resolve(&self, cell: &Cell) -> Result<TrainConfig> {
+        let st = self.stage(&cell.stage);
+        let spec = self.experiment_spec(st, &cell.task)?;
+        let o = run_overrides(&spec, self.protocol(st, &cell.task)?.as_deref(), &cell.algo, &cell.algo, &[], cell.seed)?;
+        TrainConfig::resolve(None, &o).with_context(|| format!("cell {}", cell.id))
+    }
+
+    /// The cell's kept configuration, or before `run` has created the cell (a new campaign or
+    /// stage) the one it will be created with.
+    fn config(&self, cell: &Cell) -> Result<TrainConfig> {
+        if cell.dir.join("config.toml").exists() {
+            TrainConfig::load(&cell.dir).with_context(|| format!("cell {}", cell.id))
+        } else {
+            self.resolve(cell)
+        }
+    }
+
     /// The settings in which a cell's kept config differs from the config the campaign resolves
     /// for it today (none for a cell without one). A reduced cell's lowered steps are its own.
     fn settings_changed(&self, cell: &Cell) -> Result<Vec<String>> {
         if !cell.dir.join("config.toml").exists() {
             return Ok(Vec::new());
         }
-        let st = self.stage(&cell.stage);
-        let spec = self.experiment_spec(st, &cell.task)?;
-        let o = run_overrides(&spec, self.protocol(st, &cell.task)?.as_deref(), &cell.algo, &cell.algo, &[], cell.seed)?;
-        let now = TrainConfig::resolve(None, &o).with_context(|| format!("cell {}", cell.id))?;
+        let now = self.resolve(cell)?;
         let kept = TrainConfig::load(&cell.dir).with_context(|| format!("cell {}", cell.id))?;
         let reduced = cell.dir.join("reduced.json").exists();
         Ok(kept.settings_changed(&now)?.into_iter().filter(|d| !(reduced && d.starts_with("run.steps:"))).collect())
@@ -473,6 +488,10 @@ fn check(f: &CampaignFile) -> Result<()> {
 
 /// Where a cell stands, read from its directory.
 fn cell_state(c: &Cell) -> Result<CellState> {
+    // Not created yet: a stage or campaign `run` has not prepared.
+    if !c.dir.exists() {
+        return Ok(CellState::Pending);
+    }
     let cfg = TrainConfig::load(&c.dir).with_context(|| format!("cell {}", c.id))?;
     let ck = checkpoint_dir(&c.dir);
     // The checkpoint's step; in an exported copy (no checkpoints) the metrics' last.
@@ -563,9 +582,9 @@ impl Status {
         let mut out = Vec::new();
         for (cell, st) in cells.into_iter().zip(states) {
             let left_steps = match &st {
-                CellState::Pending => Some(TrainConfig::load(&cell.dir)?.run.steps),
+                CellState::Pending => Some(c.config(&cell)?.run.steps),
                 CellState::Partial { t_env, steps } => Some(steps - t_env),
-                CellState::Failed { t_env, .. } => Some(TrainConfig::load(&cell.dir)?.run.steps.saturating_sub(*t_env)),
+                CellState::Failed { t_env, .. } => Some(c.config(&cell)?.run.steps.saturating_sub(*t_env)),
                 _ => None,
             };
             let rate = rates.get(&(cell.task.clone(), cell.algo.clone())).map(|v| lmac_run::stats::mean(v));

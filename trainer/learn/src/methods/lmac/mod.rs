@@ -11,8 +11,9 @@
 //!   `F.mse_loss`); lmac before this setting existed summed over them ("sum"), which weighs
 //!   the term `latent_dim` (20) times more.
 //! - Dropout acts only in training updates; acting, test episodes and the target network use the
-//!   deterministic module (the released code leaves dropout on everywhere). Not an option: a
-//!   greedy test episode with random units switched off is not the policy being tested.
+//!   deterministic module (`dropout_when_acting = false`): a greedy test episode with random
+//!   units switched off is not the policy being tested. The released code never puts its
+//!   modules in eval mode, so the embedding's dropout acts in every forward (`true`).
 //! - The encoder variant follows the paper's wording by default (`window`: scaled dot-product
 //!   attention over the last W steps) or the released code (`gru-gate`). `window` is the
 //!   default because with `gru-gate` the consistency loss drives the latent to zero (measured on
@@ -93,8 +94,14 @@ pub struct LmacSettings {
     pub heads: usize,
     /// Steps the `window` encoder attends to, the current one included.
     pub window: usize,
-    /// Dropout after the step embedding, training updates only (Table C.3: 0.1).
+    /// Dropout after the step embedding (Table C.3: 0.1), in training updates only unless
+    /// `dropout_when_acting`.
     pub dropout: f32,
+    /// The embedding's dropout also acts outside training updates: when acting (exploring and
+    /// test episodes alike) and in the target network's unroll, as in the released code, whose
+    /// modules are never put in eval mode. Off by default: a greedy test episode with random
+    /// units switched off is not the policy being tested.
+    pub dropout_when_acting: bool,
     /// Hidden width of the decoder and the cycle encoder.
     pub decoder_hidden: usize,
     /// Weight of the reliability loss inside L_recon (Table C.3: 0.1); 0 = "w/o meta".
@@ -143,6 +150,7 @@ impl Default for LmacSettings {
             heads: 4,
             window: 10,
             dropout: 0.1,
+            dropout_when_acting: false,
             decoder_hidden: 64,
             lambda_meta: 0.1,
             lambda_cons: 1.0,

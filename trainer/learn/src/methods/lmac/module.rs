@@ -2,7 +2,8 @@
 //! agents, the agent id one-hot in the input).
 //!
 //! Per agent-row and step, with u = [observation | messages | last action | agent id]:
-//! - embedding  x = dropout(relu(W2 LayerNorm(relu(W1 u))))          (dropout in training only)
+//! - embedding  x = dropout(relu(W2 LayerNorm(relu(W1 u))))          (dropout in training only,
+//!              or in every forward with `dropout_when_acting`)
 //! - encoder    z = Enc(x, trajectory):
 //!     `gru-gate`: c = GRU(x, c_prev) + x (carried to the next step, as the released code);
 //!                 z = sigmoid(W_q x . W_k c) * W_v c
@@ -183,11 +184,21 @@ impl LmacAgent {
 
     /// One acting step (deterministic).
     pub fn step(&self, u: Tensor<2>, state: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+        self.step_with(u, state, None)
+    }
+
+    /// Whether the embedding's dropout acts outside training updates too (`dropout_when_acting`).
+    pub fn drops_out_when_acting(&self) -> bool {
+        self.cfg.settings.dropout_when_acting && self.cfg.settings.dropout > 0.0
+    }
+
+    /// One acting step; the embedding's dropout draws from `rng` when given.
+    pub fn step_with(&self, u: Tensor<2>, state: Tensor<2>, rng: Option<&mut LearnRng>) -> (Tensor<2>, Tensor<2>) {
         let n = u.dims()[0];
         let es = self.encoder_state_width();
         let enc_state = state.clone().slice([0..n, 0..es]);
         let h_agent = state.slice([0..n, es..es + self.agent.hidden_dim]);
-        let x = self.embed(u.clone(), None);
+        let x = self.embed(u.clone(), rng);
         let (z, enc_next) = match &self.encoder {
             Encoder::GruGate(g) => {
                 // The released code carries c = h + x to the next step, not h.
@@ -218,18 +229,31 @@ impl LmacAgent {
     /// on a recurrence runs over all of them at once; the agents' input is built in one
     /// concatenation for all steps.
     pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
-        assert!(!inputs.is_empty(), "unroll needs at least one step");
-        let t_len = inputs.len();
         let mut rng = train.map(|c| LearnRng::seed_from(c.seed ^ 0xD80F_0000_0000_0001));
-        let u = if t_len == 1 { inputs.into_iter().next().expect("one step") } else { Tensor::cat(inputs, 0) };
-        let z = self.latents_stacked(u.clone(), t_len, rng.as_mut());
-        let [_, n, l] = z.dims();
-        let q = self.agent.unroll_stacked(self.agent_input(u, z.clone().reshape([t_len * n, l])), t_len);
+        let (q, z) = self.unroll_latents(inputs, rng.as_mut());
         let aux = match train {
             Some(ctx) => self.losses(z, ctx),
             None => Vec::new(),
         };
         (q, aux)
+    }
+
+    /// The target network's unroll: Q [T, N, A], the embedding's dropout drawn from `seed`
+    /// when it acts outside training updates (`dropout_when_acting`), else deterministic.
+    pub fn unroll_target(&self, inputs: Vec<Tensor<2>>, seed: u64) -> Tensor<3> {
+        let mut rng = self.drops_out_when_acting().then(|| LearnRng::seed_from(seed ^ 0x7A56_0000_0000_0001));
+        self.unroll_latents(inputs, rng.as_mut()).0
+    }
+
+    /// Q [T, N, A] and the latents z [T, N, L] of an unroll from zero states.
+    fn unroll_latents(&self, inputs: Vec<Tensor<2>>, rng: Option<&mut LearnRng>) -> (Tensor<3>, Tensor<3>) {
+        assert!(!inputs.is_empty(), "unroll needs at least one step");
+        let t_len = inputs.len();
+        let u = if t_len == 1 { inputs.into_iter().next().expect("one step") } else { Tensor::cat(inputs, 0) };
+        let z = self.latents_stacked(u.clone(), t_len, rng);
+        let [_, n, l] = z.dims();
+        let q = self.agent.unroll_stacked(self.agent_input(u, z.clone().reshape([t_len * n, l])), t_len);
+        (q, z)
     }
 
     /// The latent z of every step, one tensor per step (`rng`: dropout, in training).
