@@ -306,14 +306,16 @@ fn update_matmuls(s: &Shape, mixer: MixerKind, cfg: &LearnConfig) -> Option<Vec<
     Some(v)
 }
 
-/// [`update_matmuls`] for LMAC with the window encoder (`l`: its settings): the plain agent's
-/// list with the agent's first layer reading [own row | z], plus per agent-row the module's
-/// layers as [`LmacConfig::update_flops`](lmac_run::learn::methods::lmac::LmacConfig::update_flops) counts them: embedding, q, k, v and the encoder's
-/// output layer in the online and the target network (each forward twice, its weight gradient,
-/// and its input gradient except the embedding's first layer, which reads the data), the
-/// decoder and the cycle encoder in the online network only (forward, input and weight
-/// gradients). The window attention itself is not a matmul and is left out (it is timed in
-/// `--profile`). The `gru-gate` encoder has no list (None).
+/// [`update_matmuls`] for LMAC (`l`: its settings): the plain agent's list with the agent's
+/// first layer reading [own row | z], plus per agent-row the module's layers as
+/// [`LmacConfig::update_flops`](lmac_run::learn::methods::lmac::LmacConfig::update_flops)
+/// counts them, in the online and the target network (each forward twice, its weight gradient,
+/// and its input gradient except the embedding's first layer, which reads the data): the
+/// embedding and the encoder (window: q, k, v and the output layer; gru-gate: the GRU's input
+/// projection over all steps, its hidden projection one step at a time as the fused recurrence
+/// runs it, and the gate's query, key and value); the decoder and the cycle encoder in the
+/// online network only. The window attention and the gate's dot product are not matmuls and
+/// are left out (they are timed in `--profile`).
 fn lmac_update_matmuls(
     s: &Shape,
     mixer: MixerKind,
@@ -322,9 +324,6 @@ fn lmac_update_matmuls(
 ) -> Option<Vec<MatmulShape>> {
     use lmac_run::learn::methods::lmac::{AuxLayout, EncoderKind};
     let st = &l.settings;
-    if st.encoder != EncoderKind::Window {
-        return None;
-    }
     let agent_in = s.input - if st.raw_messages { 0 } else { l.msg_cols } + st.latent_dim;
     let mut v = update_matmuls(&Shape { input: agent_in, ..*s }, mixer, cfg)?;
     let r = s.batch * s.steps * s.agents;
@@ -332,17 +331,34 @@ fn lmac_update_matmuls(
     let mm = |what, m, k, n, reps| MatmulShape { what, m, k, n, batch: 1, reps, lhs_t: false };
     let wg = |what, m, k, n, reps| MatmulShape { what, m, k, n, batch: 1, reps, lhs_t: true };
     // (what, in, out, copies, in both networks, input gradient)
-    let mut layers: Vec<(&'static str, usize, usize, usize, bool, bool)> = vec![
-        ("LMAC embedding, first layer", s.input, e, 1, true, false),
-        ("LMAC embedding, second layer", e, e, 1, true, true),
-        ("LMAC window q, k, v", e, att, 3, true, true),
-        ("LMAC window output layer", att, lat, 1, true, true),
+    let mut layers: Vec<(&'static str, usize, usize, usize, bool, bool)> =
+        vec![("LMAC embedding, first layer", s.input, e, 1, true, false), ("LMAC embedding, second layer", e, e, 1, true, true)];
+    match st.encoder {
+        EncoderKind::Window => {
+            layers.extend([("LMAC window q, k, v", e, att, 3, true, true), ("LMAC window output layer", att, lat, 1, true, true)])
+        }
+        EncoderKind::GruGate => {
+            layers.extend([
+                ("LMAC encoder GRU, input projection", e, 3 * e, 1, true, true),
+                ("LMAC gate query, key", e, att, 2, true, true),
+                ("LMAC gate value", e, lat, 1, true, true),
+            ]);
+            // The recurrence, one step's rows at a time: forward in both networks, the input
+            // and weight gradients in the online one (the first step's weight gradient is a
+            // product with c_{-1} = 0, skipped by the kernel but counted, as for the agent's GRU).
+            let step_rows = s.batch * s.agents;
+            v.push(mm("LMAC encoder GRU hidden projection, one step (forward)", step_rows, e, 3 * e, 2 * s.steps));
+            v.push(mm("LMAC encoder GRU hidden, one step, input gradient", step_rows, 3 * e, e, s.steps));
+            v.push(wg("LMAC encoder GRU hidden weight gradient, one step", e, step_rows, 3 * e, s.steps));
+        }
+    }
+    layers.extend([
         ("LMAC decoder, first layer", lat, hd, 1, false, true),
         ("LMAC decoder, second layer", hd, hd, 1, false, true),
         ("LMAC decoder heads (state, reliability)", hd, dc, 2, false, true),
         ("LMAC cycle encoder, first layer", 2 * dc, hd, 1, false, true),
         ("LMAC cycle encoder, last layer", hd, lat, 1, false, true),
-    ];
+    ]);
     if st.aux_layout == AuxLayout::Released {
         layers.push(("LMAC cycle encoder, middle layer", hd, hd, 1, false, true));
     }
@@ -571,7 +587,7 @@ pub fn bench_learner(o: LearnerBenchOpts) -> Result<i32> {
     }
     let peak = peak_before.max(sgemm_gflops());
     eprintln!("lmac: single-thread sgemm through burn (512^3): {peak:.1} GFLOP/s");
-    // The update's matmuls at their own shapes: the plain agent's, and LMAC's (window encoder);
+    // The update's matmuls at their own shapes: the plain agent's, and LMAC's (either encoder);
     // the other methods add modules no list covers yet.
     let ceilings: Vec<(MixerKind, Vec<(MatmulShape, f64)>)> = mixers
         .iter()
