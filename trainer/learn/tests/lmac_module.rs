@@ -255,6 +255,21 @@ fn dropout_acts_when_acting_and_in_the_target_network_only_when_asked() {
     }
 }
 
+/// Whether dropout acts when acting is a test-time setting (`lmac evaluate --set`); the
+/// module's other settings are not.
+#[test]
+fn dropout_when_acting_can_change_for_a_trained_network_and_nothing_else_can() {
+    let device = Device::default();
+    let trained = config(|s| s.dropout = 0.1);
+    let mut net = AgentNet::Lmac(agent(&trained, &device));
+    let on = config(|s| (s.dropout, s.dropout_when_acting) = (0.1, true));
+    net.retune(&AgentConfig::Lmac(trained.clone()), &AgentConfig::Lmac(on)).unwrap();
+    assert!(matches!(&net, AgentNet::Lmac(a) if a.drops_out_when_acting()));
+    let other = config(|s| (s.dropout, s.window) = (0.1, 4));
+    let err = net.retune(&AgentConfig::Lmac(trained), &AgentConfig::Lmac(other)).unwrap_err();
+    assert!(err.contains("method.dropout_when_acting (lmac)") && err.contains("window"), "{err}");
+}
+
 #[test]
 fn the_consistency_loss_averages_over_the_latent_unless_told_to_sum() {
     use lmac_learn::methods::lmac::LatentReduction;

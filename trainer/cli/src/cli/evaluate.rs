@@ -11,7 +11,8 @@ pub(crate) const EVALUATE_AFTER_HELP: &str = "\
 Each run is evaluated from its last checkpoint with the environments, protocol and settings of its
 config.toml, every agent acting greedily. --set changes a test-time setting of the method for the
 evaluation only: method.cut=P (NDQ: zero the bottom P% of message dims by |mean|), method.prune=P
-(MAIC: drop attention weights below P / n). Several --set values of one key (e.g. --set
+(MAIC: drop attention weights below P / n), method.dropout_when_acting=B (LMAC: the embedding's
+dropout on or off while acting). Several --set values of one key (e.g. --set
 method.cut=0,90,95,98) evaluate each in turn. Results are printed, kept in each seed's
 evaluations/ folder (the spec as <time>_<k>.json, the result as <time>_<k>.result.json) and, with
 --json, written together.";

@@ -415,9 +415,16 @@ impl AgentNet {
                 a.cfg.settings.prune = t.settings.prune;
                 Ok(())
             }
+            (AgentNet::Lmac(a), AgentConfig::Lmac(f), AgentConfig::Lmac(t))
+                if lmac::LmacSettings { dropout_when_acting: f.settings.dropout_when_acting, ..t.settings.clone() } == f.settings =>
+            {
+                a.cfg.settings.dropout_when_acting = t.settings.dropout_when_acting;
+                Ok(())
+            }
             _ => Err(format!(
                 "the network in the checkpoint was built for other settings than the run's config now gives ({}); only \
-                 test-time settings can change for a trained network: method.cut (ndq), method.prune (maic)",
+                 test-time settings can change for a trained network: method.cut (ndq), method.prune (maic), \
+                 method.dropout_when_acting (lmac)",
                 config_differences(from, to)
             )),
         }
