@@ -7,7 +7,7 @@ use burn::nn::Linear;
 use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::{Device, Tensor};
 
-use super::gru_sequence::{gru_sequence_carry, gru_sequence_projected};
+use super::gru_sequence::{gru_sequence_projected, gru_sequence_projected_carry};
 use super::init::linear;
 use super::LearnRng;
 
@@ -64,12 +64,13 @@ impl FusedGru {
 impl FusedGru {
     /// [`sequence`](Self::sequence) with each step's input added to its new state before it is
     /// carried on: c_t = GRU(x_t, c_{t-1}) + x_t (input width = hidden width), [T, N, H].
+    /// Like [`sequence`](Self::sequence), each step's input projection runs inside the loop
+    /// (`gru_sequence_projected_carry`).
     pub fn sequence_carry(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
         let rows = x.dims()[0] / steps.max(1);
-        let res = x.clone().reshape([steps, rows, self.hidden_dim]);
-        let bias = self.bias(&self.hidden, &x.device());
-        let gi = self.input.forward(x).reshape([steps, rows, 3 * self.hidden_dim]);
-        gru_sequence_carry(gi, self.hidden.weight.val(), bias, res)
+        let (b_ih, b_hh) = (self.bias(&self.input, &x.device()), self.bias(&self.hidden, &x.device()));
+        let x = x.reshape([steps, rows, self.hidden_dim]);
+        gru_sequence_projected_carry(x, self.input.weight.val(), b_ih, self.hidden.weight.val(), b_hh)
     }
 }
 

@@ -36,17 +36,19 @@ use burn::tensor::{Tensor, TensorData};
 use super::host_kernel::{host, matmul, sigmoid, tanh_approx, with_simd};
 
 /// The recurrence as a backend operation: gi [T, N, 3H], w_hh [H, 3H], b_hh [3H] -> h [T, N, H];
-/// `gru_sequence_carry` adds res [T, N, H] to each step's new state before it is carried on.
+/// the projected forms take x [T, N, I] and the input projection instead of gi, and
+/// `gru_sequence_projected_carry` adds each step's x to its new state before it is carried on.
 #[backend_extension(Flex: cfg(feature = "flex"), NdArray: cfg(feature = "ndarray"), Autodiff)]
 pub trait GruSequenceBackend: Backend {
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self>;
-    fn gru_sequence_carry(
-        gi: FloatTensor<Self>,
+    fn gru_sequence_projected(
+        x: FloatTensor<Self>,
+        w_ih: FloatTensor<Self>,
+        b_ih: FloatTensor<Self>,
         w_hh: FloatTensor<Self>,
         b_hh: FloatTensor<Self>,
-        res: FloatTensor<Self>,
     ) -> FloatTensor<Self>;
-    fn gru_sequence_projected(
+    fn gru_sequence_projected_carry(
         x: FloatTensor<Self>,
         w_ih: FloatTensor<Self>,
         b_ih: FloatTensor<Self>,
@@ -61,18 +63,6 @@ pub fn gru_sequence(gi: Tensor<3>, w_hh: Tensor<2>, b_hh: Tensor<1>) -> Tensor<3
     Tensor::from_dispatch(<Dispatch as GruSequenceBackend>::gru_sequence(gi.into_dispatch(), w_hh.into_dispatch(), b_hh.into_dispatch()))
 }
 
-/// The carried states of a GRU whose every new state gets `res` added before it is carried to
-/// the next step: c_t = GRUCell(gi_t, c_{t-1}) + res_t from c_{-1} = 0, [T, N, H]. The LMAC
-/// encoder of the released code carries h + x this way (`meta.py`). Differentiable in all four.
-pub fn gru_sequence_carry(gi: Tensor<3>, w_hh: Tensor<2>, b_hh: Tensor<1>, res: Tensor<3>) -> Tensor<3> {
-    Tensor::from_dispatch(<Dispatch as GruSequenceBackend>::gru_sequence_carry(
-        gi.into_dispatch(),
-        w_hh.into_dispatch(),
-        b_hh.into_dispatch(),
-        res.into_dispatch(),
-    ))
-}
-
 /// [`gru_sequence`] with the input projection inside the loop: `x` [T, N, I], `w_ih` [I, 3H],
 /// `b_ih` [3H] give gi_t = x_t W_ih + b_ih one step at a time. Differentiable in all five.
 pub fn gru_sequence_projected(x: Tensor<3>, w_ih: Tensor<2>, b_ih: Tensor<1>, w_hh: Tensor<2>, b_hh: Tensor<1>) -> Tensor<3> {
@@ -85,18 +75,23 @@ pub fn gru_sequence_projected(x: Tensor<3>, w_ih: Tensor<2>, b_ih: Tensor<1>, w_
     ))
 }
 
+/// [`gru_sequence_projected`] with each step's input carried too: c_t = GRUCell(x_t W_ih + b_ih,
+/// c_{t-1}) + x_t from c_{-1} = 0 (input width = hidden width), [T, N, H]. The LMAC encoder of
+/// the released code carries h + x this way (`meta.py`). Differentiable in all five.
+pub fn gru_sequence_projected_carry(x: Tensor<3>, w_ih: Tensor<2>, b_ih: Tensor<1>, w_hh: Tensor<2>, b_hh: Tensor<1>) -> Tensor<3> {
+    Tensor::from_dispatch(<Dispatch as GruSequenceBackend>::gru_sequence_projected_carry(
+        x.into_dispatch(),
+        w_ih.into_dispatch(),
+        b_ih.into_dispatch(),
+        w_hh.into_dispatch(),
+        b_hh.into_dispatch(),
+    ))
+}
+
 #[cfg(feature = "flex")]
 impl GruSequenceBackend for burn::backend::Flex {
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
-        forward_on::<Self>(gi, w_hh, b_hh, None, false).0
-    }
-    fn gru_sequence_carry(
-        gi: FloatTensor<Self>,
-        w_hh: FloatTensor<Self>,
-        b_hh: FloatTensor<Self>,
-        res: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        forward_on::<Self>(gi, w_hh, b_hh, Some(res), false).0
+        forward_on::<Self>(gi, w_hh, b_hh, false).0
     }
     fn gru_sequence_projected(
         x: FloatTensor<Self>,
@@ -105,22 +100,23 @@ impl GruSequenceBackend for burn::backend::Flex {
         w_hh: FloatTensor<Self>,
         b_hh: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        projected_on::<Self>(x, w_ih, b_ih, w_hh, b_hh, false).0
+        projected_on::<Self>(x, w_ih, b_ih, w_hh, b_hh, false, false).0
+    }
+    fn gru_sequence_projected_carry(
+        x: FloatTensor<Self>,
+        w_ih: FloatTensor<Self>,
+        b_ih: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        projected_on::<Self>(x, w_ih, b_ih, w_hh, b_hh, true, false).0
     }
 }
 
 #[cfg(feature = "ndarray")]
 impl GruSequenceBackend for burn::backend::NdArray {
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
-        forward_on::<Self>(gi, w_hh, b_hh, None, false).0
-    }
-    fn gru_sequence_carry(
-        gi: FloatTensor<Self>,
-        w_hh: FloatTensor<Self>,
-        b_hh: FloatTensor<Self>,
-        res: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        forward_on::<Self>(gi, w_hh, b_hh, Some(res), false).0
+        forward_on::<Self>(gi, w_hh, b_hh, false).0
     }
     fn gru_sequence_projected(
         x: FloatTensor<Self>,
@@ -129,7 +125,16 @@ impl GruSequenceBackend for burn::backend::NdArray {
         w_hh: FloatTensor<Self>,
         b_hh: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        projected_on::<Self>(x, w_ih, b_ih, w_hh, b_hh, false).0
+        projected_on::<Self>(x, w_ih, b_ih, w_hh, b_hh, false, false).0
+    }
+    fn gru_sequence_projected_carry(
+        x: FloatTensor<Self>,
+        w_ih: FloatTensor<Self>,
+        b_ih: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        projected_on::<Self>(x, w_ih, b_ih, w_hh, b_hh, true, false).0
     }
 }
 
@@ -137,30 +142,12 @@ impl<B: Backend + GruSequenceBackend, C: CheckpointStrategy> GruSequenceBackend 
     fn gru_sequence(gi: FloatTensor<Self>, w_hh: FloatTensor<Self>, b_hh: FloatTensor<Self>) -> FloatTensor<Self> {
         match GruSequenceBackward.prepare::<C>([gi.node(), w_hh.node(), b_hh.node()]).compute_bound().stateful() {
             OpsKind::Tracked(prep) => {
-                let (out, saved) = forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), None, true);
+                let (out, saved) = forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), true);
                 prep.finish(saved.expect("saved activations"), out)
             }
             OpsKind::UnTracked(prep) => {
-                prep.finish(forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), None, false).0)
+                prep.finish(forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), false).0)
             }
-        }
-    }
-
-    fn gru_sequence_carry(
-        gi: FloatTensor<Self>,
-        w_hh: FloatTensor<Self>,
-        b_hh: FloatTensor<Self>,
-        res: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        match GruCarryBackward.prepare::<C>([gi.node(), w_hh.node(), b_hh.node(), res.node()]).compute_bound().stateful() {
-            OpsKind::Tracked(prep) => {
-                let (out, saved) =
-                    forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), Some(res.into_primitive()), true);
-                prep.finish(saved.expect("saved activations"), out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(
-                forward_on::<B>(gi.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive(), Some(res.into_primitive()), false).0,
-            ),
         }
     }
 
@@ -171,15 +158,34 @@ impl<B: Backend + GruSequenceBackend, C: CheckpointStrategy> GruSequenceBackend 
         w_hh: FloatTensor<Self>,
         b_hh: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        let nodes = [x.node(), w_ih.node(), b_ih.node(), w_hh.node(), b_hh.node()];
-        let prims = (x.into_primitive(), w_ih.into_primitive(), b_ih.into_primitive(), w_hh.into_primitive(), b_hh.into_primitive());
-        match GruProjectedBackward.prepare::<C>(nodes).compute_bound().stateful() {
-            OpsKind::Tracked(prep) => {
-                let (out, saved) = projected_on::<B>(prims.0, prims.1, prims.2, prims.3, prims.4, true);
-                prep.finish(saved.expect("saved activations"), out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(projected_on::<B>(prims.0, prims.1, prims.2, prims.3, prims.4, false).0),
+        projected_tracked::<B, C>([x, w_ih, b_ih, w_hh, b_hh], false)
+    }
+
+    fn gru_sequence_projected_carry(
+        x: FloatTensor<Self>,
+        w_ih: FloatTensor<Self>,
+        b_ih: FloatTensor<Self>,
+        w_hh: FloatTensor<Self>,
+        b_hh: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        projected_tracked::<B, C>([x, w_ih, b_ih, w_hh, b_hh], true)
+    }
+}
+
+/// The projected forms on the autodiff backend: [x, w_ih, b_ih, w_hh, b_hh], each step's input
+/// carried too when `carry` (its gradient then includes the residual's).
+fn projected_tracked<B: Backend + GruSequenceBackend, C: CheckpointStrategy>(
+    inputs: [FloatTensor<Autodiff<B, C>>; 5],
+    carry: bool,
+) -> FloatTensor<Autodiff<B, C>> {
+    let nodes = inputs.each_ref().map(|t| t.node());
+    let [x, w_ih, b_ih, w_hh, b_hh] = inputs.map(|t| t.into_primitive());
+    match GruProjectedBackward.prepare::<C>(nodes).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => {
+            let (out, saved) = projected_on::<B>(x, w_ih, b_ih, w_hh, b_hh, carry, true);
+            prep.finish(saved.expect("saved activations"), out)
         }
+        OpsKind::UnTracked(prep) => prep.finish(projected_on::<B>(x, w_ih, b_ih, w_hh, b_hh, carry, false).0),
     }
 }
 
@@ -244,36 +250,12 @@ impl<B: Backend> Backward<B, 3> for GruSequenceBackward {
     }
 }
 
-#[derive(Debug)]
-struct GruCarryBackward;
-
-impl<B: Backend> Backward<B, 4> for GruCarryBackward {
-    type State = Arc<Saved>;
-
-    fn backward(self, ops: Ops<Self::State, 4>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
-        let [node_gi, node_w, node_b, node_res] = ops.parents;
-        let grad = grads.consume::<B>(&ops.node);
-        let device = grad.device();
-        let saved = ops.state;
-        let g = saved.backward(&host::<B>(grad));
-        let (t, n, h) = (saved.steps, saved.rows, saved.hidden);
-        let parts = [
-            (node_gi.map(|n| n.id), g.gi, vec![t, n, 3 * h]),
-            (node_w.map(|n| n.id), g.w_hh, vec![h, 3 * h]),
-            (node_b.map(|n| n.id), g.b_hh, vec![3 * h]),
-            (node_res.map(|n| n.id), g.res, vec![t, n, h]),
-        ];
-        register::<B>(grads, &device, parts);
-    }
-}
-
 /// Run the forward on backend `B`'s tensors through the host kernel; with `save`, also keep
 /// what the backward needs.
 fn forward_on<B: Backend>(
     gi: FloatTensor<B>,
     w_hh: FloatTensor<B>,
     b_hh: FloatTensor<B>,
-    res: Option<FloatTensor<B>>,
     save: bool,
 ) -> (FloatTensor<B>, Option<Arc<Saved>>) {
     let device = gi.device();
@@ -284,23 +266,20 @@ fn forward_on<B: Backend>(
         h3 % 3 == 0 && w_dims == [h3 / 3, h3] && b_dims == [h3],
         "gru_sequence: gi {dims:?}, w_hh {w_dims:?}, b_hh {b_dims:?} do not fit [T, N, 3H], [H, 3H], [3H]"
     );
-    let res = res.map(|r| {
-        let r_dims = r.shape().dims::<3>();
-        assert!(r_dims == [t, n, h3 / 3], "gru_sequence_carry: res {r_dims:?} does not fit [T, N, H] = {:?}", [t, n, h3 / 3]);
-        host::<B>(r)
-    });
     let gi = host::<B>(gi);
-    let saved = Saved::unroll(StepInput::Given(&gi), host::<B>(w_hh), &host::<B>(b_hh), res.as_deref(), t, n, h3 / 3, save);
+    let saved = Saved::unroll(StepInput::Given(&gi), host::<B>(w_hh), &host::<B>(b_hh), t, n, h3 / 3, save);
     finish_on::<B>(saved, save, &device)
 }
 
-/// [`forward_on`] of the projected form: x [T, N, I], w_ih [I, 3H], b_ih [3H].
+/// [`forward_on`] of the projected form: x [T, N, I], w_ih [I, 3H], b_ih [3H]; with `carry`,
+/// each step's x is added to its new state (I = H).
 fn projected_on<B: Backend>(
     x: FloatTensor<B>,
     w_ih: FloatTensor<B>,
     b_ih: FloatTensor<B>,
     w_hh: FloatTensor<B>,
     b_hh: FloatTensor<B>,
+    carry: bool,
     save: bool,
 ) -> (FloatTensor<B>, Option<Arc<Saved>>) {
     let device = x.device();
@@ -313,8 +292,9 @@ fn projected_on<B: Backend>(
         "gru_sequence_projected: x {:?}, w_ih {wi_dims:?}, b_ih {bi_dims:?}, w_hh {w_dims:?}, b_hh {b_dims:?} do not fit [T, N, I], [I, 3H], [3H], [H, 3H], [3H]",
         [t, n, width]
     );
-    let input = StepInput::Project { x: host::<B>(x), w_ih: host::<B>(w_ih), b_ih: host::<B>(b_ih), width };
-    let saved = Saved::unroll(input, host::<B>(w_hh), &host::<B>(b_hh), None, t, n, h3 / 3, save);
+    assert!(!carry || width == h3 / 3, "gru_sequence_projected_carry: x's width {width} is not the hidden width {}", h3 / 3);
+    let input = StepInput::Project { x: host::<B>(x), w_ih: host::<B>(w_ih), b_ih: host::<B>(b_ih), width, carry };
+    let saved = Saved::unroll(input, host::<B>(w_hh), &host::<B>(b_hh), t, n, h3 / 3, save);
     finish_on::<B>(saved, save, &device)
 }
 
@@ -332,8 +312,9 @@ fn finish_on<B: Backend>(saved: Saved, save: bool, device: &B::Device) -> (Float
 pub enum StepInput<'a> {
     /// The caller's, for every step: gi [T, N, 3H].
     Given(&'a [f32]),
-    /// Computed at each step: gi_t = x_t W_ih + b_ih from x [T, N, width], W_ih [width, 3H].
-    Project { x: Vec<f32>, w_ih: Vec<f32>, b_ih: Vec<f32>, width: usize },
+    /// Computed at each step: gi_t = x_t W_ih + b_ih from x [T, N, width], W_ih [width, 3H];
+    /// with `carry`, x_t is also added to the step's new state (width = H).
+    Project { x: Vec<f32>, w_ih: Vec<f32>, b_ih: Vec<f32>, width: usize, carry: bool },
 }
 
 /// What backward needs of a projected input: the inputs and the projection's weights.
@@ -342,6 +323,8 @@ pub struct Projection {
     x: Vec<f32>,
     w_ih: Vec<f32>,
     width: usize,
+    /// Whether x was also each step's residual: its gradient then includes the residual's.
+    carry: bool,
 }
 
 /// The forward's results and what its backward reads: hidden states and gate activations of
@@ -358,14 +341,12 @@ pub struct Saved {
     n: Vec<f32>,
     /// The hidden projection's candidate part `gh_n` (bias included), which `r` multiplies.
     gh_n: Vec<f32>,
-    /// Whether each step's state had a residual added (`gru_sequence_carry`).
-    carry: bool,
     /// The input projection, when the unroll computed it (`gru_sequence_projected`).
     projection: Option<Projection>,
 }
 
-/// Gradients of the inputs: of gi, or with a projected input of x, w_ih and b_ih instead (the
-/// others empty); `res` empty without a residual.
+/// Gradients of the inputs: of gi, or with a projected input of x (through the residual too when
+/// carried), w_ih and b_ih instead (the others empty).
 pub struct SequenceGrads {
     pub gi: Vec<f32>,
     pub x: Vec<f32>,
@@ -373,7 +354,6 @@ pub struct SequenceGrads {
     pub b_ih: Vec<f32>,
     pub w_hh: Vec<f32>,
     pub b_hh: Vec<f32>,
-    pub res: Vec<f32>,
 }
 
 /// One step's gates for all rows: gi, gh [N, 3H], prev [N, H] -> h' (out) and the saved
@@ -459,33 +439,18 @@ impl Saved {
     /// Unroll from h_0 = 0. `gi` [T, N, 3H], `w_hh` [H, 3H], `b_hh` [3H]. Without `keep`, the
     /// gate activations are not stored (inference, the target network).
     pub fn forward(gi: &[f32], w_hh: Vec<f32>, b_hh: &[f32], t: usize, n: usize, h: usize, keep: bool) -> Saved {
-        Self::forward_carry(gi, w_hh, b_hh, None, t, n, h, keep)
+        Self::unroll(StepInput::Given(gi), w_hh, b_hh, t, n, h, keep)
     }
 
-    /// [`forward`](Self::forward) with `res` [T, N, H] added to each step's new state before it
-    /// is carried on (and returned).
+    /// The unroll behind every form: each step's gi_t from `input`.
     #[allow(clippy::too_many_arguments)]
-    pub fn forward_carry(gi: &[f32], w_hh: Vec<f32>, b_hh: &[f32], res: Option<&[f32]>, t: usize, n: usize, h: usize, keep: bool) -> Saved {
-        Self::unroll(StepInput::Given(gi), w_hh, b_hh, res, t, n, h, keep)
-    }
-
-    /// The unroll behind every form: each step's gi_t from `input`, an optional residual.
-    #[allow(clippy::too_many_arguments)]
-    pub fn unroll(
-        input: StepInput<'_>,
-        w_hh: Vec<f32>,
-        b_hh: &[f32],
-        res: Option<&[f32]>,
-        t: usize,
-        n: usize,
-        h: usize,
-        keep: bool,
-    ) -> Saved {
+    pub fn unroll(input: StepInput<'_>, w_hh: Vec<f32>, b_hh: &[f32], t: usize, n: usize, h: usize, keep: bool) -> Saved {
         let h3 = 3 * h;
         match &input {
             StepInput::Given(gi) => assert_eq!(gi.len(), t * n * h3, "gru_sequence: gi length"),
-            StepInput::Project { x, w_ih, b_ih, width } => {
+            StepInput::Project { x, w_ih, b_ih, width, carry } => {
                 assert_eq!(x.len(), t * n * width, "gru_sequence_projected: x length");
+                assert!(!carry || *width == h, "gru_sequence_projected_carry: x's width {width} is not the hidden width {h}");
                 assert_eq!(w_ih.len(), width * h3, "gru_sequence_projected: w_ih length");
                 assert_eq!(b_ih.len(), h3, "gru_sequence_projected: b_ih length");
             }
@@ -517,7 +482,7 @@ impl Saved {
             let out = &mut rest[..step];
             let gi_t: &[f32] = match &input {
                 StepInput::Given(gi) => &gi[ti * n * h3..(ti + 1) * n * h3],
-                StepInput::Project { x, w_ih, b_ih, width } => {
+                StepInput::Project { x, w_ih, b_ih, width, .. } => {
                     // gi_t = b_ih + x_t W_ih, one step's rows while they are in cache
                     for row in gi_buf.chunks_exact_mut(h3) {
                         row.copy_from_slice(b_ih);
@@ -536,17 +501,17 @@ impl Saved {
                 (a, b, c, d)
             };
             with_simd!(gates_forward(h, gi_t, &gh, &prev[..step], out, r, z, c, ghn));
-            if let Some(res) = res {
-                for (o, x) in out.iter_mut().zip(&res[ti * step..(ti + 1) * step]) {
+            if let StepInput::Project { x, carry: true, .. } = &input {
+                for (o, x) in out.iter_mut().zip(&x[ti * step..(ti + 1) * step]) {
                     *o += x;
                 }
             }
         }
         let projection = match input {
-            StepInput::Project { x, w_ih, width, .. } if keep => Some(Projection { x, w_ih, width }),
+            StepInput::Project { x, w_ih, width, carry, .. } if keep => Some(Projection { x, w_ih, width, carry }),
             _ => None,
         };
-        Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all, carry: res.is_some(), projection }
+        Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all, projection }
     }
 
     /// Backpropagation through time of `d_hs` = dL/dh_t for every step [T, N, H].
@@ -571,25 +536,24 @@ impl Saved {
         let mut d_next = vec![0.0f32; step]; // dL/dh_{t} arriving from step t + 1
         let zeros = vec![0.0f32; step];
         let mut d_prev = vec![0.0f32; step];
-        // With a residual, dL/d(res_t) is the whole gradient arriving at the carried state c_t.
-        let mut d_res = vec![0.0f32; if self.carry { t * step } else { 0 }];
         for ti in (0..t).rev() {
             let at = ti * step..(ti + 1) * step;
-            if self.carry {
-                for ((r, a), b) in d_res[at.clone()].iter_mut().zip(&d_hs[at.clone()]).zip(&d_next) {
-                    *r = a + b;
-                }
-            }
             let prev = if ti > 0 { &self.hs[(ti - 1) * step..ti * step] } else { &zeros[..] };
             let saved = (&self.r[at.clone()], &self.z[at.clone()], &self.n[at.clone()], &self.gh_n[at.clone()]);
             let g_at = ti * n * h3..(ti + 1) * n * h3;
             let gi_at = if proj.is_some() { 0..n * h3 } else { g_at.clone() };
             let (d_gi_t, d_gh_t) = (&mut d_gi[gi_at], &mut d_gh[..]);
-            with_simd!(gates_backward(h, &d_hs[at], &d_next, saved, prev, &mut d_prev, d_gi_t, d_gh_t));
+            with_simd!(gates_backward(h, &d_hs[at.clone()], &d_next, saved, prev, &mut d_prev, d_gi_t, d_gh_t));
             if let Some(p) = proj {
                 let w = p.width;
                 // d(x_t) = d(gi_t) W_ih^T; dW_ih += x_t^T d(gi_t); db_ih += column sums of d(gi_t)
                 matmul(n, w, h3, &mut d_x[ti * n * w..], w, false, d_gi_t, (h3, 1), &p.w_ih, (1, h3));
+                if p.carry {
+                    // x_t was also added to c_t (w = H): it gets the whole gradient arriving there
+                    for ((d, a), b) in d_x[at.clone()].iter_mut().zip(&d_hs[at.clone()]).zip(&d_next) {
+                        *d += a + b;
+                    }
+                }
                 matmul(w, h3, n, &mut d_w_ih, h3, ti + 1 < t, &p.x[ti * n * w..], (1, w), d_gi_t, (h3, 1));
                 add_column_sums(&mut d_b_ih, d_gi_t);
             }
@@ -604,7 +568,7 @@ impl Saved {
         }
         // with a projection d_gi was one step's scratch, not a gradient of any input
         let d_gi = if proj.is_some() { Vec::new() } else { d_gi };
-        SequenceGrads { gi: d_gi, x: d_x, w_ih: d_w_ih, b_ih: d_b_ih, w_hh: d_w, b_hh: d_b, res: d_res }
+        SequenceGrads { gi: d_gi, x: d_x, w_ih: d_w_ih, b_ih: d_b_ih, w_hh: d_w, b_hh: d_b }
     }
 }
 
@@ -728,8 +692,9 @@ mod tests {
         assert_eq!(one.dims(), [1, 3, hd]);
     }
 
-    /// The carried form c_t = GRU(x_t, c_{t-1}) + x_t against the cell stepped by hand, values
-    /// and gradients (the residual's included) to 1e-5.
+    /// The carried form c_t = GRU(x_t, c_{t-1}) + x_t (`FusedGru::sequence_carry`, its input
+    /// projection inside the loop) against the cell stepped by hand: values and the gradients of
+    /// x (the residual's included) and of all four parameters to 1e-5, with and without autodiff.
     #[test]
     fn the_carried_residual_matches_the_step_by_step_cell() {
         let (t, n, hd) = (6, 4, 5);
@@ -741,12 +706,21 @@ mod tests {
         let reference = stepped(&gru, &xs, true);
         let ref_grads = (reference.clone() * weights.clone()).sum().backward();
         let fused = gru.sequence_carry(Tensor::cat(xs.clone(), 0), t).reshape([t * n, hd]);
-        assert!(max_diff(reference.inner(), fused.clone().inner()) < 1e-5);
+        assert!(max_diff(reference.clone().inner(), fused.clone().inner()) < 1e-5);
         let grads = (fused * weights).sum().backward();
-        assert_same_grad("w_hh", gru.hidden.weight.val().grad(&ref_grads), gru.hidden.weight.val().grad(&grads));
+        for (name, p) in [("w_ih", &gru.input.weight), ("w_hh", &gru.hidden.weight)] {
+            assert_same_grad(name, p.val().grad(&ref_grads), p.val().grad(&grads));
+        }
+        for (name, b) in [("b_ih", &gru.input.bias), ("b_hh", &gru.hidden.bias)] {
+            let b = b.as_ref().expect("bias").val();
+            assert_same_grad(name, b.grad(&ref_grads), b.grad(&grads));
+        }
         for (i, x) in xs.iter().enumerate() {
             assert_same_grad(&format!("input of step {i} (through the GRU and the residual)"), x.grad(&ref_grads), x.grad(&grads));
         }
+        let plain = gru.valid();
+        let out = plain.sequence_carry(Tensor::cat(xs.iter().map(|x| x.clone().inner()).collect(), 0), t).reshape([t * n, hd]);
+        assert!(max_diff(reference.inner(), out) < 1e-5);
     }
 
     /// One step and zero rows are valid sequences.
