@@ -142,8 +142,10 @@ pub const PRESETS: &[(&str, &str)] = &[
          (acting waits for the learner at this ratio, so the second core is free): the batch's two \
          halves on two threads where the method's losses split exactly (learn.data_parallel), else the \
          target network unrolled on the second; the time limit a termination, as their runner \
-         treats it (learn.time_limit); and for LMAC their GRU-gate encoder (method.encoder) and \
-         consistency loss averaged over padded steps too (method.mask_consistency = false)",
+         treats it (learn.time_limit); and for LMAC their module: the GRU-gate encoder \
+         (method.encoder), the consistency loss averaged over padded steps too \
+         (method.mask_consistency = false) and the embedding's dropout in every forward, acting and \
+         the target network included (method.dropout_when_acting)",
     ),
     (
         "epymarl",
@@ -163,10 +165,9 @@ pub const PRESETS: &[(&str, &str)] = &[
          by measured choice: `paper`'s schedule, time limit and LMAC module settings, their episode \
          runner (one env, one server; 100 greedy test episodes every 50k steps), and for LMAC their \
          rewards (standardised over the padded batch: \
-         learn.reward_standardisation = \"released\") and the embedding's dropout in every forward, \
-         acting and the target network included (method.dropout_when_acting); other methods keep \
-         raw rewards, as the authors' QMIX config does. The state without last actions is an env \
-         variant (smaclite's -no-last-action)",
+         learn.reward_standardisation = \"released\"); other methods keep raw rewards, as the \
+         authors' QMIX config does. The state without last actions is an env variant (smaclite's \
+         -no-last-action)",
     ),
 ];
 
@@ -203,13 +204,13 @@ pub fn preset_overrides(name: &str, algo: &str) -> Result<Vec<String>> {
         ]
     };
     // The authors' settings where lmac's differ, but where a measured choice is better (see
-    // `docs/reference/fidelity.md`): for LMAC their module's GRU-gate encoder and consistency
-    // loss averaged over padded steps too.
+    // `docs/reference/fidelity.md`): for LMAC their module as released (GRU-gate encoder,
+    // consistency loss averaged over padded steps too, dropout in every forward).
     let paper = || {
         let mut o = schedule("1.0", true);
         o.push("learn.time_limit=\"terminal\"".into());
         if algo == "lmac" {
-            o.extend(["method.encoder=\"gru-gate\"", "method.mask_consistency=false"].map(String::from));
+            o.extend(["method.encoder=\"gru-gate\"", "method.mask_consistency=false", "method.dropout_when_acting=true"].map(String::from));
         }
         o
     };
@@ -221,7 +222,7 @@ pub fn preset_overrides(name: &str, algo: &str) -> Result<Vec<String>> {
             let mut o = paper();
             o.extend(["run.envs=1", "run.servers=1", "run.test_interval=50000", "run.test_episodes=100"].map(String::from));
             if algo == "lmac" {
-                o.extend(["learn.reward_standardisation=\"released\"", "method.dropout_when_acting=true"].map(String::from));
+                o.push("learn.reward_standardisation=\"released\"".into());
             }
             o
         }
@@ -725,7 +726,7 @@ mod tests {
         assert!(e.contains("latent_dims"), "an unknown [method] key is named: {e}");
     }
 
-    /// `paper` gives LMAC the authors' encoder and consistency loss; `released` is the authors'
+    /// `paper` gives LMAC the authors' encoder, consistency loss and dropout; `released` is the authors'
     /// code for the method at hand: LMAC's module, dropout and rewards as released, other methods' raw
     /// rewards; the method comes from `--algo` or from the sets.
     #[test]
@@ -746,7 +747,7 @@ mod tests {
         assert_eq!(c.learn.reward_standardisation, crate::learn::RewardStandardisation::Released);
         let method = toml::to_string(&c.method).unwrap();
         assert!(method.contains("encoder = \"gru-gate\"") && method.contains("mask_consistency = false"), "{method}");
-        assert!(method.contains("dropout_when_acting = true") && !paper.contains("dropout_when_acting = true"), "{method}");
+        assert!(method.contains("dropout_when_acting = true") && paper.contains("dropout_when_acting = true"), "{method}");
         let from_sets = preset_then(Some("released"), None, &["run.algo = \"lmac\"".into()]).unwrap();
         assert!(from_sets.iter().any(|s| s.starts_with("method.encoder")), "{from_sets:?}");
         let q = TrainConfig::resolve(None, &preset_then(Some("released"), Some("qmix"), &["run.algo=\"qmix\"".into()]).unwrap()).unwrap();
