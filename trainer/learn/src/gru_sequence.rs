@@ -292,7 +292,6 @@ fn projected_on<B: Backend>(
         "gru_sequence_projected: x {:?}, w_ih {wi_dims:?}, b_ih {bi_dims:?}, w_hh {w_dims:?}, b_hh {b_dims:?} do not fit [T, N, I], [I, 3H], [3H], [H, 3H], [3H]",
         [t, n, width]
     );
-    assert!(!carry || width == h3 / 3, "gru_sequence_projected_carry: x's width {width} is not the hidden width {}", h3 / 3);
     let input = StepInput::Project { x: host::<B>(x), w_ih: host::<B>(w_ih), b_ih: host::<B>(b_ih), width, carry };
     let saved = Saved::unroll(input, host::<B>(w_hh), &host::<B>(b_hh), t, n, h3 / 3, save);
     finish_on::<B>(saved, save, &device)
