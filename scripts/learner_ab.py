@@ -14,6 +14,8 @@ import statistics
 import subprocess
 import sys
 
+TWO_CORES = "lmac-two-cores"  # the bench's name of the two-core figure
+
 # 1o_10b_vs_1r's update shape (32 episodes x 50 steps x 11 agents, obs 85, 7 actions, state 148);
 # LMAC reads the committed offline design's 211 message columns and reconstructs its 48 critical
 # dims, or the authors' design's 56 columns and 4 dims; FullComm's agents read 960.
@@ -27,6 +29,11 @@ CASES = {
         ("lmac-paper-design", ONE_O + ["--input", "159", "--mixers", "qmix", "--algo", "lmac", "--messages", "56", "--critical", "4"]),
         ("lmac-gru-gate", ONE_O + ["--input", "314", "--mixers", "qmix", "--algo", "lmac", "--messages", "211", "--critical", "48",
                                    "--method", 'encoder="gru-gate"']),
+        # `--preset paper`'s module: the authors' GRU-gate encoder, unmasked consistency, the
+        # embedding's dropout when acting (and in the target network's unroll)
+        ("lmac-paper", ONE_O + ["--input", "159", "--mixers", "qmix", "--algo", "lmac", "--messages", "56", "--critical", "4",
+                                "--method", 'encoder="gru-gate"', "--method", "mask_consistency=false",
+                                "--method", "dropout_when_acting=true"]),
         ("fullcomm", ONE_O + ["--input", "1063", "--mixers", "qmix", "--algo", "fullcomm", "--messages", "960"]),
         ("qmix-state", ONE_O + ["--input", "103", "--mixers", "qmix", "--algo", "qmix-state"]),
         ("ndq", ONE_O + ["--input", "103", "--mixers", "qmix", "--algo", "ndq"]),
@@ -43,12 +50,27 @@ CASES = {
 }
 
 
-def bench(binary, args, updates):
+def bench(binary, args, updates, two_cores):
     cmd = [binary, "bench", "learner", *args, "--no-stepwise", "--rounds", "1", "--updates", str(updates), "--json"]
+    if two_cores:
+        cmd.append("--two-cores")
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     doc = json.loads(out)
     fig = doc["figures"][0]
-    return {"ms": fig["median_ms"], "gflops": fig["gflops"], "sgemm": doc["sgemm_gflops_single_thread"]}
+    row = {"ms": fig["median_ms"], "gflops": fig["gflops"], "sgemm": doc["sgemm_gflops_single_thread"]}
+    # the update's matmuls each timed alone at their own shape, in the same run
+    ceiling = [c for c in doc.get("shape_ceiling") or [] if c.get("mixer") == fig["mixer"]]
+    if ceiling:
+        row["ceiling_ms"] = ceiling[0]["ms_if_every_matmul_ran_alone"]
+    for other in doc["figures"][1:]:
+        if other["name"] == TWO_CORES:
+            row["two_cores_ms"] = other["median_ms"]
+    return row
+
+
+def median_of(rounds, key):
+    values = [x[key] for x in rounds if key in x]
+    return statistics.median(values) if values else None
 
 
 def main():
@@ -60,6 +82,7 @@ def main():
     ap.add_argument("--updates", type=int, default=3)
     ap.add_argument("--shapes", default="1o10b,lbf8x8")
     ap.add_argument("--only", default="", help="comma-separated method names (default: all)")
+    ap.add_argument("--two-cores", action="store_true", help="also time each update on two cores, as --preset paper runs it")
     a = ap.parse_args()
     only = set(filter(None, a.only.split(",")))
     rows = {}
@@ -72,7 +95,7 @@ def main():
                 # alternate which build goes first, so a trend in the load favours neither
                 order = ("before", "after") if r % 2 == 0 else ("after", "before")
                 for which in order:
-                    rounds[which].append(bench(getattr(a, which), args, a.updates))
+                    rounds[which].append(bench(getattr(a, which), args, a.updates, a.two_cores))
             med = {w: statistics.median(x["ms"] for x in rounds[w]) for w in rounds}
             gf = {w: [x["gflops"] for x in rounds[w]] for w in rounds}
             sgemm = max(x["sgemm"] for w in rounds for x in rounds[w])
@@ -84,8 +107,19 @@ def main():
             }
             if row["gflops_after"] is not None:
                 row["fraction_of_sgemm_after"] = row["gflops_after"] / sgemm
+            for w in rounds:
+                ceiling, two = median_of(rounds[w], "ceiling_ms"), median_of(rounds[w], "two_cores_ms")
+                if ceiling:
+                    row.setdefault("times_ceiling", {})[w] = med[w] / ceiling
+                if two:
+                    row.setdefault("two_cores_ms", {})[w] = two
+                    row.setdefault("two_cores_speedup_over_one_thread", {})[w] = med[w] / two
             rows[f"{shape}/{name}"] = row
             frac = f", {100 * row['fraction_of_sgemm_after']:.0f}% of sgemm" if "fraction_of_sgemm_after" in row else ""
+            if "times_ceiling" in row:
+                frac += ", " + " / ".join(f"{v:.2f}x its ceiling {w}" for w, v in row["times_ceiling"].items())
+            if "two_cores_ms" in row:
+                frac += ", two cores " + " / ".join(f"{v:.1f} ms {w}" for w, v in row["two_cores_ms"].items())
             print(f"{shape:7s} {name:18s} before {med['before']:7.1f} ms  after {med['after']:7.1f} ms  x{row['speedup']:.2f}{frac}",
                   flush=True, file=sys.stderr)
     doc = {"command": " ".join(["python scripts/learner_ab.py", *sys.argv[1:]]), "rows": rows}

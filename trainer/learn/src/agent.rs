@@ -7,6 +7,7 @@ use burn::nn::Linear;
 use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::{Device, Tensor};
 
+use super::dense::{dense, Activation};
 use super::gru_sequence::{gru_sequence_projected, gru_sequence_projected_carry};
 use super::init::linear;
 use super::LearnRng;
@@ -124,7 +125,7 @@ impl RnnAgent {
             return self.hidden_states_stepwise(inputs);
         }
         let x = if inputs.len() == 1 { inputs[0].clone() } else { Tensor::cat(inputs.to_vec(), 0) };
-        self.gru.sequence(relu(self.fc1.forward(x)), inputs.len())
+        self.gru.sequence(dense(&self.fc1, x, None, Activation::Relu, None), inputs.len())
     }
 
     /// [`unroll`](Self::unroll) of inputs already stacked time-major: x [T * N, in] -> Q [T, N, A]
@@ -133,7 +134,7 @@ impl RnnAgent {
     pub fn unroll_stacked(&self, x: Tensor<2>, steps: usize) -> Tensor<3> {
         assert!(steps > 0, "unroll needs at least one step");
         let hs = if self.fused {
-            self.gru.sequence(relu(self.fc1.forward(x)), steps)
+            self.gru.sequence(dense(&self.fc1, x, None, Activation::Relu, None), steps)
         } else {
             let n = x.dims()[0] / steps;
             let inputs: Vec<Tensor<2>> = x.split(n.max(1), 0);

@@ -33,7 +33,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
 
-use super::host_kernel::{host, matmul, sigmoid, tanh_approx, with_simd};
+use super::host_kernel::{host, host_values, matmul, sigmoid, tanh_approx, with_simd, HostValues};
 
 /// The recurrence as a backend operation: gi [T, N, 3H], w_hh [H, 3H], b_hh [3H] -> h [T, N, H];
 /// the projected forms take x [T, N, I] and the input projection instead of gi, and
@@ -292,19 +292,22 @@ fn projected_on<B: Backend>(
         "gru_sequence_projected: x {:?}, w_ih {wi_dims:?}, b_ih {bi_dims:?}, w_hh {w_dims:?}, b_hh {b_dims:?} do not fit [T, N, I], [I, 3H], [3H], [H, 3H], [3H]",
         [t, n, width]
     );
-    let input = StepInput::Project { x: host::<B>(x), w_ih: host::<B>(w_ih), b_ih: host::<B>(b_ih), width, carry };
+    let input = StepInput::Project { x: host_values::<B>(x), w_ih: host::<B>(w_ih), b_ih: host::<B>(b_ih), width, carry };
     let saved = Saved::unroll(input, host::<B>(w_hh), &host::<B>(b_hh), t, n, h3 / 3, save);
     finish_on::<B>(saved, save, &device)
 }
 
 /// The hidden states as a backend tensor, and what backward reads when `save`.
-fn finish_on<B: Backend>(saved: Saved, save: bool, device: &B::Device) -> (FloatTensor<B>, Option<Arc<Saved>>) {
+/// The states are handed to the output tensor, and kept for backward by sharing it.
+fn finish_on<B: Backend>(mut saved: Saved, save: bool, device: &B::Device) -> (FloatTensor<B>, Option<Arc<Saved>>) {
     let shape = [saved.steps, saved.rows, saved.hidden];
-    if save {
-        (B::float_from_data(TensorData::new(saved.hs.clone(), shape), device), Some(Arc::new(saved)))
-    } else {
-        (B::float_from_data(TensorData::new(saved.hs, shape), device), None)
+    let hs = std::mem::replace(&mut saved.hs, HostValues::Copied(Vec::new())).into_vec();
+    let out = B::float_from_data(TensorData::new(hs, shape), device);
+    if !save {
+        return (out, None);
     }
+    saved.hs = host_values::<B>(out.clone());
+    (out, Some(Arc::new(saved)))
 }
 
 /// Where each step's input projection gi_t [N, 3H] comes from.
@@ -313,13 +316,13 @@ pub enum StepInput<'a> {
     Given(&'a [f32]),
     /// Computed at each step: gi_t = x_t W_ih + b_ih from x [T, N, width], W_ih [width, 3H];
     /// with `carry`, x_t is also added to the step's new state (width = H).
-    Project { x: Vec<f32>, w_ih: Vec<f32>, b_ih: Vec<f32>, width: usize, carry: bool },
+    Project { x: HostValues, w_ih: Vec<f32>, b_ih: Vec<f32>, width: usize, carry: bool },
 }
 
 /// What backward needs of a projected input: the inputs and the projection's weights.
 #[derive(Debug, Clone)]
 pub struct Projection {
-    x: Vec<f32>,
+    x: HostValues,
     w_ih: Vec<f32>,
     width: usize,
     /// Whether x was also each step's residual: its gradient then includes the residual's.
@@ -334,7 +337,7 @@ pub struct Saved {
     rows: usize,
     hidden: usize,
     w_hh: Vec<f32>,
-    hs: Vec<f32>,
+    hs: HostValues,
     r: Vec<f32>,
     z: Vec<f32>,
     n: Vec<f32>,
@@ -510,7 +513,7 @@ impl Saved {
             StepInput::Project { x, w_ih, width, carry, .. } if keep => Some(Projection { x, w_ih, width, carry }),
             _ => None,
         };
-        Saved { steps: t, rows: n, hidden: h, w_hh, hs, r: r_all, z: z_all, n: n_all, gh_n: ghn_all, projection }
+        Saved { steps: t, rows: n, hidden: h, w_hh, hs: HostValues::Copied(hs), r: r_all, z: z_all, n: n_all, gh_n: ghn_all, projection }
     }
 
     /// Backpropagation through time of `d_hs` = dL/dh_t for every step [T, N, H].

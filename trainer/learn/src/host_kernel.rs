@@ -4,6 +4,9 @@
 // burn marks its ndarray backend deprecated; the `ndarray` feature still selects it.
 #![cfg_attr(feature = "ndarray", allow(deprecated))]
 
+#[cfg(feature = "flex")]
+use std::any::Any;
+use std::borrow::Cow;
 use std::future::Future;
 use std::pin::pin;
 use std::task::{Context, Poll, Waker};
@@ -15,6 +18,61 @@ use burn::backend::Backend;
 pub(crate) fn host<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
     let data = block_on(B::float_into_data(t)).expect("reading a CPU tensor");
     data.try_into_vec::<f32>().expect("gru_sequence works on f32 tensors")
+}
+
+/// A backend tensor's values on the host without taking it: borrowed where the tensor is a
+/// contiguous f32 tensor of the flex backend (every tensor a layer makes), else a copy.
+pub(crate) fn host_ref<B: Backend>(t: &FloatTensor<B>) -> Cow<'_, [f32]> {
+    #[cfg(feature = "flex")]
+    if let Some(slice) = (t as &dyn Any).downcast_ref::<FloatTensor<burn::backend::Flex>>().and_then(|f| f.as_slice::<f32>()) {
+        return Cow::Borrowed(slice);
+    }
+    Cow::Owned(host::<B>(t.clone()))
+}
+
+/// A backend tensor's values on the host, kept: shared with the tensor where it is a contiguous
+/// f32 tensor of the flex backend (no copy; the data is immutable while shared), else a copy.
+/// What a hand-written backward keeps of its forward's inputs and outputs.
+#[derive(Debug, Clone)]
+pub enum HostValues {
+    Copied(Vec<f32>),
+    #[cfg(feature = "flex")]
+    Shared(FloatTensor<burn::backend::Flex>),
+}
+
+impl std::ops::Deref for HostValues {
+    type Target = [f32];
+    fn deref(&self) -> &[f32] {
+        match self {
+            HostValues::Copied(v) => v,
+            #[cfg(feature = "flex")]
+            HostValues::Shared(t) => t.as_slice::<f32>().expect("a shared tensor is contiguous f32 (checked when kept)"),
+        }
+    }
+}
+
+impl HostValues {
+    /// The values as an owned vector (a copy only when shared).
+    pub fn into_vec(self) -> Vec<f32> {
+        match self {
+            HostValues::Copied(v) => v,
+            #[cfg(feature = "flex")]
+            HostValues::Shared(t) => t.as_slice::<f32>().expect("contiguous f32").to_vec(),
+        }
+    }
+}
+
+pub(crate) fn host_values<B: Backend>(t: FloatTensor<B>) -> HostValues {
+    #[cfg(feature = "flex")]
+    let t = {
+        let any: Box<dyn Any> = Box::new(t);
+        match any.downcast::<FloatTensor<burn::backend::Flex>>() {
+            Ok(f) if f.as_slice::<f32>().is_some() => return HostValues::Shared(*f),
+            Ok(f) => return HostValues::Copied(host::<burn::backend::Flex>(*f)),
+            Err(any) => *any.downcast::<FloatTensor<B>>().expect("the same type"),
+        }
+    };
+    HostValues::Copied(host::<B>(t))
 }
 
 pub(crate) fn block_on<F: Future>(f: F) -> F::Output {

@@ -25,6 +25,7 @@ pub mod buffer;
 pub mod checkpoint;
 pub mod config;
 pub mod controller;
+pub mod dense;
 pub mod episode;
 pub mod flops;
 pub mod gru_sequence;

@@ -439,19 +439,20 @@ pub fn leaky_relu<const D: usize>(x: Tensor<D>, slope: f64) -> Tensor<D> {
     burn::tensor::activation::relu(x.clone()).mul_scalar(1.0 - slope) + x.mul_scalar(slope)
 }
 
-/// `layer` applied to every row of `x` [.., in] as one [rows, in] x [in, out] matmul. burn's
-/// `Linear` on a 3-d input keeps the leading dim as a batch when each batch's rows fill its row
-/// tiles (LMAC's [T = 50, N = 352, in]: 50 small matmuls forward, and in the backward 50 weight
-/// products summed over a [T, in, out] temporary); the rows of one matmul are what the weight
-/// sees either way, so the values are the same up to float summation order.
+/// `layer` applied to every row of `x` [.., in] as one [rows, in] x [in, out] matmul, the fused
+/// [`dense`](crate::dense::dense) operation. burn's `Linear` on a 3-d input keeps the leading dim
+/// as a batch when each batch's rows fill its row tiles (LMAC's [T = 50, N = 352, in]: 50 small
+/// matmuls forward, and in the backward 50 weight products summed over a [T, in, out]
+/// temporary); the rows of one matmul are what the weight sees either way, so the values are the
+/// same up to float summation order.
 pub fn linear_rows<const D: usize>(layer: &burn::nn::Linear, x: Tensor<D>) -> Tensor<D> {
     let dims = x.dims();
-    if D <= 2 {
+    if D < 2 {
         return layer.forward(x);
     }
     let d_in = dims[D - 1];
     let rows = dims[..D - 1].iter().product::<usize>();
-    let y = layer.forward(x.reshape([rows, d_in]));
+    let y = crate::dense::dense(layer, x.reshape([rows, d_in]), None, crate::dense::Activation::Identity, None);
     let mut out = dims;
     out[D - 1] = y.dims()[1];
     y.reshape(out)
@@ -464,9 +465,7 @@ pub fn dropout<const D: usize>(x: Tensor<D>, p: f32, rng: &mut LearnRng) -> Tens
         return x;
     }
     let shape = x.dims();
-    let n: usize = shape.iter().product();
-    let keep = 1.0 / (1.0 - p);
-    let mask: Vec<f32> = (0..n).map(|_| if rng.uniform() < p { 0.0 } else { keep }).collect();
+    let mask = crate::dense::dropout_mask(shape.iter().product(), p, rng);
     let m: Tensor<D> = Tensor::from_data(burn::tensor::TensorData::new(mask, shape), &x.device());
     x * m
 }

@@ -30,8 +30,9 @@ use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 use super::{AuxLayout, EncoderKind, LatentReduction, LmacConfig};
 use crate::agent::{FusedGru, RnnAgent};
 use crate::config::LearnConfig;
+use crate::dense::{dense, Activation, LAYER_NORM_EPSILON};
 use crate::init::linear;
-use crate::methods::{dropout, linear_rows, AuxTerm, MethodHooks, TrainContext};
+use crate::methods::{linear_rows, AuxTerm, MethodHooks, TrainContext};
 use crate::window_attention::window_attention;
 use crate::{InputLayout, LearnRng};
 
@@ -125,7 +126,7 @@ impl LmacAgent {
         let released = s.aux_layout == AuxLayout::Released;
         LmacAgent {
             embed1,
-            norm: LayerNormConfig::new(e).init(device),
+            norm: LayerNormConfig::new(e).with_epsilon(LAYER_NORM_EPSILON as f64).init(device),
             embed2,
             encoder,
             dec1: linear(rng, l, hd, device),
@@ -133,7 +134,7 @@ impl LmacAgent {
             dec_state: linear(rng, hd, dc, device),
             dec_meta: linear(rng, hd, dc, device),
             cycle1: linear(rng, 2 * dc, hd, device),
-            cycle_norm: released.then(|| LayerNormConfig::new(hd).init(device)),
+            cycle_norm: released.then(|| LayerNormConfig::new(hd).with_epsilon(LAYER_NORM_EPSILON as f64).init(device)),
             cycle_mid: released.then(|| linear(rng, hd, hd, device)),
             cycle2: linear(rng, hd, l, device),
             agent: RnnAgent::new(rng, agent_in, learn.rnn_hidden_dim, layout.dims.n_actions, device),
@@ -161,12 +162,10 @@ impl LmacAgent {
         self.encoder_state_width() + self.agent.hidden_dim
     }
 
+    /// Each layer with its LayerNorm, ReLU and dropout is one fused operation (`dense`).
     fn embed(&self, u: Tensor<2>, rng: Option<&mut LearnRng>) -> Tensor<2> {
-        let x = relu(self.embed2.forward(self.norm.forward(relu(self.embed1.forward(u)))));
-        match rng {
-            Some(r) => dropout(x, self.cfg.settings.dropout, r),
-            None => x,
-        }
+        let h = dense(&self.embed1, u, None, Activation::Relu, None);
+        dense(&self.embed2, h, Some(&self.norm), Activation::Relu, rng.map(|r| (self.cfg.settings.dropout, r)))
     }
 
     /// The agent network's own input: the row without the message columns (unless it reads them).
@@ -296,13 +295,13 @@ impl LmacAgent {
 
     /// [`decode`](Self::decode) with the `released` layout's dropout when `rng` is given.
     fn decode_with(&self, z: Tensor<3>, rng: Option<&mut LearnRng>) -> (Tensor<3>, Tensor<3>) {
-        let h1 = relu(linear_rows(&self.dec1, z));
-        let h1 = match rng {
-            Some(r) if self.cfg.settings.aux_layout == AuxLayout::Released => dropout(h1, self.cfg.settings.dropout, r),
-            _ => h1,
-        };
-        let h = relu(linear_rows(&self.dec2, h1));
-        (linear_rows(&self.dec_state, h.clone()), linear_rows(&self.dec_meta, h))
+        let [t, n, l] = z.dims();
+        let drop = rng.filter(|_| self.cfg.settings.aux_layout == AuxLayout::Released).map(|r| (self.cfg.settings.dropout, r));
+        let h1 = dense(&self.dec1, z.reshape([t * n, l]), None, Activation::Relu, drop);
+        let h = dense(&self.dec2, h1, None, Activation::Relu, None);
+        let dc = self.cfg.critical_dims.len();
+        let s_hat = dense(&self.dec_state, h.clone(), None, Activation::Identity, None).reshape([t, n, dc]);
+        (s_hat, dense(&self.dec_meta, h, None, Activation::Identity, None).reshape([t, n, dc]))
     }
 
     /// The cycle encoder: z_hat from (s_hat, sigmoid(xi_hat)) (deterministic).
@@ -312,18 +311,15 @@ impl LmacAgent {
 
     /// [`cycle`](Self::cycle) with the `released` layout's dropout when `rng` is given.
     fn cycle_with(&self, s_hat: Tensor<3>, xi_logit: Tensor<3>, rng: Option<&mut LearnRng>) -> Tensor<3> {
-        let h = relu(linear_rows(&self.cycle1, Tensor::cat(vec![s_hat, sigmoid(xi_logit)], 2)));
+        let [t, n, dc] = s_hat.dims();
+        let h = dense(&self.cycle1, Tensor::cat(vec![s_hat, sigmoid(xi_logit)], 2).reshape([t * n, 2 * dc]), None, Activation::Relu, None);
         let h = match (&self.cycle_norm, &self.cycle_mid) {
-            (Some(norm), Some(mid)) => {
-                let h = relu(linear_rows(mid, norm.forward(h)));
-                match rng {
-                    Some(r) => dropout(h, self.cfg.settings.dropout, r),
-                    None => h,
-                }
-            }
+            (Some(norm), Some(mid)) => dense(mid, h, Some(norm), Activation::Relu, rng.map(|r| (self.cfg.settings.dropout, r))),
             _ => h,
         };
-        linear_rows(&self.cycle2, h)
+        let z_hat = dense(&self.cycle2, h, None, Activation::Identity, None);
+        let l = z_hat.dims()[1];
+        z_hat.reshape([t, n, l])
     }
 
     /// z [T, N, L] with N = B * n (batch-major rows); the context's state and mask are per
@@ -391,11 +387,10 @@ impl LmacAgent {
 
 /// z = sigmoid(W_q x . W_k c) * W_v c, c = h + x the carried state.
 fn gate(g: &GruGateEncoder, x: Tensor<2>, c: Tensor<2>) -> Tensor<2> {
-    let r = c;
-    let q = g.query.forward(x);
-    let k = g.key.forward(r.clone());
+    let q = dense(&g.query, x, None, Activation::Identity, None);
+    let k = dense(&g.key, c.clone(), None, Activation::Identity, None);
     let score = sigmoid((q * k).sum_dim(1));
-    g.value.forward(r) * score
+    dense(&g.value, c, None, Activation::Identity, None) * score
 }
 
 /// Multi-head scaled dot-product attention from `x` (the current embedding) to `entries`
