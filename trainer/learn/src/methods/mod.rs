@@ -295,9 +295,26 @@ impl AgentNet {
     /// The target network's unroll, Q [T, N, A]: deterministic, except LMAC's embedding dropout
     /// with `method.dropout_when_acting`, drawn from `seed`.
     pub fn unroll_target(&self, inputs: Vec<Tensor<2>>, seed: u64) -> Tensor<3> {
+        let steps = inputs.len();
+        self.unroll_target_stacked(Tensor::cat(inputs, 0), steps, seed)
+    }
+
+    /// [`unroll`](Self::unroll) of the steps stacked time-major, x [T * N, in] (the batch's
+    /// layout): the networks that read all steps at once (the plain agent, LMAC) take it as it
+    /// is, saving a split into steps and the concatenation back; the others get its steps.
+    pub fn unroll_stacked(&self, x: Tensor<2>, steps: usize, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
         match self {
-            AgentNet::Lmac(a) => a.unroll_target(inputs, seed),
-            _ => self.unroll(inputs, None).0,
+            AgentNet::Rnn(a) => (a.unroll_stacked(x, steps), Vec::new()),
+            AgentNet::Lmac(a) => a.unroll_stacked(x, steps, train),
+            _ => self.unroll(split_steps(x, steps), train),
+        }
+    }
+
+    /// [`unroll_target`](Self::unroll_target) of the steps stacked time-major, x [T * N, in].
+    pub fn unroll_target_stacked(&self, x: Tensor<2>, steps: usize, seed: u64) -> Tensor<3> {
+        match self {
+            AgentNet::Lmac(a) => a.unroll_target_stacked(x, steps, seed),
+            _ => self.unroll_stacked(x, steps, None).0,
         }
     }
 }
@@ -437,6 +454,12 @@ impl AgentNet {
 /// its backward are branch-free elementwise passes.
 pub fn leaky_relu<const D: usize>(x: Tensor<D>, slope: f64) -> Tensor<D> {
     burn::tensor::activation::relu(x.clone()).mul_scalar(1.0 - slope) + x.mul_scalar(slope)
+}
+
+/// The steps of x [T * N, in] (time-major), each [N, in].
+fn split_steps(x: Tensor<2>, steps: usize) -> Vec<Tensor<2>> {
+    let rows = x.dims()[0] / steps.max(1);
+    x.split(rows.max(1), 0)
 }
 
 /// `layer` applied to every row of `x` [.., in] as one [rows, in] x [in, out] matmul, the fused

@@ -133,7 +133,7 @@ pub(super) fn report(c: &Campaign, progress: &str) -> Result<(String, serde_json
                     "{}/{}{}",
                     trained.len(),
                     cells.len(),
-                    if notes.is_empty() { String::new() } else { format!(" ({})", notes.join("; ")) }
+                    if notes.is_empty() { String::new() } else { format!(" ({})", table_cell(&notes.join("; "))) }
                 );
                 if trained.is_empty() {
                     let r = reference.as_ref().map(|(v, _)| format!("{v:.3}")).unwrap_or("-".into());
@@ -237,7 +237,13 @@ fn reference_at(refs: &[Reference], task: &str, algo: &str, steps: u64) -> Optio
 
 #[cfg(test)]
 mod tests {
-    use super::orderings_that_differ;
+    use super::{orderings_that_differ, table_cell};
+
+    #[test]
+    fn a_failure_message_stays_in_its_table_cell() {
+        let error = "run x: config.toml differs:\n  method.encoder: \"window\" -> \"gru-gate\"\nResuming would | refuse.";
+        assert_eq!(table_cell(error), "run x: config.toml differs: method.encoder: \"window\" -> \"gru-gate\" Resuming would \\| refuse.");
+    }
 
     fn row(task: &str, algo: &str, ours: f64, reference: f64) -> (String, String, f64, f64) {
         (task.into(), algo.into(), ours, reference)
@@ -259,4 +265,10 @@ mod tests {
             "{flips:?}"
         );
     }
+}
+
+/// Text as one markdown table cell: a failure's message spans lines and may hold `|`, either of
+/// which would break the table's row.
+fn table_cell(text: &str) -> String {
+    text.lines().map(str::trim).filter(|l| !l.is_empty()).collect::<Vec<_>>().join(" ").replace('|', "\\|")
 }

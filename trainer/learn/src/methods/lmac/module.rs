@@ -168,17 +168,17 @@ impl LmacAgent {
         dense(&self.embed2, h, Some(&self.norm), Activation::Relu, rng.map(|r| (self.cfg.settings.dropout, r)))
     }
 
-    /// The agent network's own input: the row without the message columns (unless it reads them).
+    /// The agent network's own input: the row without the message columns (unless it reads
+    /// them), then z; one concatenation (one copy of the rows).
     fn agent_input(&self, u: Tensor<2>, z: Tensor<2>) -> Tensor<2> {
         let n = u.dims()[0];
         let m = self.cfg.msg_cols;
-        let own = if self.cfg.settings.raw_messages || m == 0 {
-            u
-        } else {
-            Tensor::cat(vec![u.clone().slice([0..n, 0..self.obs_dim]), u.slice([0..n, self.obs_dim + m..self.in_width])], 1)
-        };
         let z = if self.cfg.settings.td_to_encoder { z } else { z.detach() };
-        Tensor::cat(vec![own, z], 1)
+        if self.cfg.settings.raw_messages || m == 0 {
+            Tensor::cat(vec![u, z], 1)
+        } else {
+            Tensor::cat(vec![u.clone().slice([0..n, 0..self.obs_dim]), u.slice([0..n, self.obs_dim + m..self.in_width]), z], 1)
+        }
     }
 
     /// One acting step (deterministic).
@@ -228,8 +228,15 @@ impl LmacAgent {
     /// on a recurrence runs over all of them at once; the agents' input is built in one
     /// concatenation for all steps.
     pub fn unroll(&self, inputs: Vec<Tensor<2>>, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
+        assert!(!inputs.is_empty(), "unroll needs at least one step");
+        let steps = inputs.len();
+        self.unroll_stacked(Tensor::cat(inputs, 0), steps, train)
+    }
+
+    /// [`unroll`](Self::unroll) of the steps stacked time-major, u [T * N, in].
+    pub fn unroll_stacked(&self, u: Tensor<2>, steps: usize, train: Option<&TrainContext>) -> (Tensor<3>, Vec<AuxTerm>) {
         let mut rng = train.map(|c| LearnRng::seed_from(c.seed ^ 0xD80F_0000_0000_0001));
-        let (q, z) = self.unroll_latents(inputs, rng.as_mut());
+        let (q, z) = self.unroll_latents(u, steps, rng.as_mut());
         let aux = match train {
             Some(ctx) => self.losses(z, ctx),
             None => Vec::new(),
@@ -240,15 +247,20 @@ impl LmacAgent {
     /// The target network's unroll: Q [T, N, A], the embedding's dropout drawn from `seed`
     /// when it acts outside training updates (`dropout_when_acting`), else deterministic.
     pub fn unroll_target(&self, inputs: Vec<Tensor<2>>, seed: u64) -> Tensor<3> {
-        let mut rng = self.drops_out_when_acting().then(|| LearnRng::seed_from(seed ^ 0x7A56_0000_0000_0001));
-        self.unroll_latents(inputs, rng.as_mut()).0
+        let steps = inputs.len();
+        self.unroll_target_stacked(Tensor::cat(inputs, 0), steps, seed)
     }
 
-    /// Q [T, N, A] and the latents z [T, N, L] of an unroll from zero states.
-    fn unroll_latents(&self, inputs: Vec<Tensor<2>>, rng: Option<&mut LearnRng>) -> (Tensor<3>, Tensor<3>) {
-        assert!(!inputs.is_empty(), "unroll needs at least one step");
-        let t_len = inputs.len();
-        let u = if t_len == 1 { inputs.into_iter().next().expect("one step") } else { Tensor::cat(inputs, 0) };
+    /// [`unroll_target`](Self::unroll_target) of the steps stacked time-major, u [T * N, in].
+    pub fn unroll_target_stacked(&self, u: Tensor<2>, steps: usize, seed: u64) -> Tensor<3> {
+        let mut rng = self.drops_out_when_acting().then(|| LearnRng::seed_from(seed ^ 0x7A56_0000_0000_0001));
+        self.unroll_latents(u, steps, rng.as_mut()).0
+    }
+
+    /// Q [T, N, A] and the latents z [T, N, L] of an unroll from zero states, u [T * N, in]
+    /// time-major.
+    fn unroll_latents(&self, u: Tensor<2>, t_len: usize, rng: Option<&mut LearnRng>) -> (Tensor<3>, Tensor<3>) {
+        assert!(t_len > 0, "unroll needs at least one step");
         let z = self.latents_stacked(u.clone(), t_len, rng);
         let [_, n, l] = z.dims();
         let q = self.agent.unroll_stacked(self.agent_input(u, z.clone().reshape([t_len * n, l])), t_len);
