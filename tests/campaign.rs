@@ -1,7 +1,8 @@
 //! `lmac campaign` end to end with tiny budgets on LBF: a two-stage grid created and trained in
 //! order, interrupted and resumed, its status and time left, a cell stopped at the campaign's
 //! time limit and kept as reduced, a failed cell recorded and retried, cells whose settings no
-//! longer match the campaign's rewritten or retrained, the results page beside reference values,
+//! longer match the campaign's rewritten or retrained (one that failed at step 0 included), the
+//! results page beside reference values,
 //! and bad campaign files refused with the file and the field named.
 
 use lmac_e2e::harness::{lmac, wait_for};
@@ -194,6 +195,40 @@ fn a_failed_cell_is_recorded_said_so_and_retried_by_the_next_run() {
     assert!(!cell.join("failed.json").exists());
     let st = text(&campaign(&dir, &["status", "c.toml"]));
     assert!(st.contains("1 finished") && st.contains("0 failed"), "{st}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A cell whose start failed before its first step holds a checkpoint of step 0; when the
+/// campaign's settings for it change, the next run writes its config again and trains it from
+/// scratch (the trainer would refuse to resume that checkpoint under the new settings).
+#[test]
+fn a_cell_that_failed_at_step_0_trains_under_changed_settings() {
+    let dir = fresh_dir("lmac-campaign-step0");
+    campaign_file(&dir, "", "1500");
+    assert!(campaign(&dir, &["run", "c.toml", "--max-cells", "0"]).status.success());
+    let cell = dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/runs/qmix/seed0");
+    // The settings the start ran under, unlike the campaign's.
+    let cfg = cell.join("config.toml");
+    let kept = std::fs::read_to_string(&cfg).unwrap();
+    let lr = kept.lines().find(|l| l.starts_with("lr = ")).expect("learn.lr is written").to_string();
+    std::fs::write(&cfg, kept.replace(&lr, "lr = 0.00123")).unwrap();
+    // An env server that dies before the first episode: the run fails at step 0 with a checkpoint.
+    let python = dir.join("dying-python");
+    std::fs::write(&python, "#!/bin/sh\nsleep 3\nexit 1\n").unwrap();
+    std::fs::set_permissions(&python, std::os::unix::fs::PermissionsExt::from_mode(0o755)).unwrap();
+    let mut c = lmac();
+    c.arg("train").arg("--resume").arg(&cell).stdin(Stdio::null()).env("LMAC_PYTHON", &python);
+    let failed = c.output().unwrap();
+    assert!(!failed.status.success(), "{}", text(&failed));
+    assert!(cell.join("checkpoint").exists(), "a failed start leaves a checkpoint of step 0: {}", text(&failed));
+
+    let next = campaign(&dir, &["run", "c.toml", "--max-cells", "1"]);
+    let t = text(&next);
+    assert!(next.status.success(), "{t}");
+    assert!(t.contains("qmix/seed0 has not trained; its config is written again"), "{t}");
+    assert!(std::fs::read_to_string(&cfg).unwrap().contains(&lr));
+    let st = text(&campaign(&dir, &["status", "c.toml"]));
+    assert!(st.contains("1 finished"), "{st}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -378,6 +378,13 @@ impl Campaign {
             if !trained {
                 eprintln!("lmac: campaign: cell {} has not trained; its config is written again with today's settings ({what})", cell.id);
                 std::fs::remove_file(cell.dir.join("config.toml"))?;
+                // A start that failed before its first step leaves a checkpoint of step 0 under
+                // the old settings: it holds nothing, and the trainer would refuse to resume
+                // from it under the new ones.
+                let ck = checkpoint_dir(&cell.dir);
+                if ck.exists() {
+                    std::fs::remove_dir_all(&ck).with_context(|| format!("removing {}", ck.display()))?;
+                }
                 drop(lock);
             } else if retrain_changed {
                 drop(lock);
