@@ -34,7 +34,8 @@ Rendering is off. 19 actions (gfootball's default action set), all always availa
 gfootball's scoring reward for the team: +1 when we score, -1 when we concede (not multiplied
 by the number of agents). Termination is the academy scenario's own: a goal, the ball going out
 of play, or the opponents gaining possession (and the scenario's 400-step game duration, which
-the 150-step limit of the schema always reaches first). The server truncates at 150 steps, the
+the 150-step limit of the schema always reaches first). An episode is won when it ends on our
+goal, so the win rate is the share of episodes that score. The server truncates at 150 steps, the
 limit used by the paper's reference code.
 
 Backends: ``LMAC_GRF_WORKERS`` = number of worker processes (0 = all environments stepped in
@@ -292,6 +293,9 @@ class GrfVecEnv(VecEnv):
             raise ValueError(f"unknown GRF scenario {variant!r}; known: {', '.join(VARIANTS)}")
         self.schema = Schema.load(schema_path(f"grf:{variant}"))
         self.num_envs = num_envs
+        # An episode is won when it ends on our goal (its last step's scoring reward is +1);
+        # ending otherwise (the ball out of play, the opponents in possession) is not a win.
+        self.won = np.zeros(num_envs, bool)
         self.n = n = VARIANTS[variant]
         if self.schema.n_agents != n or self.schema.obs_dim != feature_dims(n) \
                 or self.schema.state_dim != feature_dims(n) or self.schema.n_actions != N_ACTIONS:
@@ -364,6 +368,7 @@ class GrfVecEnv(VecEnv):
             out.terminated[s] = term
         out.avail[:] = 1
         out.truncated[:] = 0
+        self.won[:] = (out.terminated != 0) & (out.reward > 0)
 
     def close(self) -> None:
         for g in getattr(self, "groups", []):

@@ -19,7 +19,7 @@ if importlib.util.find_spec("gfootball") is None or importlib.util.find_spec(
 from lmac_env import grf  # noqa: E402
 from lmac_env.core import Batch, Schema, schema_path  # noqa: E402
 from lmac_env.registry import make  # noqa: E402
-from lmac_env.server import Driver, Meta  # noqa: E402
+from lmac_env.server import FLAG_PREV_WON, Driver, Meta  # noqa: E402
 
 S3 = "grf:academy_3_vs_1_with_keeper"
 RPS = "grf:academy_run_pass_and_shoot_with_keeper"
@@ -90,18 +90,23 @@ def test_random_episodes_through_driver(name):
         driver = Driver(env, member=0)
         driver.first(out, meta)
         rng = np.random.default_rng(0)
-        ends = 0
+        ends = scoreless_ends = 0
         for _ in range(200):
             actions = rng.integers(0, 19, size=(b, schema.n_agents)).astype(np.int32)
             driver.advance(actions, out, meta)
             ends += int(((out.terminated != 0) | (out.truncated != 0)).sum())
+            # won exactly when the episode ends on our goal (the win rate is the share that
+            # scores): an early end without one is no win
+            for e in np.nonzero(out.terminated != 0)[0]:
+                assert bool(meta.flags[e] & FLAG_PREV_WON) == (out.reward[e] == 1.0), (e, out.reward[e])
+                scoreless_ends += out.reward[e] != 1.0
             assert np.isfinite(out.obs).all() and np.isfinite(out.state).all()
             assert set(np.unique(out.reward)).issubset({-1.0, 0.0, 1.0})
             assert (meta.ep_step <= schema.episode_limit).all()
         # the message columns were never written
         assert (rows[:, :, schema.obs_dim:] == -7.0).all()
         # random play ends episodes (possession lost, ball out of play, 150-step limit)
-        assert ends >= 2 and driver.episodes_done == ends
+        assert ends >= 2 and driver.episodes_done == ends and scoreless_ends >= 1
         # after auto-reset the rows are the first observation of a fresh episode
         first = np.nonzero(meta.flags & 1)[0]
         for e in first:
@@ -149,6 +154,8 @@ def test_scripted_goal_gives_scoring_reward():
                 assert out.terminated[e] == 1      # the academy episode ends on the goal
                 assert out.reward[e] in (1.0, -1.0)
                 goals += out.reward[e] == 1.0
+            for e in np.nonzero(out.terminated != 0)[0]:
+                assert bool(meta.flags[e] & FLAG_PREV_WON) == (out.reward[e] == 1.0), (e, out.reward[e])
             if goals >= 2:
                 break
         assert goals >= 1, "the scripted run-and-shoot never scored"
