@@ -15,7 +15,7 @@
 //! [`crate::methods::dropout`] draws it, so a seed gives the same mask either way; backward needs
 //! no mask of its own beyond it: with a ReLU, y > 0 exactly where the pre-activation is positive
 //! and the unit kept. Tested against the same layers as burn operations (values and gradients to
-//! 1e-5), which stay the reference.
+//! 1e-5), which stay the reference in the tests.
 // burn marks its ndarray backend deprecated; the `ndarray` feature still selects it.
 #![cfg_attr(feature = "ndarray", allow(deprecated))]
 
@@ -29,10 +29,9 @@ use burn::backend::autodiff::Autodiff;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
 use burn::nn::{LayerNorm, Linear};
-use burn::tensor::activation::relu;
 use burn::tensor::{Tensor, TensorData};
 
-use crate::host_kernel::{host_ref, host_values, matmul, with_simd, HostValues};
+use crate::host_kernel::{add_column_sums, host, host_ref, host_values, matmul, register, with_simd, HostValues};
 use crate::LearnRng;
 
 /// The LayerNorms a dense layer reads are built with this epsilon (burn's default), which the
@@ -92,29 +91,6 @@ pub fn dense(layer: &Linear, x: Tensor<2>, norm: Option<&LayerNorm>, act: Activa
         mask.into_dispatch(),
         act == Activation::Relu,
     ))
-}
-
-/// The same layer as burn operations, the reference the fused operation is tested against.
-pub fn dense_reference(
-    layer: &Linear,
-    x: Tensor<2>,
-    norm: Option<&LayerNorm>,
-    act: Activation,
-    dropout: Option<(f32, &mut LearnRng)>,
-) -> Tensor<2> {
-    let x = match norm {
-        Some(norm) => norm.forward(x),
-        None => x,
-    };
-    let y = layer.forward(x);
-    let y = match act {
-        Activation::Relu => relu(y),
-        Activation::Identity => y,
-    };
-    match dropout {
-        Some((p, rng)) => crate::methods::dropout(y, p, rng),
-        None => y,
-    }
 }
 
 /// A dropout mask of `n` values in row-major order: 0 with probability `p`, else 1 / (1 - p).
@@ -203,7 +179,7 @@ struct Saved {
     input: HostValues,
     /// With a LayerNorm: the normalised rows (before gamma and beta), 1 / sqrt(var + eps) per
     /// row, and gamma.
-    norm: Option<(Vec<f32>, Vec<f32>, Vec<f32>)>,
+    norm: Option<(Vec<f32>, Vec<f32>, HostValues)>,
     w: HostValues,
     y: HostValues,
     mask: Option<HostValues>,
@@ -257,7 +233,7 @@ fn forward_on<B: Backend>(inputs: Inputs<B>, relu: bool, save: bool) -> (FloatTe
         return (y, None);
     }
     let (input, norm) = match normed {
-        Some(n) => (HostValues::Copied(n.output), Some((n.normalised, n.rstd, host_ref::<B>(&gamma).into_owned()))),
+        Some(n) => (HostValues::Copied(n.output), Some((n.normalised, n.rstd, host_values::<B>(gamma)))),
         None => (host_values::<B>(x), None),
     };
     let mask = (m_len > 0).then(|| host_values::<B>(mask));
@@ -359,77 +335,73 @@ impl<B: Backend> Backward<B, 5> for DenseBackward {
     type State = Arc<Saved>;
 
     fn backward(self, ops: Ops<Self::State, 5>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
-        let [node_x, node_gamma, node_beta, node_w, node_b] = ops.parents;
+        let [node_x, node_gamma, node_beta, node_w, node_b] = ops.parents.map(|n| n.map(|n| n.id));
         let grad = grads.consume::<B>(&ops.node);
         let device = grad.device();
         let s = ops.state;
         let (rows, width, out) = (s.rows, s.width, s.out);
-        let mut d_pre = crate::host_kernel::host::<B>(grad);
+        let mut d_pre = host::<B>(grad);
         with_simd!(deactivate(&mut d_pre, &s.y, s.relu, s.mask.as_deref()));
-        let register = |grads: &mut Gradients, node: Option<burn::backend::autodiff::NodeId>, values: Vec<f32>, shape: Vec<usize>| {
-            grads.register::<B>(node.expect("tracked"), B::float_from_data(TensorData::new(values, shape), &device));
-        };
-        if let Some(node) = node_b.map(|n| n.id) {
+        let mut parts = Vec::new();
+        if node_b.is_some() {
             let mut d_b = vec![0.0f32; out];
-            for row in d_pre.chunks_exact(out) {
-                d_b.iter_mut().zip(row).for_each(|(a, v)| *a += v);
-            }
-            register(grads, Some(node), d_b, vec![out]);
+            add_column_sums(&mut d_b, &d_pre);
+            parts.push((node_b, d_b, vec![out]));
         }
-        if let Some(node) = node_w.map(|n| n.id) {
+        if node_w.is_some() {
             // dW = input^T d_pre (input read transposed)
             let mut d_w = vec![0.0f32; width * out];
             matmul(width, out, rows, &mut d_w, out, false, &s.input, (1, width), &d_pre, (out, 1));
-            register(grads, Some(node), d_w, vec![width, out]);
+            parts.push((node_w, d_w, vec![width, out]));
         }
-        let wants_input = node_x.is_some() || node_gamma.is_some() || node_beta.is_some();
-        if !wants_input {
-            return;
-        }
-        // d(input) = d_pre W^T (W [in, out] read transposed)
-        let mut d_in = vec![0.0f32; rows * width];
-        matmul(rows, width, out, &mut d_in, width, false, &d_pre, (out, 1), &s.w, (1, out));
-        match &s.norm {
-            None => {
-                if let Some(node) = node_x.map(|n| n.id) {
-                    register(grads, Some(node), d_in, vec![rows, width]);
-                }
-            }
-            Some((xhat, rstd, gamma)) => {
-                let (mut d_x, mut d_gamma, mut d_beta) = (vec![0.0f32; rows * width], vec![0.0f32; width], vec![0.0f32; width]);
-                with_simd!(layer_norm_backward(&d_in, xhat, rstd, gamma, width, &mut d_x, &mut d_gamma, &mut d_beta));
-                for (node, values, shape) in
-                    [(node_x, d_x, vec![rows, width]), (node_gamma, d_gamma, vec![width]), (node_beta, d_beta, vec![width])]
-                {
-                    if let Some(node) = node.map(|n| n.id) {
-                        register(grads, Some(node), values, shape);
-                    }
+        if node_x.is_some() || node_gamma.is_some() || node_beta.is_some() {
+            // d(input) = d_pre W^T (W [in, out] read transposed)
+            let mut d_in = vec![0.0f32; rows * width];
+            matmul(rows, width, out, &mut d_in, width, false, &d_pre, (out, 1), &s.w, (1, out));
+            match &s.norm {
+                None => parts.push((node_x, d_in, vec![rows, width])),
+                Some((xhat, rstd, gamma)) => {
+                    let (mut d_x, mut d_gamma, mut d_beta) = (vec![0.0f32; rows * width], vec![0.0f32; width], vec![0.0f32; width]);
+                    with_simd!(layer_norm_backward(&d_in, xhat, rstd, gamma, width, &mut d_x, &mut d_gamma, &mut d_beta));
+                    parts.extend([(node_x, d_x, vec![rows, width]), (node_gamma, d_gamma, vec![width]), (node_beta, d_beta, vec![width])]);
                 }
             }
         }
+        register::<B>(grads, &device, parts);
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::host_kernel::test_support::{assert_same_grad, max_diff, random};
     use crate::init::linear;
     use burn::module::Module;
     use burn::nn::LayerNormConfig;
+    use burn::tensor::activation::relu;
     use burn::tensor::Device;
 
-    fn random(rng: &mut LearnRng, shape: [usize; 2], device: &Device) -> Tensor<2> {
-        let v: Vec<f32> = (0..shape[0] * shape[1]).map(|_| rng.uniform() * 4.0 - 2.0).collect();
-        Tensor::from_data(TensorData::new(v, shape), device)
-    }
-
-    fn max_diff<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> f32 {
-        (a - b).abs().max().into_scalar::<f32>()
-    }
-
-    fn assert_same_grad<const D: usize>(what: &str, reference: Option<Tensor<D>>, fused: Option<Tensor<D>>) {
-        let d = max_diff(reference.expect("reference gradient"), fused.expect("fused gradient"));
-        assert!(d < 1e-5, "{what}: gradients differ by {d}");
+    /// The same layer as burn operations, the reference the fused operation is tested against.
+    fn dense_reference(
+        layer: &Linear,
+        x: Tensor<2>,
+        norm: Option<&LayerNorm>,
+        act: Activation,
+        dropout: Option<(f32, &mut LearnRng)>,
+    ) -> Tensor<2> {
+        let x = match norm {
+            Some(norm) => norm.forward(x),
+            None => x,
+        };
+        let y = layer.forward(x);
+        let y = match act {
+            Activation::Relu => relu(y),
+            Activation::Identity => y,
+        };
+        match dropout {
+            Some((p, rng)) => crate::methods::dropout(y, p, rng),
+            None => y,
+        }
     }
 
     /// Every combination of LayerNorm, ReLU and dropout against burn's operations: values, the

@@ -28,12 +28,12 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
-use burn::backend::autodiff::{Autodiff, NodeId};
+use burn::backend::autodiff::Autodiff;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
 
-use super::host_kernel::{host, host_values, matmul, sigmoid, tanh_approx, with_simd, HostValues};
+use super::host_kernel::{add_column_sums, host, host_values, matmul, register, sigmoid, tanh_approx, with_simd, HostValues};
 
 /// The recurrence as a backend operation: gi [T, N, 3H], w_hh [H, 3H], b_hh [3H] -> h [T, N, H];
 /// the projected forms take x [T, N, I] and the input projection instead of gi, and
@@ -211,19 +211,6 @@ impl<B: Backend> Backward<B, 5> for GruProjectedBackward {
             (node_b.map(|n| n.id), g.b_hh, vec![3 * h]),
         ];
         register::<B>(grads, &device, parts);
-    }
-}
-
-/// Hand each tracked parent its gradient (values with their shape); untracked parents get none.
-fn register<B: Backend>(
-    grads: &mut Gradients,
-    device: &B::Device,
-    parts: impl IntoIterator<Item = (Option<NodeId>, Vec<f32>, Vec<usize>)>,
-) {
-    for (node, values, shape) in parts {
-        if let Some(id) = node {
-            grads.register::<B>(id, B::float_from_data(TensorData::new(values, shape), device));
-        }
     }
 }
 
@@ -574,32 +561,14 @@ impl Saved {
     }
 }
 
-/// acc[j] += the sum over rows of rows[.., j] (rows laid out with acc.len() columns): a bias's
-/// gradient from its output's.
-fn add_column_sums(acc: &mut [f32], rows: &[f32]) {
-    for row in rows.chunks_exact(acc.len()) {
-        for (a, v) in acc.iter_mut().zip(row) {
-            *a += v;
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::agent::FusedGru;
+    use crate::host_kernel::test_support::{assert_same_grad, max_diff, random};
     use crate::LearnRng;
     use burn::module::Module;
     use burn::tensor::Device;
-
-    fn random(rng: &mut LearnRng, shape: [usize; 2], device: &Device) -> Tensor<2> {
-        let v: Vec<f32> = (0..shape[0] * shape[1]).map(|_| rng.uniform() * 4.0 - 2.0).collect();
-        Tensor::from_data(TensorData::new(v, shape), device)
-    }
-
-    fn max_diff(a: Tensor<2>, b: Tensor<2>) -> f32 {
-        (a - b).abs().max().into_scalar::<f32>()
-    }
 
     /// burn's cell stepped by hand from zero over `xs`, each new state plus its input when
     /// `carry`: every step's state, [T * N, H].
@@ -615,12 +584,6 @@ mod tests {
             hs.push(h.clone());
         }
         Tensor::cat(hs, 0)
-    }
-
-    /// The reference's and the fused form's gradients of one tensor agree to 1e-5.
-    fn assert_same_grad<const D: usize>(what: &str, reference: Option<Tensor<D>>, fused: Option<Tensor<D>>) {
-        let d = (reference.expect("reference gradient") - fused.expect("fused gradient")).abs().max().into_scalar::<f32>();
-        assert!(d < 1e-5, "{what}: gradients differ by {d}");
     }
 
     /// The fused recurrence against the step-by-step burn cell: hidden states and the gradients

@@ -11,8 +11,11 @@ use std::future::Future;
 use std::pin::pin;
 use std::task::{Context, Poll, Waker};
 
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::NodeId;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::Backend;
+use burn::tensor::TensorData;
 
 /// A backend tensor's values on the host (CPU backends hand them over without waiting).
 pub(crate) fn host<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
@@ -73,6 +76,29 @@ pub(crate) fn host_values<B: Backend>(t: FloatTensor<B>) -> HostValues {
         }
     };
     HostValues::Copied(host::<B>(t))
+}
+
+/// Hand each tracked parent its gradient (values with their shape); untracked parents get none.
+pub(crate) fn register<B: Backend>(
+    grads: &mut Gradients,
+    device: &B::Device,
+    parts: impl IntoIterator<Item = (Option<NodeId>, Vec<f32>, Vec<usize>)>,
+) {
+    for (node, values, shape) in parts {
+        if let Some(id) = node {
+            grads.register::<B>(id, B::float_from_data(TensorData::new(values, shape), device));
+        }
+    }
+}
+
+/// acc[j] += the sum over rows of rows[.., j] (rows laid out with acc.len() columns): a bias's
+/// gradient from its output's.
+pub(crate) fn add_column_sums(acc: &mut [f32], rows: &[f32]) {
+    for row in rows.chunks_exact(acc.len()) {
+        for (a, v) in acc.iter_mut().zip(row) {
+            *a += v;
+        }
+    }
 }
 
 pub(crate) fn block_on<F: Future>(f: F) -> F::Output {
@@ -213,3 +239,27 @@ macro_rules! with_simd {
     }};
 }
 pub(crate) use with_simd;
+
+/// What the hand-written kernels' tests share: random inputs and comparisons to 1e-5.
+#[cfg(test)]
+pub(crate) mod test_support {
+    use burn::tensor::{Device, Tensor, TensorData};
+
+    use crate::LearnRng;
+
+    /// Values uniform in [-2, 2).
+    pub fn random(rng: &mut LearnRng, shape: [usize; 2], device: &Device) -> Tensor<2> {
+        let v: Vec<f32> = (0..shape[0] * shape[1]).map(|_| rng.uniform() * 4.0 - 2.0).collect();
+        Tensor::from_data(TensorData::new(v, shape), device)
+    }
+
+    pub fn max_diff<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> f32 {
+        (a - b).abs().max().into_scalar::<f32>()
+    }
+
+    /// The reference's and the fused form's gradients of one tensor agree to 1e-5.
+    pub fn assert_same_grad<const D: usize>(what: &str, reference: Option<Tensor<D>>, fused: Option<Tensor<D>>) {
+        let d = max_diff(reference.expect("reference gradient"), fused.expect("fused gradient"));
+        assert!(d < 1e-5, "{what}: gradients differ by {d}");
+    }
+}

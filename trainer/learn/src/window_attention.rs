@@ -24,7 +24,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
 
-use super::host_kernel::{exp_approx, host, with_simd};
+use super::host_kernel::{exp_approx, host, register, with_simd};
 
 /// Windowed multi-head attention as a backend operation: q, k, v [T, N, A] (A = heads x d,
 /// heads contiguous) -> [T, N, A].
@@ -105,12 +105,9 @@ impl<B: Backend> Backward<B, 3> for WindowAttentionBackward {
         let device = grad.device();
         let saved = ops.state;
         let g = saved.backward(&host::<B>(grad));
-        let shape = [saved.steps, saved.rows, saved.heads * saved.head_dim];
-        for (node, values) in [(node_q, g.q), (node_k, g.k), (node_v, g.v)] {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, B::float_from_data(TensorData::new(values, shape), &device));
-            }
-        }
+        let shape = vec![saved.steps, saved.rows, saved.heads * saved.head_dim];
+        let parts = [(node_q, g.q), (node_k, g.k), (node_v, g.v)].map(|(node, values)| (node.map(|n| n.id), values, shape.clone()));
+        register::<B>(grads, &device, parts);
     }
 }
 
