@@ -340,8 +340,8 @@ fn lmac_update_matmuls(
         EncoderKind::GruGate => {
             layers.extend([
                 ("LMAC encoder GRU, input projection", e, 3 * e, 1, true, true),
-                ("LMAC gate query, key", e, att, 2, true, true),
-                ("LMAC gate value", e, lat, 1, true, true),
+                ("LMAC gate query", e, att, 1, true, true),
+                ("LMAC gate key and value (one gemm)", e, att + lat, 1, true, true),
             ]);
             // The recurrence, one step's rows at a time: forward in both networks, the input
             // and weight gradients in the online one (the first step's weight gradient is a

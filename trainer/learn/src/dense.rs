@@ -64,11 +64,25 @@ pub trait DenseBackend: Backend {
 /// `dropout`: the rate and the generator the mask is drawn from. Differentiable in x and in the
 /// layers' parameters.
 pub fn dense(layer: &Linear, x: Tensor<2>, norm: Option<&LayerNorm>, act: Activation, dropout: Option<(f32, &mut LearnRng)>) -> Tensor<2> {
-    let device = x.device();
-    let [n, _] = x.dims();
     let w = layer.weight.val();
     let out = w.dims()[1];
-    let b = layer.bias.as_ref().map_or_else(|| Tensor::zeros([out], &device), |b| b.val());
+    let b = layer.bias.as_ref().map_or_else(|| Tensor::zeros([out], &x.device()), |b| b.val());
+    dense_with(w, b, x, norm, act, dropout)
+}
+
+/// [`dense`] with the weight w [in, out] and bias b [out] given as tensors, for layers used side
+/// by side as one (their weights concatenated: one gemm for both).
+pub fn dense_with(
+    w: Tensor<2>,
+    b: Tensor<1>,
+    x: Tensor<2>,
+    norm: Option<&LayerNorm>,
+    act: Activation,
+    dropout: Option<(f32, &mut LearnRng)>,
+) -> Tensor<2> {
+    let device = x.device();
+    let [n, _] = x.dims();
+    let out = w.dims()[1];
     let none = || Tensor::<1>::zeros([0], &device);
     let (gamma, beta) = match norm {
         Some(norm) => {

@@ -21,6 +21,7 @@
 //! ```
 
 pub mod agent;
+pub mod agent_input;
 pub mod buffer;
 pub mod checkpoint;
 pub mod config;
@@ -31,9 +32,11 @@ pub mod flops;
 pub mod gru_sequence;
 mod host_kernel;
 pub mod input_row;
+pub mod latent_gate;
 pub mod learner;
 pub mod methods;
 pub mod mixer;
+pub mod qmix_mix;
 pub mod stats;
 pub mod window_attention;
 

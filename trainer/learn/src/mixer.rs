@@ -3,11 +3,13 @@
 
 use burn::module::{Module, Param};
 use burn::nn::Linear;
-use burn::tensor::activation::{elu, relu, sigmoid};
+use burn::tensor::activation::{relu, sigmoid};
 use burn::tensor::{Device, Tensor};
 
 use super::config::{LearnConfig, MixerKind};
+use super::dense::{dense, Activation};
 use super::init::{linear, uniform};
+use super::qmix_mix::qmix_mix;
 use super::LearnRng;
 
 /// A hypernetwork of 1 or 2 layers (pymarl `hypernet_layers`), ReLU between.
@@ -26,11 +28,11 @@ impl HyperNet {
         }
     }
 
+    /// Each layer with its ReLU is one fused operation (`dense`).
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        let y = self.l1.forward(x);
         match &self.l2 {
-            Some(l2) => l2.forward(relu(y)),
-            None => y,
+            Some(l2) => dense(l2, dense(&self.l1, x, None, Activation::Relu, None), None, Activation::Identity, None),
+            None => dense(&self.l1, x, None, Activation::Identity, None),
         }
     }
 }
@@ -61,18 +63,14 @@ impl QmixMixer {
         }
     }
 
-    /// qs [N, n_agents], states [N, S] -> Q_tot [N].
+    /// qs [N, n_agents], states [N, S] -> Q_tot [N]. The hypernetworks' layers are fused
+    /// operations (`dense`), and so is the mixing of their outputs (`qmix_mix`).
     pub fn forward(&self, qs: Tensor<2>, states: Tensor<2>) -> Tensor<1> {
-        let [n, _] = qs.dims();
-        let (na, e) = (self.n_agents, self.embed);
-        let w1 = self.hyper_w1.forward(states.clone()).abs().reshape([n, na, e]);
-        let b1 = self.hyper_b1.forward(states.clone());
-        // q . W1 as a broadcast multiply-and-sum: cheaper than N tiny batched matmuls on CPU.
-        let hidden = (qs.reshape([n, na, 1]) * w1).sum_dim(1).reshape([n, e]) + b1;
-        let hidden = elu(hidden, 1.0);
-        let w_final = self.hyper_w_final.forward(states.clone()).abs();
-        let v = self.v2.forward(relu(self.v1.forward(states)));
-        ((hidden * w_final).sum_dim(1) + v).reshape([n])
+        let w1 = self.hyper_w1.forward(states.clone());
+        let b1 = dense(&self.hyper_b1, states.clone(), None, Activation::Identity, None);
+        let w_final = self.hyper_w_final.forward(states.clone());
+        let v = dense(&self.v2, dense(&self.v1, states, None, Activation::Relu, None), None, Activation::Identity, None);
+        qmix_mix(qs, w1, b1, w_final, v)
     }
 }
 
@@ -120,7 +118,7 @@ impl KernelMlp {
     /// x [N, in] -> [K, N, out]
     pub fn forward(&self, x: Tensor<2>) -> Tensor<3> {
         let [n, _] = x.dims();
-        let mut y: Tensor<3> = self.first.forward(x).reshape([n, self.k, self.first_out]).swap_dims(0, 1);
+        let mut y: Tensor<3> = dense(&self.first, x, None, Activation::Identity, None).reshape([n, self.k, self.first_out]).swap_dims(0, 1);
         if let Some(mid) = &self.mid {
             y = mid.forward(relu(y));
         }

@@ -29,9 +29,11 @@ use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 
 use super::{AuxLayout, EncoderKind, LatentReduction, LmacConfig};
 use crate::agent::{FusedGru, RnnAgent};
+use crate::agent_input::agent_input;
 use crate::config::LearnConfig;
-use crate::dense::{dense, Activation, LAYER_NORM_EPSILON};
+use crate::dense::{dense, dense_with, Activation, LAYER_NORM_EPSILON};
 use crate::init::linear;
+use crate::latent_gate::latent_gate;
 use crate::methods::{linear_rows, AuxTerm, MethodHooks, TrainContext};
 use crate::window_attention::window_attention;
 use crate::{InputLayout, LearnRng};
@@ -169,16 +171,11 @@ impl LmacAgent {
     }
 
     /// The agent network's own input: the row without the message columns (unless it reads
-    /// them), then z; one concatenation (one copy of the rows).
+    /// them), then z; one pass over the rows (`agent_input`).
     fn agent_input(&self, u: Tensor<2>, z: Tensor<2>) -> Tensor<2> {
-        let n = u.dims()[0];
-        let m = self.cfg.msg_cols;
+        let m = if self.cfg.settings.raw_messages { 0 } else { self.cfg.msg_cols };
         let z = if self.cfg.settings.td_to_encoder { z } else { z.detach() };
-        if self.cfg.settings.raw_messages || m == 0 {
-            Tensor::cat(vec![u, z], 1)
-        } else {
-            Tensor::cat(vec![u.clone().slice([0..n, 0..self.obs_dim]), u.slice([0..n, self.obs_dim + m..self.in_width]), z], 1)
-        }
+        agent_input(u, self.obs_dim..self.obs_dim + m, z)
     }
 
     /// One acting step (deterministic).
@@ -397,12 +394,14 @@ impl LmacAgent {
     }
 }
 
-/// z = sigmoid(W_q x . W_k c) * W_v c, c = h + x the carried state.
+/// z = sigmoid(W_q x . W_k c) * W_v c, c = h + x the carried state. The key and value are one
+/// gemm (both read c), and the gate's arithmetic one operation (`latent_gate`).
 fn gate(g: &GruGateEncoder, x: Tensor<2>, c: Tensor<2>) -> Tensor<2> {
     let q = dense(&g.query, x, None, Activation::Identity, None);
-    let k = dense(&g.key, c.clone(), None, Activation::Identity, None);
-    let score = sigmoid((q * k).sum_dim(1));
-    dense(&g.value, c, None, Activation::Identity, None) * score
+    let bias = |l: &Linear| l.bias.as_ref().expect("the gate's layers have biases").val();
+    let w_kv = Tensor::cat(vec![g.key.weight.val(), g.value.weight.val()], 1);
+    let b_kv = Tensor::cat(vec![bias(&g.key), bias(&g.value)], 0);
+    latent_gate(q, dense_with(w_kv, b_kv, c, None, Activation::Identity, None))
 }
 
 /// Multi-head scaled dot-product attention from `x` (the current embedding) to `entries`
