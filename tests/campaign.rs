@@ -1,8 +1,9 @@
 //! `lmac campaign` end to end with tiny budgets on LBF: a two-stage grid created and trained in
 //! order, interrupted and resumed, its status and time left, a cell stopped at the campaign's
 //! time limit and kept as reduced, a failed cell recorded and retried, cells whose settings no
-//! longer match the campaign's rewritten or retrained (one that failed at step 0 included), the
-//! results page beside reference values,
+//! longer match the campaign's rewritten or retrained (one that failed at step 0 included), a
+//! tree restored from its export (partly trained cells restart), the results page beside
+//! reference values,
 //! and bad campaign files refused with the file and the field named.
 
 use lmac_e2e::harness::{lmac, wait_for};
@@ -62,6 +63,13 @@ fn campaign(dir: &Path, args: &[&str]) -> Output {
     c.output().unwrap()
 }
 
+/// `lmac campaign run c.toml` in `dir`, in the background (to be interrupted).
+fn spawn_campaign_run(dir: &Path) -> std::process::Child {
+    let mut c = lmac();
+    c.args(["campaign", "run", "c.toml"]).current_dir(dir).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped());
+    c.spawn().unwrap()
+}
+
 fn text(o: &Output) -> String {
     format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
 }
@@ -105,15 +113,7 @@ fn a_campaign_trains_its_grid_in_order_resumes_and_reports_beside_the_reference(
     assert!(dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/experiment.json").exists());
 
     // Interrupted during the next cell, then rerun: it resumes from its checkpoint.
-    let mut child = lmac();
-    let child = child
-        .args(["campaign", "run", "c.toml"])
-        .current_dir(&dir)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let child = spawn_campaign_run(&dir);
     let vdn0 = dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/runs/vdn/seed0");
     let ck = wait_for(Duration::from_secs(240), || vdn0.join("checkpoint/state.json").exists().then_some(()));
     assert!(ck.is_some(), "the second cell wrote a checkpoint");
@@ -229,6 +229,43 @@ fn a_cell_that_failed_at_step_0_trains_under_changed_settings() {
     assert!(std::fs::read_to_string(&cfg).unwrap().contains(&lr));
     let st = text(&campaign(&dir, &["status", "c.toml"]));
     assert!(st.contains("1 finished"), "{st}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A tree restored from its export on another machine (small files only, no checkpoints): its
+/// finished cells stay finished, a partly trained one cannot resume, so it is set aside under
+/// `superseded/` and trains from the start.
+#[test]
+fn a_tree_restored_from_its_export_keeps_finished_cells_and_restarts_partial_ones() {
+    let dir = fresh_dir("lmac-campaign-restored");
+    campaign_file(&dir, "", "6000");
+    assert!(campaign(&dir, &["run", "c.toml", "--max-cells", "1"]).status.success());
+    // The next cell interrupted once it has a checkpoint past step 0 (a run interrupted keeps
+    // the metrics up to its last checkpoint).
+    let child = spawn_campaign_run(&dir);
+    let vdn0 = dir.join("tree/short/lbf_8x8-2p-2f-s1-coop/runs/vdn/seed0");
+    let logged = || {
+        let t = std::fs::read_to_string(vdn0.join("metrics.csv")).ok()?;
+        let t_env: u64 = t.lines().last()?.split(',').next()?.parse().ok()?;
+        (t_env >= 1000).then_some(())
+    };
+    let ok = wait_for(Duration::from_secs(240), logged);
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let stopped = child.wait_with_output().unwrap();
+    assert!(ok.is_some(), "the second cell logged steps: {}", text(&stopped));
+    assert!(campaign(&dir, &["report", "c.toml", "--export", "copy"]).status.success());
+
+    // The copy as the tree on a new machine.
+    let st = text(&campaign(&dir, &["status", "c.toml", "--out", "copy"]));
+    assert!(st.contains("1 finished, 0 reduced, 1 partly trained"), "{st}");
+    let run = campaign(&dir, &["run", "c.toml", "--out", "copy", "--max-cells", "1"]);
+    let t = text(&run);
+    assert!(run.status.success(), "{t}");
+    assert!(t.contains("vdn/seed0 trained") && t.contains("but has no checkpoint to resume from"), "{t}");
+    let st = text(&campaign(&dir, &["status", "c.toml", "--out", "copy"]));
+    assert!(st.contains("2 finished"), "the finished cell kept, the partial one trained from the start: {st}");
+    let set_aside = std::fs::read_dir(dir.join("copy/superseded")).unwrap().next().unwrap().unwrap().path();
+    assert!(set_aside.join("short/lbf_8x8-2p-2f-s1-coop/vdn/seed0/metrics.csv").exists(), "its first steps are kept");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -367,6 +367,20 @@ impl Campaign {
         }
         let superseded = self.out.join("superseded").join(lmac_run::run_dir::stamp());
         for cell in self.cells() {
+            // A partly trained cell whose checkpoint is not here (a tree restored from an export
+            // on another machine, say) cannot resume: its steps so far are set aside and it
+            // trains from the start.
+            if let Ok(CellState::Partial { t_env, .. }) = cell_state(&cell) {
+                if !checkpoint_exists(&checkpoint_dir(&cell.dir)) {
+                    let to = set_aside(&cell, &superseded)?;
+                    eprintln!(
+                        "lmac: campaign: cell {} trained {t_env} steps but has no checkpoint to resume from: moved to {}; it trains from the start",
+                        cell.id,
+                        to.display()
+                    );
+                    continue;
+                }
+            }
             let changed = self.settings_changed(&cell)?;
             if changed.is_empty() {
                 continue;
@@ -388,9 +402,7 @@ impl Campaign {
                 drop(lock);
             } else if retrain_changed {
                 drop(lock);
-                let to = superseded.join(&cell.id);
-                std::fs::create_dir_all(to.parent().expect("a cell id has folders"))?;
-                std::fs::rename(&cell.dir, &to).with_context(|| format!("moving {} to {}", cell.dir.display(), to.display()))?;
+                let to = set_aside(&cell, &superseded)?;
                 eprintln!(
                     "lmac: campaign: cell {} trained with other settings ({what}): moved to {}; it trains again",
                     cell.id,
@@ -491,6 +503,14 @@ fn check(f: &CampaignFile) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Move a cell's whole run directory to `<superseded>/<cell id>`; returns where it went.
+fn set_aside(cell: &Cell, superseded: &Path) -> Result<PathBuf> {
+    let to = superseded.join(&cell.id);
+    std::fs::create_dir_all(to.parent().expect("a cell id has folders"))?;
+    std::fs::rename(&cell.dir, &to).with_context(|| format!("moving {} to {}", cell.dir.display(), to.display()))?;
+    Ok(to)
 }
 
 /// Where a cell stands, read from its directory.
