@@ -1,6 +1,6 @@
 //! What the hand-written training kernels share (`gru_sequence.rs`, `window_attention.rs`):
 //! reading a CPU backend tensor on the host, a strided gemm call, a vectorizable exp, and
-//! running a loop compiled for AVX2 + FMA when the CPU has them.
+//! running a loop compiled for AVX-512 or AVX2 + FMA when the CPU has them.
 // burn marks its ndarray backend deprecated; the `ndarray` feature still selects it.
 #![cfg_attr(feature = "ndarray", allow(deprecated))]
 
@@ -196,45 +196,48 @@ pub(crate) fn tanh_approx(x: f32) -> f32 {
     1.0 - 2.0 / (exp_approx(2.0 * x) + 1.0)
 }
 
-/// Run `body` compiled for AVX2 + FMA when the CPU has them (the crate is built for the
-/// baseline x86-64, whose vectors are 4 wide), else as built.
+/// Run `body` compiled for AVX-512 when the CPU has it, else for AVX2 + FMA when it has them
+/// (the crate is built for the baseline x86-64, whose vectors are 4 wide), else as built.
 macro_rules! with_simd {
-    ($body:ident::<$d:literal>($($arg:expr),* $(,)?)) => {{
+    ($body:ident::<$d:literal>($($arg:expr),* $(,)?)) => {
+        $crate::host_kernel::with_simd!(@run $body::<$d>($($arg),*))
+    };
+    ($body:ident($($arg:expr),* $(,)?)) => {
+        $crate::host_kernel::with_simd!(@run $body($($arg),*))
+    };
+    (@run $call:expr) => {{
         #[cfg(target_arch = "x86_64")]
         {
+            #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma")]
+            unsafe fn widest<F: FnOnce()>(f: F) {
+                f()
+            }
             #[target_feature(enable = "avx2,fma")]
             unsafe fn wide<F: FnOnce()>(f: F) {
                 f()
             }
-            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            let has = |f: &str| match f {
+                "avx512" => {
+                    std::arch::is_x86_feature_detected!("avx512f")
+                        && std::arch::is_x86_feature_detected!("avx512vl")
+                        && std::arch::is_x86_feature_detected!("avx512bw")
+                        && std::arch::is_x86_feature_detected!("avx512dq")
+                }
+                _ => std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma"),
+            };
+            if has("avx512") && has("avx2") {
+                // SAFETY: every feature enabled was detected on this CPU at run time.
+                unsafe { widest(|| $call) };
+            } else if has("avx2") {
                 // SAFETY: both features were detected on this CPU at run time.
-                unsafe { wide(|| $body::<$d>($($arg),*)) };
+                unsafe { wide(|| $call) };
             } else {
-                $body::<$d>($($arg),*);
+                $call;
             }
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            $body::<$d>($($arg),*);
-        }
-    }};
-    ($body:ident($($arg:expr),* $(,)?)) => {{
-        #[cfg(target_arch = "x86_64")]
-        {
-            #[target_feature(enable = "avx2,fma")]
-            unsafe fn wide<F: FnOnce()>(f: F) {
-                f()
-            }
-            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-                // SAFETY: both features were detected on this CPU at run time.
-                unsafe { wide(|| $body($($arg),*)) };
-            } else {
-                $body($($arg),*);
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            $body($($arg),*);
+            $call;
         }
     }};
 }
