@@ -392,10 +392,9 @@ impl Learner {
         let dev = self.device.clone();
         let ad = dev.clone().autodiff();
 
-        // Every step's inputs, time-major [T * B * n, iw]: the batch's own layout, one copy.
-        let step_inputs = |device: &Device| -> Tensor<2> {
-            Tensor::from_data(TensorData::new(batch.inputs[..t * b * n * iw].to_vec(), [t * b * n, iw]), device)
-        };
+        // Every step's inputs, time-major [T * B * n, iw]: the batch's own layout, one copy that
+        // the target unroll reads as it is and the online unroll with autodiff (the same buffer).
+        let inputs: Tensor<2> = Tensor::from_data(TensorData::new(batch.inputs[..t * b * n * iw].to_vec(), [t * b * n, iw]), &dev);
         let actions_i: Vec<i64> = batch.actions.iter().map(|&x| x as i64).collect();
         let actions_t = |device: &Device| -> Tensor<4, Int> { Tensor::from_data(TensorData::new(actions_i.clone(), [t, b, n, 1]), device) };
         let unavail: Vec<bool> = batch.avail.iter().map(|&x| x == 0).collect();
@@ -437,7 +436,7 @@ impl Learner {
                 }
             }
             let _fill = Fill(&greedy_cell);
-            let out = self.target.agent.unroll_target_stacked(step_inputs(&dev), t, target_seed);
+            let out = self.target.agent.unroll_target_stacked(inputs.clone(), t, target_seed);
             let greedy = out.clone().reshape([t, b, n, a]).mask_fill(unavail_t.clone(), -1e9).argmax(3).reshape([t, b * n]);
             let _ = greedy_cell.set(Some(Tensor::from_data(greedy.into_data(), &ad)));
             out
@@ -445,13 +444,13 @@ impl Learner {
         let ((mac_out, aux), target_out) = if parallel_target {
             std::thread::scope(|s| {
                 let target = s.spawn(target_unroll);
-                let online = net.agent.unroll_stacked(step_inputs(&ad), t, Some(&ctx));
+                let online = net.agent.unroll_stacked(inputs.clone().autodiff(), t, Some(&ctx));
                 (online, target.join().expect("target unroll thread panicked"))
             })
         } else {
             // The target first: the online unroll's losses may read its greedy actions.
             let target = target_unroll();
-            (net.agent.unroll_stacked(step_inputs(&ad), t, Some(&ctx)), target)
+            (net.agent.unroll_stacked(inputs.clone().autodiff(), t, Some(&ctx)), target)
         };
         let mac_out: Tensor<4> = mac_out.reshape([t, b, n, a]);
         let chosen = mac_out.clone().gather(3, actions_t(&ad)).reshape([nb, n]);
