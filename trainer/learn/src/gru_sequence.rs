@@ -371,8 +371,8 @@ fn gates_forward(
         for j in 0..h {
             let rj = sigmoid(gi_r[j] + gh_r[j]);
             let zj = sigmoid(gi_z[j] + gh_z[j]);
-            let cj = tanh_approx(gi_n[j] + rj * gh_n[j]);
-            out[j] = cj + zj * (prev[j] - cj);
+            let cj = tanh_approx(rj.mul_add(gh_n[j], gi_n[j]));
+            out[j] = zj.mul_add(prev[j] - cj, cj);
             r[j] = rj;
             z[j] = zj;
             c[j] = cj;
