@@ -7,9 +7,9 @@
 //! to align it), the bias, the ReLU, the dropout mask's product, and for a LayerNorm nine more
 //! (burn's autodiff runs the backend's decomposed LayerNorm and differentiates every step), and
 //! backward about as many again. Over LMAC's [17,600 x 64] rows these passes cost more than the
-//! layers' matmuls. Here the forward is one gemm into a buffer that starts as the bias, then one
-//! pass for the activation and the mask; backward is one pass for the activation's and mask's
-//! derivative, the two gemms, and one pass for the LayerNorm's.
+//! layers' matmuls. Here the forward is one gemm into a fresh buffer it writes without zeroing
+//! (`matmul_new`), then one pass for the bias, the activation and the mask; backward is one pass
+//! for the activation's and mask's derivative, the two gemms, and one pass for the LayerNorm's.
 //!
 //! The dropout mask is drawn by the caller from its generator in row-major order, as
 //! [`crate::methods::dropout`] draws it, so a seed gives the same mask either way; backward needs
@@ -31,7 +31,7 @@ use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
 use burn::nn::{LayerNorm, Linear};
 use burn::tensor::{Tensor, TensorData};
 
-use crate::host_kernel::{add_column_sums, host, host_ref, host_values, matmul, register, with_simd, HostValues};
+use crate::host_kernel::{add_column_sums, host, host_ref, host_values, matmul_new, register, with_simd, HostValues};
 use crate::LearnRng;
 
 /// The LayerNorms a dense layer reads are built with this epsilon (burn's default), which the
@@ -224,14 +224,7 @@ fn forward_on<B: Backend>(inputs: Inputs<B>, relu: bool, save: bool) -> (FloatTe
         let x = host_ref::<B>(&x);
         layer_norm(&x, width, &host_ref::<B>(&gamma), &host_ref::<B>(&beta))
     });
-    let mut y = Vec::with_capacity(rows * out);
-    {
-        let bias = host_ref::<B>(&b);
-        for _ in 0..rows {
-            y.extend_from_slice(&bias);
-        }
-    }
-    {
+    let mut y = {
         let x_host;
         let a: &[f32] = match &normed {
             Some(n) => &n.output,
@@ -240,12 +233,10 @@ fn forward_on<B: Backend>(inputs: Inputs<B>, relu: bool, save: bool) -> (FloatTe
                 &x_host
             }
         };
-        matmul(rows, out, width, &mut y, out, true, a, (width, 1), &host_ref::<B>(&w), (out, 1));
-    }
+        matmul_new(rows, out, width, a, (width, 1), &host_ref::<B>(&w), (out, 1))
+    };
     let mask_host = (m_len > 0).then(|| host_ref::<B>(&mask));
-    if relu || mask_host.is_some() {
-        with_simd!(activate(&mut y, relu, mask_host.as_deref()));
-    }
+    with_simd!(activate(&mut y, &host_ref::<B>(&b), relu, mask_host.as_deref()));
     drop(mask_host);
     let y = B::float_from_data(TensorData::new(y, [rows, out]), &device);
     if !save {
@@ -293,14 +284,25 @@ fn layer_norm_rows(x: &[f32], width: usize, gamma: &[f32], beta: &[f32], normed:
     }
 }
 
-/// y = relu(y) and/or y *= mask, in place.
+/// y = dropout(act(y + bias)) in place, rows of bias.len(): the bias, then the ReLU and/or the
+/// mask, in one pass.
 #[inline(always)]
-fn activate(y: &mut [f32], relu: bool, mask: Option<&[f32]>) {
-    match (relu, mask) {
-        (true, Some(m)) => y.iter_mut().zip(m).for_each(|(v, m)| *v = v.max(0.0) * m),
-        (true, None) => y.iter_mut().for_each(|v| *v = v.max(0.0)),
-        (false, Some(m)) => y.iter_mut().zip(m).for_each(|(v, m)| *v *= m),
-        (false, None) => {}
+fn activate(y: &mut [f32], bias: &[f32], relu: bool, mask: Option<&[f32]>) {
+    let out = bias.len();
+    if out == 0 {
+        return;
+    }
+    let masks = mask.map(|m| m.chunks_exact(out));
+    let rows = y.chunks_exact_mut(out);
+    match (relu, masks) {
+        (true, Some(ms)) => rows.zip(ms).for_each(|(y, m)| {
+            y.iter_mut().zip(bias).zip(m).for_each(|((v, b), m)| *v = (*v + b).max(0.0) * m);
+        }),
+        (true, None) => rows.for_each(|y| y.iter_mut().zip(bias).for_each(|(v, b)| *v = (*v + b).max(0.0))),
+        (false, Some(ms)) => rows.zip(ms).for_each(|(y, m)| {
+            y.iter_mut().zip(bias).zip(m).for_each(|((v, b), m)| *v = (*v + b) * m);
+        }),
+        (false, None) => rows.for_each(|y| y.iter_mut().zip(bias).for_each(|(v, b)| *v += b)),
     }
 }
 
@@ -369,14 +371,12 @@ impl<B: Backend> Backward<B, 5> for DenseBackward {
         }
         if node_w.is_some() {
             // dW = input^T d_pre (input read transposed)
-            let mut d_w = vec![0.0f32; width * out];
-            matmul(width, out, rows, &mut d_w, out, false, &s.input, (1, width), &d_pre, (out, 1));
+            let d_w = matmul_new(width, out, rows, &s.input, (1, width), &d_pre, (out, 1));
             parts.push((node_w, d_w, vec![width, out]));
         }
         if node_x.is_some() || node_gamma.is_some() || node_beta.is_some() {
             // d(input) = d_pre W^T (W [in, out] read transposed)
-            let mut d_in = vec![0.0f32; rows * width];
-            matmul(rows, width, out, &mut d_in, width, false, &d_pre, (out, 1), &s.w, (1, out));
+            let d_in = matmul_new(rows, width, out, &d_pre, (out, 1), &s.w, (1, out));
             match &s.norm {
                 None => parts.push((node_x, d_in, vec![rows, width])),
                 Some((xhat, rstd, gamma)) => {

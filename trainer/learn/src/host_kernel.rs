@@ -112,6 +112,57 @@ pub(crate) fn block_on<F: Future>(f: F) -> F::Output {
     }
 }
 
+/// lhs [m, k] * rhs [k, n] as a new row-major vector, strides as in [`matmul`]. gemm writes
+/// every value without reading any (its destination is not read when it does not accumulate), so
+/// the vector is not zeroed first: a pass over the output saved.
+pub(crate) fn matmul_new(
+    m: usize,
+    n: usize,
+    k: usize,
+    lhs: &[f32],
+    lhs_strides: (usize, usize),
+    rhs: &[f32],
+    rhs_strides: (usize, usize),
+) -> Vec<f32> {
+    let len = m * n;
+    if len == 0 || k == 0 {
+        return vec![0.0; len];
+    }
+    let ((lhs_rs, lhs_cs), (rhs_rs, rhs_cs)) = (lhs_strides, rhs_strides);
+    assert!(lhs.len() > (m - 1) * lhs_rs + (k - 1) * lhs_cs, "matmul: lhs too small");
+    assert!(rhs.len() > (k - 1) * rhs_rs + (n - 1) * rhs_cs, "matmul: rhs too small");
+    let mut dst = Vec::<f32>::with_capacity(len);
+    // SAFETY: the asserts keep every index gemm reads inside lhs and rhs; dst's allocation holds
+    // m * n values at row stride n; with read_dst false gemm writes each of them and reads none
+    // (gemm-common: alpha is zeroed and never applied to dst), so the length is set after the
+    // writes and no uninitialised value is ever read.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            n as isize,
+            false,
+            lhs.as_ptr(),
+            lhs_cs as isize,
+            lhs_rs as isize,
+            rhs.as_ptr(),
+            rhs_cs as isize,
+            rhs_rs as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+        dst.set_len(len);
+    }
+    dst
+}
+
 /// dst [m, n] (row stride `dst_rs`) = (accumulate ? dst : 0) + lhs [m, k] * rhs [k, n], with
 /// arbitrary row/column strides for lhs and rhs (a transposed operand is a swap of strides).
 #[allow(clippy::too_many_arguments)]
@@ -284,6 +335,27 @@ mod tests {
 
     fn exps(xs: &[f32], out: &mut [f32]) {
         out.iter_mut().zip(xs).for_each(|(o, x)| *o = exp_approx(*x));
+    }
+
+    /// A fresh product equals the accumulating one into zeros, for the shapes that take gemm's
+    /// blocked, matrix-vector and outer-product paths and for transposed operands, with the
+    /// allocator handed memory full of NaN first (a value read from the unwritten buffer would
+    /// show as NaN).
+    #[test]
+    fn a_fresh_product_reads_nothing_it_did_not_write() {
+        let mut rng = crate::LearnRng::seed_from(4);
+        for (m, n, k) in [(37, 19, 70), (64, 1, 9), (1, 33, 12), (17, 5, 2), (300, 64, 259), (3, 4, 0)] {
+            let lhs: Vec<f32> = (0..m * k).map(|_| rng.uniform() - 0.5).collect();
+            let rhs: Vec<f32> = (0..k * n).map(|_| rng.uniform() - 0.5).collect();
+            for transposed in [false, true] {
+                let lhs_strides = if transposed { (1, m) } else { (k, 1) };
+                let mut want = vec![0.0f32; m * n];
+                matmul(m, n, k, &mut want, n, false, &lhs, lhs_strides, &rhs, (n, 1));
+                drop(std::hint::black_box(vec![f32::NAN; m * n]));
+                let got = matmul_new(m, n, k, &lhs, lhs_strides, &rhs, (n, 1));
+                assert_eq!(got, want, "{m} x {n} x {k}, lhs transposed {transposed}");
+            }
+        }
     }
 
     /// e^x to a relative 3e-7 of f64's over the clamped range, as built and as `with_simd!` runs
