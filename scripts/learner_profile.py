@@ -23,9 +23,12 @@ import numpy as np
 ONE_O = ["--shape", "1o10b", "--actions", "7"]
 CASES = {
     "qmix": ONE_O + ["--input", "103", "--mixers", "qmix"],
+    "vdn": ONE_O + ["--input", "103", "--mixers", "vdn"],
+    "lmac-window": ONE_O + ["--input", "159", "--mixers", "qmix", "--algo", "lmac", "--messages", "56", "--critical", "4"],
     "lmac-paper": ONE_O + ["--input", "159", "--mixers", "qmix", "--algo", "lmac", "--messages", "56", "--critical", "4",
                            "--method", 'encoder="gru-gate"', "--method", "mask_consistency=false",
                            "--method", "dropout_when_acting=true"],
+    "qmix-lbf8x8": ["--shape", "lbf8x8", "--mixers", "qmix"],
 }
 
 # (group, pattern on the symbol), first match wins
@@ -101,7 +104,7 @@ def main():
     ap.add_argument("binary")
     ap.add_argument("out")
     ap.add_argument("--updates", type=int, default=60)
-    ap.add_argument("--only", default=",".join(CASES))
+    ap.add_argument("--only", default=",".join(CASES), help="cases, comma separated: " + ", ".join(CASES))
     a = ap.parse_args()
     out = {"command": f"python scripts/learner_profile.py LMAC {a.out} --updates {a.updates} --only {a.only}",
            "what": "perf samples of `lmac bench learner` on one thread, grouped by what each function does; "
