@@ -8,8 +8,9 @@
 //! (burn's autodiff runs the backend's decomposed LayerNorm and differentiates every step), and
 //! backward about as many again. Over LMAC's [17,600 x 64] rows these passes cost more than the
 //! layers' matmuls. Here the forward is one gemm into a fresh buffer it writes without zeroing
-//! (`matmul_new`), then one pass for the bias, the activation and the mask; backward is one pass
-//! for the activation's and mask's derivative, the two gemms, and one pass for the LayerNorm's.
+//! (`matmul_new`), then one pass for the bias, the activation and the mask (a layer with neither
+//! has the gemm add onto rows that start as the bias); backward is one pass for the activation's
+//! and mask's derivative, the two gemms, and one pass for the LayerNorm's.
 //!
 //! The dropout mask is drawn by the caller from its generator in row-major order, as
 //! [`crate::methods::dropout`] draws it, so a seed gives the same mask either way; backward needs
@@ -31,7 +32,7 @@ use burn::backend::{backend_extension, Backend, Dispatch, TensorMetadata};
 use burn::nn::{LayerNorm, Linear};
 use burn::tensor::{Tensor, TensorData};
 
-use crate::host_kernel::{add_column_sums, host, host_ref, host_values, matmul_new, register, with_simd, HostValues};
+use crate::host_kernel::{add_column_sums, host, host_ref, host_values, matmul, matmul_new, register, with_simd, HostValues};
 use crate::LearnRng;
 
 /// The LayerNorms a dense layer reads are built with this epsilon (burn's default), which the
@@ -233,11 +234,24 @@ fn forward_on<B: Backend>(inputs: Inputs<B>, relu: bool, save: bool) -> (FloatTe
                 &x_host
             }
         };
-        matmul_new(rows, out, width, a, (width, 1), &host_ref::<B>(&w), (out, 1))
+        let bias = host_ref::<B>(&b);
+        if relu || m_len > 0 {
+            // a pass follows anyway: the gemm writes a fresh buffer, the pass adds the bias
+            matmul_new(rows, out, width, a, (width, 1), &host_ref::<B>(&w), (out, 1))
+        } else {
+            // no pass follows: the gemm adds onto rows that start as the bias
+            let mut y = Vec::with_capacity(rows * out);
+            for _ in 0..rows {
+                y.extend_from_slice(&bias);
+            }
+            matmul(rows, out, width, &mut y, out, true, a, (width, 1), &host_ref::<B>(&w), (out, 1));
+            y
+        }
     };
-    let mask_host = (m_len > 0).then(|| host_ref::<B>(&mask));
-    with_simd!(activate(&mut y, &host_ref::<B>(&b), relu, mask_host.as_deref()));
-    drop(mask_host);
+    if relu || m_len > 0 {
+        let mask_host = (m_len > 0).then(|| host_ref::<B>(&mask));
+        with_simd!(activate(&mut y, &host_ref::<B>(&b), relu, mask_host.as_deref()));
+    }
     let y = B::float_from_data(TensorData::new(y, [rows, out]), &device);
     if !save {
         return (y, None);
