@@ -225,7 +225,7 @@ fn forward_on<B: Backend>(inputs: Inputs<B>, relu: bool, save: bool) -> (FloatTe
         let x = host_ref::<B>(&x);
         layer_norm(&x, width, &host_ref::<B>(&gamma), &host_ref::<B>(&beta))
     });
-    let mut y = {
+    let y = {
         let x_host;
         let a: &[f32] = match &normed {
             Some(n) => &n.output,
@@ -234,24 +234,23 @@ fn forward_on<B: Backend>(inputs: Inputs<B>, relu: bool, save: bool) -> (FloatTe
                 &x_host
             }
         };
-        let bias = host_ref::<B>(&b);
+        let (w_host, bias) = (host_ref::<B>(&w), host_ref::<B>(&b));
         if relu || m_len > 0 {
             // a pass follows anyway: the gemm writes a fresh buffer, the pass adds the bias
-            matmul_new(rows, out, width, a, (width, 1), &host_ref::<B>(&w), (out, 1))
+            let mut y = matmul_new(rows, out, width, a, (width, 1), &w_host, (out, 1));
+            let mask_host = (m_len > 0).then(|| host_ref::<B>(&mask));
+            with_simd!(activate(&mut y, &bias, relu, mask_host.as_deref()));
+            y
         } else {
             // no pass follows: the gemm adds onto rows that start as the bias
             let mut y = Vec::with_capacity(rows * out);
             for _ in 0..rows {
                 y.extend_from_slice(&bias);
             }
-            matmul(rows, out, width, &mut y, out, true, a, (width, 1), &host_ref::<B>(&w), (out, 1));
+            matmul(rows, out, width, &mut y, out, true, a, (width, 1), &w_host, (out, 1));
             y
         }
     };
-    if relu || m_len > 0 {
-        let mask_host = (m_len > 0).then(|| host_ref::<B>(&mask));
-        with_simd!(activate(&mut y, &host_ref::<B>(&b), relu, mask_host.as_deref()));
-    }
     let y = B::float_from_data(TensorData::new(y, [rows, out]), &device);
     if !save {
         return (y, None);

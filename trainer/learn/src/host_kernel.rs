@@ -128,36 +128,13 @@ pub(crate) fn matmul_new(
     if len == 0 || k == 0 {
         return vec![0.0; len];
     }
-    let ((lhs_rs, lhs_cs), (rhs_rs, rhs_cs)) = (lhs_strides, rhs_strides);
-    assert!(lhs.len() > (m - 1) * lhs_rs + (k - 1) * lhs_cs, "matmul: lhs too small");
-    assert!(rhs.len() > (k - 1) * rhs_rs + (n - 1) * rhs_cs, "matmul: rhs too small");
     let mut dst = Vec::<f32>::with_capacity(len);
-    // SAFETY: the asserts keep every index gemm reads inside lhs and rhs; dst's allocation holds
+    // SAFETY: gemm_raw checks lhs and rhs; dst's allocation holds
     // m * n values at row stride n; with read_dst false gemm writes each of them and reads none
     // (gemm-common: alpha is zeroed and never applied to dst), so the length is set after the
     // writes and no uninitialised value is ever read.
     unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            1,
-            n as isize,
-            false,
-            lhs.as_ptr(),
-            lhs_cs as isize,
-            lhs_rs as isize,
-            rhs.as_ptr(),
-            rhs_cs as isize,
-            rhs_rs as isize,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
+        gemm_raw(m, n, k, dst.as_mut_ptr(), n, false, lhs, lhs_strides, rhs, rhs_strides);
         dst.set_len(len);
     }
     dst
@@ -190,16 +167,40 @@ pub(crate) fn matmul(
         }
         return;
     }
+    // SAFETY: the assert above keeps every index of dst inside it (gemm_raw checks lhs and rhs);
+    // dst is borrowed mutably and does not alias lhs or rhs.
+    unsafe { gemm_raw(m, n, k, dst.as_mut_ptr(), dst_rs, accumulate, lhs, (lhs_rs, lhs_cs), rhs, (rhs_rs, rhs_cs)) }
+}
+
+/// The one gemm call behind [`matmul`] and [`matmul_new`]: dst [m, n] at row stride `dst_rs`
+/// (read only when `accumulate`), one thread; m, n and k at least 1. It checks that lhs and rhs
+/// hold every index it reads.
+///
+/// # Safety
+/// The allocation behind `dst` must hold every index [m, n] at row stride `dst_rs` reaches, and
+/// `dst` must not alias either operand.
+#[allow(clippy::too_many_arguments)]
+unsafe fn gemm_raw(
+    m: usize,
+    n: usize,
+    k: usize,
+    dst: *mut f32,
+    dst_rs: usize,
+    accumulate: bool,
+    lhs: &[f32],
+    (lhs_rs, lhs_cs): (usize, usize),
+    rhs: &[f32],
+    (rhs_rs, rhs_cs): (usize, usize),
+) {
     assert!(lhs.len() > (m - 1) * lhs_rs + (k - 1) * lhs_cs, "matmul: lhs too small");
     assert!(rhs.len() > (k - 1) * rhs_rs + (n - 1) * rhs_cs, "matmul: rhs too small");
-    // SAFETY: the asserts above keep every index gemm touches inside the three slices; dst is
-    // borrowed mutably and does not alias lhs or rhs.
+    // SAFETY: the asserts above for lhs and rhs, the caller's contract for dst.
     unsafe {
         gemm::gemm(
             m,
             n,
             k,
-            dst.as_mut_ptr(),
+            dst,
             1,
             dst_rs as isize,
             accumulate,
@@ -215,7 +216,7 @@ pub(crate) fn matmul(
             false,
             false,
             gemm::Parallelism::None,
-        );
+        )
     }
 }
 
